@@ -1,0 +1,49 @@
+import pytest
+import torch
+
+from torchtrack.boxes import (
+    box_iou,
+    box_iou_matrix,
+    check_boxes,
+    clip_boxes,
+    cxcywh_to_xywh,
+    xywh_to_cxcywh,
+    xywh_to_xyxy,
+    xyxy_to_xywh,
+)
+from torchtrack.errors import BoxError, ShapeError
+
+
+def test_round_trips():
+    b = torch.tensor([[1.0, 2.0, 3.0, 4.0], [0.5, 0.0, 10.0, 2.0]])
+    torch.testing.assert_close(xyxy_to_xywh(xywh_to_xyxy(b)), b)
+    torch.testing.assert_close(cxcywh_to_xywh(xywh_to_cxcywh(b)), b)
+    assert xywh_to_xyxy(b)[0].tolist() == [1.0, 2.0, 4.0, 6.0]
+
+
+def test_iou_hand_computed():
+    a = torch.tensor([0.0, 0.0, 10.0, 10.0])
+    b = torch.tensor([5.0, 0.0, 10.0, 10.0])  # overlap 50, union 150
+    assert box_iou(a, b).item() == pytest.approx(1 / 3)
+    assert box_iou(a, a).item() == pytest.approx(1.0)
+    assert box_iou(a, torch.tensor([20.0, 20.0, 1.0, 1.0])).item() == 0.0
+    m = box_iou_matrix(torch.stack([a, b]), torch.stack([a, b, a]))
+    assert m.shape == (2, 3)
+    assert m[1, 0].item() == pytest.approx(1 / 3)
+
+
+def test_check_boxes_errors():
+    with pytest.raises(BoxError, match=r"boxes\[1\].*size below"):
+        check_boxes(torch.tensor([[0.0, 0, 5, 5], [1.0, 1, 0, 5]]))
+    with pytest.raises(BoxError, match="not finite"):
+        check_boxes(torch.tensor([[float("nan"), 0, 5, 5]]))
+    with pytest.raises(BoxError, match="outside the 20x10 frame"):
+        check_boxes(torch.tensor([[30.0, 0, 5, 5]]), frame_size=(10, 20))
+    with pytest.raises(ShapeError, match=r"\(\.\.\., 4\)"):
+        check_boxes(torch.zeros(3, 5))
+    check_boxes(torch.tensor([[-2.0, -2, 5, 5]]), frame_size=(10, 20))  # partly inside is fine
+
+
+def test_clip_boxes():
+    b = torch.tensor([[-5.0, 2.0, 10.0, 20.0]])
+    assert clip_boxes(b, (10, 8)).tolist() == [[0.0, 2.0, 5.0, 8.0]]

@@ -1,0 +1,5 @@
+import sys
+
+from torchtrack.cli import main
+
+sys.exit(main())

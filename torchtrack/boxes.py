@@ -1,0 +1,148 @@
+"""Box formats, IoU and validation.
+
+The one convention of the package: a box is ``x, y, w, h`` in pixels, ``(x, y)`` the top-left
+corner, 0-based, in the pixel grid of the frame it belongs to (pixel ``(i, j)`` covers
+``[j, j+1) x [i, i+1)``). Other formats exist only at the edges: ``xyxy`` (x1, y1, x2, y2,
+exclusive right/bottom) and ``cxcywh`` (centre, size). OTB files are 1-based; their loader
+subtracts 1.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchtrack.errors import BoxError, ShapeError
+
+__all__ = [
+    "box_area",
+    "box_iou",
+    "box_iou_matrix",
+    "check_boxes",
+    "clip_boxes",
+    "cxcywh_to_xywh",
+    "xywh_to_cxcywh",
+    "xywh_to_xyxy",
+    "xyxy_to_xywh",
+]
+
+
+def _check_last4(boxes: torch.Tensor, name: str = "boxes") -> None:
+    if not isinstance(boxes, torch.Tensor):
+        raise ShapeError(f"{name} must be a torch.Tensor, got {type(boxes).__name__}")
+    if boxes.ndim == 0 or boxes.shape[-1] != 4:
+        raise ShapeError(f"{name} must have shape (..., 4), got {tuple(boxes.shape)}")
+
+
+def xywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:
+    """``(..., 4)`` x, y, w, h -> x1, y1, x2, y2."""
+    _check_last4(boxes)
+    x, y, w, h = boxes.unbind(-1)
+    return torch.stack((x, y, x + w, y + h), dim=-1)
+
+
+def xyxy_to_xywh(boxes: torch.Tensor) -> torch.Tensor:
+    """``(..., 4)`` x1, y1, x2, y2 -> x, y, w, h."""
+    _check_last4(boxes)
+    x1, y1, x2, y2 = boxes.unbind(-1)
+    return torch.stack((x1, y1, x2 - x1, y2 - y1), dim=-1)
+
+
+def xywh_to_cxcywh(boxes: torch.Tensor) -> torch.Tensor:
+    """``(..., 4)`` x, y, w, h -> centre x, centre y, w, h."""
+    _check_last4(boxes)
+    x, y, w, h = boxes.unbind(-1)
+    return torch.stack((x + w / 2, y + h / 2, w, h), dim=-1)
+
+
+def cxcywh_to_xywh(boxes: torch.Tensor) -> torch.Tensor:
+    """``(..., 4)`` centre x, centre y, w, h -> x, y, w, h."""
+    _check_last4(boxes)
+    cx, cy, w, h = boxes.unbind(-1)
+    return torch.stack((cx - w / 2, cy - h / 2, w, h), dim=-1)
+
+
+def box_area(boxes: torch.Tensor) -> torch.Tensor:
+    """Area of ``(..., 4)`` xywh boxes; negative sizes count as zero."""
+    _check_last4(boxes)
+    return boxes[..., 2].clamp(min=0) * boxes[..., 3].clamp(min=0)
+
+
+def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Element-wise IoU of broadcastable xywh boxes ``a (..., 4)`` and ``b (..., 4)``.
+
+    Returns ``(...)``; 0 where the union is empty. NaN boxes give NaN (callers treat NaN as
+    "target absent").
+    """
+    _check_last4(a, "a")
+    _check_last4(b, "b")
+    ax1, ay1, ax2, ay2 = xywh_to_xyxy(a).unbind(-1)
+    bx1, by1, bx2, by2 = xywh_to_xyxy(b).unbind(-1)
+    iw = (torch.minimum(ax2, bx2) - torch.maximum(ax1, bx1)).clamp(min=0)
+    ih = (torch.minimum(ay2, by2) - torch.maximum(ay1, by1)).clamp(min=0)
+    inter = iw * ih
+    union = box_area(a) + box_area(b) - inter
+    iou = inter / union.clamp(min=torch.finfo(inter.dtype).tiny if inter.is_floating_point() else 1)
+    return torch.where(union > 0, iou, torch.zeros_like(iou))
+
+
+def box_iou_matrix(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pairwise IoU: ``a (N, 4)``, ``b (M, 4)`` xywh -> ``(N, M)``."""
+    _check_last4(a, "a")
+    _check_last4(b, "b")
+    return box_iou(a[:, None, :], b[None, :, :])
+
+
+def check_boxes(
+    boxes: torch.Tensor,
+    frame_size: tuple[int, int] | None = None,
+    *,
+    name: str = "boxes",
+    min_size: float = 1.0,
+) -> None:
+    """Raise :class:`BoxError` unless every xywh box is finite, at least ``min_size`` pixels wide
+    and high, and (when ``frame_size = (H, W)`` is given) overlaps the frame.
+
+    The message names the first offending box by index. Use :func:`clip_boxes` to bring boxes
+    that only stick out of the frame back inside.
+    """
+    _check_last4(boxes, name)
+    if boxes.numel() == 0:
+        return
+    finite = torch.isfinite(boxes).all(-1)
+    if not bool(finite.all()):
+        i = _first_false(finite)
+        raise BoxError(f"{name}[{i}] is not finite: {boxes.reshape(-1, 4)[i].tolist()}")
+    small = (boxes[..., 2] >= min_size) & (boxes[..., 3] >= min_size)
+    if not bool(small.all()):
+        i = _first_false(small)
+        raise BoxError(
+            f"{name}[{i}] = {boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) has a size below "
+            f"{min_size} pixel(s); boxes need a positive width and height"
+        )
+    if frame_size is not None:
+        h_img, w_img = frame_size
+        x, y, w, h = boxes.unbind(-1)
+        inside = (x < w_img) & (y < h_img) & (x + w > 0) & (y + h > 0)
+        if not bool(inside.all()):
+            i = _first_false(inside)
+            raise BoxError(
+                f"{name}[{i}] = {boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) lies entirely "
+                f"outside the {w_img}x{h_img} frame"
+            )
+
+
+def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
+    """Clip xywh boxes ``(..., 4)`` to a frame of size ``(H, W)``; boxes fully outside get
+    zero size at the nearest border."""
+    _check_last4(boxes)
+    h_img, w_img = frame_size
+    xyxy = xywh_to_xyxy(boxes)
+    x1 = xyxy[..., 0].clamp(0, w_img)
+    y1 = xyxy[..., 1].clamp(0, h_img)
+    x2 = xyxy[..., 2].clamp(0, w_img)
+    y2 = xyxy[..., 3].clamp(0, h_img)
+    return xyxy_to_xywh(torch.stack((x1, y1, x2, y2), dim=-1))
+
+
+def _first_false(mask: torch.Tensor) -> int:
+    return int((~mask.reshape(-1)).nonzero()[0, 0])

@@ -1,0 +1,1 @@
+"""Detectors: window + features + classifier + calibrator; safe model files; scanning."""

@@ -1,0 +1,48 @@
+"""Typed exceptions. Every error a user can cause is one of these, with a message that says
+what was expected, what came, and which file or argument it concerns."""
+
+from __future__ import annotations
+
+
+class TorchTrackError(Exception):
+    """Base class of every error raised on purpose by torchtrack."""
+
+
+class ShapeError(TorchTrackError, ValueError):
+    """A tensor or array has the wrong shape, dtype or number of channels."""
+
+
+class BoxError(TorchTrackError, ValueError):
+    """A box has zero or negative size, is not finite, or lies outside the frame."""
+
+
+class ConfigError(TorchTrackError, ValueError):
+    """A configuration value or key is invalid, unknown or missing."""
+
+
+class DataError(TorchTrackError, ValueError):
+    """Input data is unusable: an empty folder, an unreadable image, NaN scores, bad labels."""
+
+
+class ModelFormatError(TorchTrackError, ValueError):
+    """A model file is truncated, edited, of an unknown format version or otherwise invalid."""
+
+
+class VideoError(TorchTrackError, OSError):
+    """A video, camera or frame folder cannot be opened or read."""
+
+
+class SequenceError(TorchTrackError, ValueError):
+    """A tracking sequence (frames + ground truth) is malformed."""
+
+
+class NotFittedError(TorchTrackError, RuntimeError):
+    """An estimator was used before ``fit``."""
+
+
+class FilterError(TorchTrackError, RuntimeError):
+    """A particle-filter step received an invalid likelihood (e.g. NaN)."""
+
+
+class TrackerError(TorchTrackError, RuntimeError):
+    """A tracker was used wrongly (e.g. ``update`` before ``init``) or failed."""

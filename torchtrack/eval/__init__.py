@@ -1,0 +1,1 @@
+"""Tracking evaluation: metrics, the evaluation harness, plots."""

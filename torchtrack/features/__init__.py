@@ -1,0 +1,1 @@
+"""Integral images and feature banks (Haar wavelets, centre-surround, pixel colour / texture)."""

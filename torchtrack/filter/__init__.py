@@ -1,0 +1,1 @@
+"""Batched particle filters: particle sets, resampling, motion models, SIR, SEIR."""

@@ -1,0 +1,1 @@
+"""Reading frames, videos, sequences and crops; writing results atomically."""

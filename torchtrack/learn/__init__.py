@@ -1,0 +1,1 @@
+"""Offline and online learning: boosting with feature selection, SVM export, calibration."""

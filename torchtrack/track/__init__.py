@@ -1,0 +1,1 @@
+"""Trackers: one interface (init / update -> TrackState) over filters and observation models."""
