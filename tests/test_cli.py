@@ -12,6 +12,9 @@ def test_help_lists_every_command():
 
 def test_module_entry_point_runs():
     out = subprocess.run(
-        [sys.executable, "-m", "torchtrack", "--version"], capture_output=True, text=True, check=True
+        [sys.executable, "-m", "torchtrack", "--version"],
+        capture_output=True,
+        text=True,
+        check=True,
     )
     assert out.stdout.startswith("torchtrack ")
