@@ -1,0 +1,93 @@
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.errors import ShapeError
+from torchtrack.features.integral import IntegralImage, integral_image, rgb_to_gray
+
+
+def loop_integral(img: np.ndarray) -> np.ndarray:
+    """Slow, obviously right reference: ii[y, x] = sum(img[:y, :x]) in float64."""
+    h, w = img.shape
+    out = np.zeros((h + 1, w + 1), dtype=np.float64)
+    for y in range(1, h + 1):
+        row = 0.0
+        for x in range(1, w + 1):
+            row += float(img[y - 1, x - 1])
+            out[y, x] = out[y - 1, x] + row
+    return out
+
+
+def test_matches_loop_reference_batched():
+    g = torch.Generator().manual_seed(0)
+    imgs = torch.randint(0, 256, (2, 3, 7, 9), dtype=torch.uint8, generator=g)
+    ii = integral_image(imgs)
+    assert ii.shape == (2, 3, 8, 10) and ii.dtype == torch.float64
+    for b in range(2):
+        for c in range(3):
+            np.testing.assert_array_equal(ii[b, c].numpy(), loop_integral(imgs[b, c].numpy()))
+
+
+def test_float_input_matches_loop():
+    g = torch.Generator().manual_seed(1)
+    imgs = torch.rand((1, 1, 5, 6), generator=g, dtype=torch.float32) * 255
+    ii = integral_image(imgs)
+    np.testing.assert_allclose(
+        ii[0, 0].numpy(), loop_integral(imgs[0, 0].double().numpy()), rtol=1e-12
+    )
+
+
+def test_exact_on_vga_against_cv2():
+    rng = np.random.default_rng(0)
+    # A worst case for float32: a bright VGA frame whose sums pass 2**24.
+    frame = rng.integers(200, 256, size=(480, 640), dtype=np.uint8)
+    ii = integral_image(torch.from_numpy(frame)[None, None])[0, 0].numpy()
+    ref = cv2.integral(frame, sdepth=cv2.CV_64F)
+    np.testing.assert_array_equal(ii, ref)
+    assert ii[-1, -1] > 2**24  # the float32 danger zone is really reached
+    ii2 = integral_image(torch.from_numpy(frame)[None, None], squared=True)[0, 0].numpy()
+    np.testing.assert_array_equal(ii2, cv2.integral2(frame, sdepth=cv2.CV_64F)[1])
+
+
+def test_batch_equals_single_runs():
+    g = torch.Generator().manual_seed(2)
+    imgs = torch.randint(0, 256, (4, 1, 11, 13), dtype=torch.uint8, generator=g)
+    whole = integral_image(imgs)
+    for b in range(4):
+        torch.testing.assert_close(
+            whole[b : b + 1], integral_image(imgs[b : b + 1]), rtol=0, atol=0
+        )
+
+
+def test_module_agrees_with_function():
+    imgs = torch.arange(24, dtype=torch.uint8).reshape(1, 2, 3, 4)
+    torch.testing.assert_close(
+        IntegralImage(squared=True)(imgs), integral_image(imgs, squared=True)
+    )
+
+
+def test_rgb_to_gray_matches_cv2():
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, size=(6, 5, 3), dtype=np.uint8)
+    ours = rgb_to_gray(torch.from_numpy(rgb).permute(2, 0, 1)[None])[0, 0].numpy()
+    ref = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    np.testing.assert_allclose(ours, ref, atol=0.51)  # cv2 rounds to uint8
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (torch.zeros(3, 4), r"\(B, C, H, W\)"),
+        (np.zeros((1, 1, 2, 2)), "torch.Tensor"),
+        (torch.zeros(1, 1, 2, 2, dtype=torch.bool), "integer or floating"),
+    ],
+)
+def test_bad_input(bad, match):
+    with pytest.raises(ShapeError, match=match):
+        integral_image(bad)
+
+
+def test_gray_rejects_two_channels():
+    with pytest.raises(ShapeError, match="1 \\(gray\\) or 3 \\(RGB\\)"):
+        rgb_to_gray(torch.zeros(1, 2, 3, 3))
