@@ -1,0 +1,198 @@
+"""Least-squares fit of Chateau et al.'s AR dynamics (eq. 4) from annotated tracks.
+
+Chateau et al. sec. 2.3: "Matrices A, B and Sigma can be estimated from a set of sequences for
+which the position of the object is known." With the state ``X_t = (c_t, c_{t-1}, s_t,
+s_{t-1})`` the lagged slots of ``X_{t+1}`` are exact copies of ``c_t`` and ``s_t``, so only the
+three rows that produce ``(c_{t+1}, s_{t+1})`` are free: they are regressed by least squares on
+the full ``X_t`` (no intercept, as in eq. 4). ``B`` injects the noise into those three rows and
+``Sigma`` is the residuals' covariance (divided by ``M - 6`` degrees of freedom).
+
+Scale: ``s = sqrt(w h / (w_ref h_ref))`` where the reference is the first annotated box of each
+track (``window=None``, so ``s_0 = 1``) or a fixed reference window (eq. 3's W).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import torch
+
+from torchtrack.errors import ConfigError, DataError
+from torchtrack.filter.motion import ChateauAR, default_chateau_B
+
+__all__ = [
+    "ChateauFit",
+    "chateau_states",
+    "fit_chateau_dynamics",
+    "load_chateau_toml",
+    "save_chateau_toml",
+]
+
+_FREE = [0, 1, 4]  # rows of X_{t+1} that are not copies: cx_{t+1}, cy_{t+1}, s_{t+1}
+
+
+@dataclass
+class ChateauFit:
+    """Fitted eq. (4) parameters.
+
+    Attributes:
+        A: ``(6, 6)``; B: ``(6, 3)``; Sigma: ``(3, 3)`` (float64).
+        n_transitions: number of ``(X_t, X_{t+1})`` pairs used.
+        n_tracks: number of tracks that contributed at least one pair.
+        rms: ``(3,)`` root mean square one-step residual of cx, cy (pixels) and s.
+    """
+
+    A: torch.Tensor
+    B: torch.Tensor
+    Sigma: torch.Tensor
+    n_transitions: int
+    n_tracks: int
+    rms: torch.Tensor
+
+    def model(self, window: tuple[float, float] = (1.0, 1.0)) -> ChateauAR:
+        """A ``ChateauAR`` with these parameters and reference ``window``."""
+        return ChateauAR(self.A, self.B, self.Sigma, window=window)
+
+
+def chateau_states(
+    boxes: torch.Tensor, window: tuple[float, float] | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """States of one track and a validity mask.
+
+    Args:
+        boxes: ``(T, 4)`` x, y, w, h per frame; a row with any NaN is an absent target.
+        window: reference ``(w, h)``; None uses the track's first valid box.
+
+    Returns:
+        ``(states (T, 6), valid (T,) bool)``: ``valid[t]`` when frames t-1 and t are annotated
+        (``states[0]`` is never valid: it has no previous frame).
+    """
+    boxes = torch.as_tensor(boxes, dtype=torch.float64)
+    if boxes.ndim != 2 or boxes.shape[1] != 4:
+        raise DataError(f"a track must be (T, 4) x, y, w, h, got {tuple(boxes.shape)}")
+    present = torch.isfinite(boxes).all(1)
+    if bool(present.any()) and bool((boxes[present, 2:] <= 0).any()):
+        raise DataError("a track has a box with w <= 0 or h <= 0")
+    if window is None:
+        if not bool(present.any()):
+            return boxes.new_zeros(boxes.shape[0], 6), torch.zeros_like(present)
+        first = boxes[present][0]
+        ref = float(first[2] * first[3])
+    else:
+        ref = float(window[0]) * float(window[1])
+    c = boxes[:, :2] + boxes[:, 2:] / 2
+    s = torch.sqrt(boxes[:, 2] * boxes[:, 3] / ref)
+    c_prev = torch.cat([c[:1], c[:-1]])
+    s_prev = torch.cat([s[:1], s[:-1]])
+    states = torch.stack([c[:, 0], c[:, 1], c_prev[:, 0], c_prev[:, 1], s, s_prev], 1)
+    valid = present & torch.cat([present.new_zeros(1), present[:-1]])
+    return torch.nan_to_num(states), valid
+
+
+def fit_chateau_dynamics(
+    tracks: list[torch.Tensor], window: tuple[float, float] | None = None
+) -> ChateauFit:
+    """Fit A, B, Sigma of eq. (4) by least squares over all tracks.
+
+    Args:
+        tracks: list of ``(T_i, 4)`` box tracks (x, y, w, h; NaN rows = target absent; a
+            transition touching an absent frame is skipped).
+        window: reference window for the scale (see module docstring).
+
+    Returns:
+        ChateauFit.
+
+    Raises:
+        DataError: fewer than 12 usable transitions (6 regressors need a margin), or bad boxes.
+    """
+    xs, ys = [], []
+    used = 0
+    for tr in tracks:
+        st, valid = chateau_states(tr, window)
+        pair = valid[:-1] & valid[1:]  # X_t and X_{t+1} both valid: frames t-1, t, t+1
+        if bool(pair.any()):
+            xs.append(st[:-1][pair])
+            ys.append(st[1:][pair][:, _FREE])
+            used += 1
+    m = sum(x.shape[0] for x in xs)
+    if m < 12:
+        raise DataError(
+            f"fit_chateau_dynamics needs at least 12 transitions (three consecutive annotated "
+            f"frames each), got {m}"
+        )
+    x = torch.cat(xs)
+    y = torch.cat(ys)
+    # Column scaling: positions (hundreds of pixels) and scales (~1) differ by orders of
+    # magnitude; scaling the regressors keeps the least-squares problem well conditioned.
+    col = x.abs().amax(0).clamp_min(1e-12)
+    theta = torch.linalg.lstsq(x / col, y, driver="gelsd").solution / col.unsqueeze(1)  # (6, 3)
+    resid = y - x @ theta
+    sigma = resid.T @ resid / (m - x.shape[1])
+    a = torch.zeros(6, 6, dtype=torch.float64)
+    a[_FREE] = theta.T
+    a[2, 0], a[3, 1], a[5, 4] = 1.0, 1.0, 1.0
+    return ChateauFit(
+        A=a,
+        B=default_chateau_B(),
+        Sigma=0.5 * (sigma + sigma.T),
+        n_transitions=m,
+        n_tracks=used,
+        rms=resid.square().mean(0).sqrt(),
+    )
+
+
+def _fmt_matrix(m: torch.Tensor) -> str:
+    rows = ", ".join("[" + ", ".join(repr(float(v)) for v in r) + "]" for r in m.tolist())
+    return f"[{rows}]"
+
+
+def save_chateau_toml(path: str | os.PathLike, fit: ChateauFit, comment: str = "") -> None:
+    """Write the fitted parameters as TOML (atomically): keys A, B, Sigma, plus [fit] stats."""
+    from torchtrack.io.atomic import write_text_atomic
+
+    lines = [f"# {ln}" for ln in comment.splitlines()]
+    lines += [
+        "# Chateau et al. eq. (4): X_{t+1} = A X_t + B v_t, v_t ~ N(0, Sigma)",
+        "# state X_t = (cx_t, cy_t, cx_{t-1}, cy_{t-1}, s_t, s_{t-1}); pixels, scale ratio",
+        f"A = {_fmt_matrix(fit.A)}",
+        f"B = {_fmt_matrix(fit.B)}",
+        f"Sigma = {_fmt_matrix(fit.Sigma)}",
+        "",
+        "[fit]",
+        f"n_transitions = {fit.n_transitions}",
+        f"n_tracks = {fit.n_tracks}",
+        f"rms = [{', '.join(repr(float(v)) for v in fit.rms)}]",
+        "",
+    ]
+    write_text_atomic(path, "\n".join(lines))
+
+
+def load_chateau_toml(
+    path: str | os.PathLike, window: tuple[float, float] = (1.0, 1.0)
+) -> ChateauAR:
+    """Load a ``ChateauAR`` from a TOML file written by ``save_chateau_toml``.
+
+    Raises:
+        ConfigError: unreadable TOML, unknown or missing keys, or bad matrix shapes.
+    """
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ConfigError(f"cannot read dynamics config {os.fspath(path)!r}: {e}") from None
+    data.pop("fit", None)
+    try:
+        model = ChateauAR.from_params(data, window=window)
+    except (ValueError, TypeError) as e:
+        if isinstance(e, ConfigError):
+            raise ConfigError(f"{os.fspath(path)}: {e}") from None
+        raise ConfigError(f"{os.fspath(path)}: bad matrix values: {e}") from None
+    if not all(math.isfinite(v) for v in model.A.flatten().tolist()):
+        raise ConfigError(f"{os.fspath(path)}: A has non-finite entries")
+    return model

@@ -1,0 +1,387 @@
+"""Motion models (state transition priors) for batched particle filters.
+
+Each model maps boxes to states and back and samples ``p(X_t | X_{t-1})``:
+
+* ``init(boxes (B, 4), n, generator) -> states (B, N, D)``: particles around the first box.
+* ``predict(states (B, N, D), generator) -> (B, N, D)``: one transition per particle.
+* ``to_boxes(states (..., D)) -> (..., 4)``: boxes as x, y, w, h (top-left, 0-based pixels,
+  the convention of ``torchtrack.boxes``).
+
+Models (all states carry the box centre, so a change of size keeps the centre):
+
+* ``KleinAR``: Klein et al. sec. II-C eq. (1), first-order AR with velocity,
+  state ``(cx, cy, w, h, vx, vy)``.
+* ``ChateauAR``: Chateau et al. sec. 2.3 eq. (2)-(4), ``X_{t+1} = A X_t + B v_t``,
+  ``v_t ~ N(0, Sigma)``, state ``(cx_t, cy_t, cx_{t-1}, cy_{t-1}, s_t, s_{t-1})``; its A, B,
+  Sigma are fitted by least squares from annotated tracks (``torchtrack.filter.dynamics_fit``).
+* ``BachooMotion``: Bachoo et al. sec. 3.2 eq. (1)-(4), position, scale, velocity and
+  rotation with process noise adapted from a 25-frame velocity history, inflated during
+  occlusion; state ``(cx, cy, w, h, vx, vy, r)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.filter._random import GeneratorLike, randn
+
+__all__ = ["BachooMotion", "ChateauAR", "KleinAR", "VelocityHistory"]
+
+
+def _check_boxes(boxes: torch.Tensor) -> None:
+    if not isinstance(boxes, torch.Tensor) or boxes.ndim != 2 or boxes.shape[1] != 4:
+        shape = tuple(boxes.shape) if isinstance(boxes, torch.Tensor) else type(boxes).__name__
+        raise ShapeError(f"boxes must be (B, 4) as x, y, w, h, got {shape}")
+    if not boxes.is_floating_point():
+        raise ShapeError(f"boxes must be floating point, got {boxes.dtype}")
+
+
+def _check_states(states: torch.Tensor, d: int, model: str) -> None:
+    if not isinstance(states, torch.Tensor) or states.ndim != 3 or states.shape[2] != d:
+        shape = tuple(states.shape) if isinstance(states, torch.Tensor) else type(states).__name__
+        raise ShapeError(f"{model}: states must be (B, N, {d}), got {shape}")
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not value >= 0.0:
+        raise ConfigError(f"{name} must be >= 0, got {value}")
+    return value
+
+
+class KleinAR:
+    """Klein et al. eq. (1): ``v += N(0, sigma^2)``, ``x += v``; w, h random walks.
+
+    State ``(cx, cy, w, h, vx, vy)``, D = 6 (box centre, size, centre velocity in pixels per
+    frame). Defaults are the paper's ``sigma_x = sigma_y = 6.4``, ``sigma_w = sigma_h = 0.64``.
+    ``min_size`` keeps w, h positive (a box of non-positive size has no features).
+    """
+
+    dim = 6
+
+    def __init__(
+        self,
+        sigma_xy: float = 6.4,
+        sigma_wh: float = 0.64,
+        min_size: float = 1.0,
+    ) -> None:
+        self.sigma_xy = _positive("sigma_xy", sigma_xy)
+        self.sigma_wh = _positive("sigma_wh", sigma_wh)
+        self.min_size = _positive("min_size", min_size)
+
+    def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``(B, 4)`` x, y, w, h -> ``(B, 6)`` states with zero velocity."""
+        _check_boxes(boxes)
+        x, y, w, h = boxes.unbind(1)
+        z = torch.zeros_like(x)
+        return torch.stack([x + w / 2, y + h / 2, w, h, z, z], 1)
+
+    def to_boxes(self, states: torch.Tensor) -> torch.Tensor:
+        """``(..., 6)`` -> ``(..., 4)`` x, y, w, h."""
+        cx, cy, w, h = states[..., 0], states[..., 1], states[..., 2], states[..., 3]
+        return torch.stack([cx - w / 2, cy - h / 2, w, h], -1)
+
+    def init(self, boxes: torch.Tensor, n: int, generator: GeneratorLike = None) -> torch.Tensor:
+        """Klein et al. sec. II-B: every particle on the first box, velocities ~ N(0, sigma^2).
+
+        Returns:
+            ``(B, n, 6)``.
+        """
+        s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
+        noise = randn((boxes.shape[0], n, 2), generator, boxes.dtype, boxes.device)
+        s[..., 4:6] = noise * self.sigma_xy
+        return s
+
+    def predict(self, states: torch.Tensor, generator: GeneratorLike = None) -> torch.Tensor:
+        """One step of eq. (1): ``(B, N, 6) -> (B, N, 6)``."""
+        _check_states(states, 6, "KleinAR")
+        b, n, _ = states.shape
+        e = randn((b, n, 4), generator, states.dtype, states.device)
+        sig = states.new_tensor([self.sigma_xy, self.sigma_xy, self.sigma_wh, self.sigma_wh])
+        e = e * sig
+        v = states[..., 4:6] + e[..., 0:2]
+        c = states[..., 0:2] + v
+        wh = (states[..., 2:4] + e[..., 2:4]).clamp_min(self.min_size)
+        return torch.cat([c, wh, v], dim=2)
+
+    __call__ = predict
+
+
+class ChateauAR:
+    """Chateau et al. eq. (4): ``X_{t+1} = A X_t + B v_t``, ``v_t ~ N(0, Sigma)``.
+
+    State ``X_t = (cx_t, cy_t, cx_{t-1}, cy_{t-1}, s_t, s_{t-1})`` (eq. 2), D = 6. The region is
+    ``R(X) = c + s W`` (eq. 3): a box of size ``(s * window_w, s * window_h)`` centred on c,
+    where ``window = (window_w, window_h)`` is the reference window (the classifier's training
+    size, or the first box of the track: then ``s_0 = 1``).
+
+    Args:
+        A: ``(6, 6)`` transition matrix. Default: constant velocity on c, random walk on s.
+        B: ``(6, K)`` noise input matrix. Default: noise enters c_t and s_t (K = 3).
+        Sigma: ``(K, K)`` noise covariance. Default ``diag(4, 4, 1e-4)`` (pixels^2, scale^2).
+        window: ``(w, h)`` of the reference window in pixels.
+        min_scale: lower bound on s (keeps boxes positive).
+    """
+
+    dim = 6
+
+    def __init__(
+        self,
+        A: torch.Tensor | None = None,
+        B: torch.Tensor | None = None,
+        Sigma: torch.Tensor | None = None,
+        window: tuple[float, float] = (1.0, 1.0),
+        min_scale: float = 1e-3,
+    ) -> None:
+        self.A = default_chateau_A() if A is None else torch.as_tensor(A, dtype=torch.float64)
+        self.B = default_chateau_B() if B is None else torch.as_tensor(B, dtype=torch.float64)
+        self.Sigma = (
+            torch.diag(torch.tensor([4.0, 4.0, 1e-4], dtype=torch.float64))
+            if Sigma is None
+            else torch.as_tensor(Sigma, dtype=torch.float64)
+        )
+        if self.A.shape != (6, 6):
+            raise ConfigError(f"ChateauAR: A must be 6 x 6, got {tuple(self.A.shape)}")
+        if self.B.ndim != 2 or self.B.shape[0] != 6:
+            raise ConfigError(f"ChateauAR: B must be 6 x K, got {tuple(self.B.shape)}")
+        k = self.B.shape[1]
+        if self.Sigma.shape != (k, k):
+            raise ConfigError(
+                f"ChateauAR: Sigma must be {k} x {k} to match B, got {tuple(self.Sigma.shape)}"
+            )
+        try:
+            # A tiny jitter admits positive semi-definite Sigma (e.g. a noise-free component).
+            jitter = (
+                1e-12 * torch.eye(k, dtype=torch.float64) * max(1.0, float(self.Sigma.abs().max()))
+            )
+            self._L = torch.linalg.cholesky(0.5 * (self.Sigma + self.Sigma.T) + jitter)
+        except RuntimeError:
+            raise ConfigError("ChateauAR: Sigma must be symmetric positive semi-definite") from None
+        if len(window) != 2 or not (window[0] > 0 and window[1] > 0):
+            raise ConfigError(f"ChateauAR: window must be (w, h) > 0, got {window!r}")
+        self.window = (float(window[0]), float(window[1]))
+        self.min_scale = _positive("min_scale", min_scale)
+
+    @classmethod
+    def from_params(cls, params: dict, window: tuple[float, float] | None = None) -> ChateauAR:
+        """Build from a dict with keys ``A``, ``B``, ``Sigma`` (nested lists, e.g. from TOML)."""
+        unknown = set(params) - {"A", "B", "Sigma", "window", "min_scale"}
+        if unknown:
+            raise ConfigError(f"ChateauAR: unknown parameter keys {sorted(unknown)}")
+        missing = {"A", "B", "Sigma"} - set(params)
+        if missing:
+            raise ConfigError(f"ChateauAR: missing parameter keys {sorted(missing)}")
+        win = window if window is not None else tuple(params.get("window", (1.0, 1.0)))
+        return cls(
+            torch.tensor(params["A"], dtype=torch.float64),
+            torch.tensor(params["B"], dtype=torch.float64),
+            torch.tensor(params["Sigma"], dtype=torch.float64),
+            window=win,
+            min_scale=params.get("min_scale", 1e-3),
+        )
+
+    def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``(B, 4)`` x, y, w, h -> ``(B, 6)``, with ``c_{t-1} = c_t`` and ``s_{t-1} = s_t``;
+        ``s = sqrt(w h / (window_w window_h))`` (geometric mean of the two ratios)."""
+        _check_boxes(boxes)
+        x, y, w, h = boxes.unbind(1)
+        cx, cy = x + w / 2, y + h / 2
+        s = torch.sqrt(w * h / (self.window[0] * self.window[1]))
+        return torch.stack([cx, cy, cx, cy, s, s], 1)
+
+    def to_boxes(self, states: torch.Tensor) -> torch.Tensor:
+        """Eq. (3): ``(..., 6)`` -> ``(..., 4)`` x, y, w, h of ``c_t + s_t W``."""
+        s = states[..., 4]
+        w, h = s * self.window[0], s * self.window[1]
+        return torch.stack([states[..., 0] - w / 2, states[..., 1] - h / 2, w, h], -1)
+
+    def init(self, boxes: torch.Tensor, n: int, generator: GeneratorLike = None) -> torch.Tensor:
+        """``n`` particles on the first box, spread by one step of process noise: ``(B, n, 6)``."""
+        s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
+        return s + self._noise(s, generator)
+
+    def _noise(self, states: torch.Tensor, generator: GeneratorLike) -> torch.Tensor:
+        b, n, _ = states.shape
+        k = self.B.shape[1]
+        v = randn((b, n, k), generator, states.dtype, states.device)
+        m = (self.B @ self._L).to(states)  # (6, K): B v with v = L z
+        return v @ m.T
+
+    def predict(self, states: torch.Tensor, generator: GeneratorLike = None) -> torch.Tensor:
+        """Eq. (4): ``(B, N, 6) -> (B, N, 6)``."""
+        _check_states(states, 6, "ChateauAR")
+        out = states @ self.A.to(states).T + self._noise(states, generator)
+        out[..., 4] = out[..., 4].clamp_min(self.min_scale)
+        return out
+
+    __call__ = predict
+
+
+def default_chateau_A() -> torch.Tensor:
+    """Constant velocity on c (``c_{t+1} = 2 c_t - c_{t-1}``), random walk on s."""
+    a = torch.zeros(6, 6, dtype=torch.float64)
+    a[0, 0], a[0, 2], a[1, 1], a[1, 3] = 2.0, -1.0, 2.0, -1.0
+    a[2, 0], a[3, 1] = 1.0, 1.0  # c_t shifts into the c_{t-1} slot
+    a[4, 4] = 1.0
+    a[5, 4] = 1.0  # s_t shifts into the s_{t-1} slot
+    return a
+
+
+def default_chateau_B() -> torch.Tensor:
+    """Noise (v_x, v_y, v_s) enters c_t and s_t only; the lagged slots are exact copies."""
+    b = torch.zeros(6, 3, dtype=torch.float64)
+    b[0, 0], b[1, 1], b[4, 2] = 1.0, 1.0, 1.0
+    return b
+
+
+@dataclass
+class VelocityHistory:
+    """Per-target state of ``BachooMotion``: the last ``H`` estimated velocities.
+
+    Attributes:
+        velocities: ``(B, H, 2)`` ring buffer of centre velocities (pixels per frame).
+        count: ``(B,)`` number of valid entries (saturates at H).
+        occluded: ``(B,)`` bool, True while the observation model reports an occlusion.
+    """
+
+    velocities: torch.Tensor
+    count: torch.Tensor
+    occluded: torch.Tensor = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.occluded is None:
+            self.occluded = torch.zeros(
+                self.velocities.shape[0], dtype=torch.bool, device=self.velocities.device
+            )
+
+
+class BachooMotion:
+    """Bachoo et al. sec. 3.2, eq. (1)-(4), with adaptive process noise.
+
+    State ``(cx, cy, w, h, vx, vy, r)``, D = 7: centre, size (the paper's scale of the unit
+    square), velocity, rotation (radians) about the centre.
+
+    * eq. (1) ``x_t = x_{t-1} + v_{t-1} + w``, ``w ~ N(0, diag(sigma_x^2, sigma_y^2))`` where
+      ``sigma_i = max(min_sigma, gain * mean |v_i|)`` over the last ``history`` estimated
+      velocities (greater displacements, more noise), and ``sigma_i = occluded_sigma`` while
+      the target is flagged occluded (scatters the particles to re-acquire it);
+    * eq. (2) ``s_t = s_{t-1} + N(0, 0.01)``: read here as a relative change of w and h (std
+      ``sigma_scale`` = 1 %), since the paper's "pixels" of a unit square would be meaningless
+      for boxes tens of pixels wide;
+    * eq. (3) ``v_t = x_t - x_{t-1}``;
+    * eq. (4) ``r_t = r_{t-1} + N(0, sigma_rot^2)``, ``sigma_rot = 0.02``.
+
+    ``to_boxes`` returns the axis-aligned box of the unrotated patch; observation models that
+    warp patches read r from the state.
+    """
+
+    dim = 7
+
+    def __init__(
+        self,
+        min_sigma: float = 1.0,
+        gain: float = 1.0,
+        occluded_sigma: float = 20.0,
+        history: int = 25,
+        sigma_scale: float = 0.01,
+        sigma_rot: float = 0.02,
+        min_size: float = 1.0,
+    ) -> None:
+        self.min_sigma = _positive("min_sigma", min_sigma)
+        self.gain = _positive("gain", gain)
+        self.occluded_sigma = _positive("occluded_sigma", occluded_sigma)
+        if int(history) < 1:
+            raise ConfigError(f"history must be >= 1 frame, got {history}")
+        self.history = int(history)
+        self.sigma_scale = _positive("sigma_scale", sigma_scale)
+        self.sigma_rot = _positive("sigma_rot", sigma_rot)
+        self.min_size = _positive("min_size", min_size)
+
+    def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``(B, 4)`` -> ``(B, 7)`` with zero velocity and rotation."""
+        _check_boxes(boxes)
+        x, y, w, h = boxes.unbind(1)
+        z = torch.zeros_like(x)
+        return torch.stack([x + w / 2, y + h / 2, w, h, z, z, z], 1)
+
+    def to_boxes(self, states: torch.Tensor) -> torch.Tensor:
+        """``(..., 7)`` -> ``(..., 4)`` x, y, w, h (rotation ignored)."""
+        cx, cy, w, h = states[..., 0], states[..., 1], states[..., 2], states[..., 3]
+        return torch.stack([cx - w / 2, cy - h / 2, w, h], -1)
+
+    def new_history(self, boxes: torch.Tensor) -> VelocityHistory:
+        """Empty velocity history for ``boxes (B, 4)``."""
+        _check_boxes(boxes)
+        b = boxes.shape[0]
+        return VelocityHistory(
+            boxes.new_zeros(b, self.history, 2),
+            torch.zeros(b, dtype=torch.long, device=boxes.device),
+        )
+
+    def update_history(
+        self,
+        hist: VelocityHistory,
+        velocity: torch.Tensor,
+        occluded: torch.Tensor | None = None,
+    ) -> VelocityHistory:
+        """Push the estimated centre velocity ``(B, 2)`` of this frame; set the occlusion flags
+        ``(B,)``. Returns a new history (the input is not modified)."""
+        if velocity.shape != (hist.velocities.shape[0], 2):
+            raise ShapeError(
+                f"velocity must be (B, 2) = ({hist.velocities.shape[0]}, 2), "
+                f"got {tuple(velocity.shape)}"
+            )
+        v = torch.cat([hist.velocities[:, 1:], velocity.unsqueeze(1).to(hist.velocities)], 1)
+        count = (hist.count + 1).clamp_max(self.history)
+        occ = hist.occluded if occluded is None else occluded.to(torch.bool)
+        return VelocityHistory(v, count, occ)
+
+    def noise_std(self, hist: VelocityHistory) -> torch.Tensor:
+        """``(B, 2)`` position noise std from the history (eq. 1's adapted covariance)."""
+        h = self.history
+        valid = torch.arange(h, device=hist.velocities.device).unsqueeze(0) >= (
+            h - hist.count
+        ).unsqueeze(1)  # newest entries sit at the end of the buffer
+        n = hist.count.clamp_min(1).unsqueeze(1).to(hist.velocities)
+        mean_abs = (hist.velocities.abs() * valid.unsqueeze(2)).sum(1) / n
+        sigma = (self.gain * mean_abs).clamp_min(self.min_sigma)
+        occ = torch.full_like(sigma, self.occluded_sigma)
+        return torch.where(hist.occluded.unsqueeze(1), occ, sigma)
+
+    def init(self, boxes: torch.Tensor, n: int, generator: GeneratorLike = None) -> torch.Tensor:
+        """``n`` particles on the first box with position noise ``min_sigma``: ``(B, n, 7)``."""
+        s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
+        e = randn((boxes.shape[0], n, 2), generator, boxes.dtype, boxes.device)
+        s[..., 0:2] += e * self.min_sigma
+        return s
+
+    def predict(
+        self,
+        states: torch.Tensor,
+        generator: GeneratorLike = None,
+        history: VelocityHistory | None = None,
+    ) -> torch.Tensor:
+        """Eq. (1)-(4): ``(B, N, 7) -> (B, N, 7)``. Without ``history`` the noise is ``min_sigma``."""
+        _check_states(states, 7, "BachooMotion")
+        b, n, _ = states.shape
+        if history is None:
+            sig = states.new_full((b, 2), self.min_sigma)
+        else:
+            if history.velocities.shape[0] != b:
+                raise ShapeError(
+                    f"BachooMotion: history is for B={history.velocities.shape[0]} targets, "
+                    f"states for B={b}"
+                )
+            sig = self.noise_std(history).to(states)
+        e = randn((b, n, 5), generator, states.dtype, states.device)
+        c_prev = states[..., 0:2]
+        c = c_prev + states[..., 4:6] + e[..., 0:2] * sig.unsqueeze(1)
+        wh = (states[..., 2:4] * (1.0 + self.sigma_scale * e[..., 2:4])).clamp_min(self.min_size)
+        v = c - c_prev
+        r = states[..., 6:7] + self.sigma_rot * e[..., 4:5]
+        return torch.cat([c, wh, v, r], dim=2)
+
+    __call__ = predict

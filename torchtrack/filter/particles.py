@@ -1,0 +1,235 @@
+"""Weighted particle sets: shape checks, log-weight normalisation, ESS and state estimates.
+
+Conventions used throughout ``torchtrack.filter``:
+
+* ``states (B, N, D)``: B independent targets or sequences, N particles, D state dimensions.
+* ``log_weights (B, N)``: natural-log importance weights, normalised or not; ``-inf`` is a
+  weight of zero. Normalised means ``logsumexp(log_weights, -1) == 0``.
+* dtype and device follow ``states``; B = 1 is a single target, not a separate code path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torchtrack.errors import FilterError, ShapeError
+
+__all__ = [
+    "ParticleSet",
+    "best_particle",
+    "check_particles",
+    "dominant_mode_mean",
+    "ess",
+    "normalize_log_weights",
+    "uniform_log_weights",
+    "weighted_cov",
+    "weighted_mean",
+]
+
+
+@dataclass
+class ParticleSet:
+    """A batch of weighted particle sets.
+
+    Attributes:
+        states: ``(B, N, D)`` particle states.
+        log_weights: ``(B, N)`` log importance weights (normalised by the filter steps).
+    """
+
+    states: torch.Tensor
+    log_weights: torch.Tensor
+
+    def __post_init__(self) -> None:
+        check_particles(self.states, self.log_weights)
+
+    @classmethod
+    def uniform(cls, states: torch.Tensor) -> ParticleSet:
+        """Equally weighted particles ``states (B, N, D)``."""
+        if not isinstance(states, torch.Tensor) or states.ndim != 3:
+            shape = tuple(states.shape) if isinstance(states, torch.Tensor) else type(states)
+            raise ShapeError(f"states must be a (B, N, D) tensor, got {shape}")
+        return cls(states, uniform_log_weights(states))
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """``(B, N)`` normalised weights."""
+        return normalize_log_weights(self.log_weights)[0].exp()
+
+    def ess(self) -> torch.Tensor:
+        """``(B,)`` effective sample size (Jin et al. eq. 11)."""
+        return ess(self.log_weights)
+
+    def mean(self) -> torch.Tensor:
+        """``(B, D)`` weighted mean (Klein et al. eq. 2)."""
+        return weighted_mean(self.states, self.log_weights)
+
+
+def check_particles(states: torch.Tensor, log_weights: torch.Tensor | None = None) -> None:
+    """Raise ShapeError unless ``states`` is ``(B, N, D)`` floating and ``log_weights (B, N)``."""
+    if not isinstance(states, torch.Tensor) or states.ndim != 3:
+        shape = tuple(states.shape) if isinstance(states, torch.Tensor) else type(states).__name__
+        raise ShapeError(f"states must be a (B, N, D) tensor, got {shape}")
+    if not states.is_floating_point():
+        raise ShapeError(f"states must be floating point (float32 or float64), got {states.dtype}")
+    if states.shape[1] == 0:
+        raise ShapeError("states must hold at least one particle per batch row (N >= 1), got N=0")
+    if log_weights is None:
+        return
+    if not isinstance(log_weights, torch.Tensor) or log_weights.shape != states.shape[:2]:
+        shape = (
+            tuple(log_weights.shape)
+            if isinstance(log_weights, torch.Tensor)
+            else type(log_weights).__name__
+        )
+        raise ShapeError(
+            f"log_weights must have shape (B, N) = {tuple(states.shape[:2])} matching states, "
+            f"got {shape}"
+        )
+    if not log_weights.is_floating_point():
+        raise ShapeError(f"log_weights must be floating point, got {log_weights.dtype}")
+
+
+def uniform_log_weights(states: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` log-weights ``-log N`` for ``states (B, N, D)``, same dtype and device."""
+    b, n = states.shape[:2]
+    return torch.full((b, n), -math.log(n), dtype=states.dtype, device=states.device)
+
+
+def normalize_log_weights(
+    log_weights: torch.Tensor, step: str = "normalize_log_weights"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalise log-weights row-wise with log-sum-exp; rows with no mass restart uniform.
+
+    Args:
+        log_weights: ``(B, N)`` unnormalised log-weights; ``-inf`` entries are zero weights.
+        step: name of the calling step, used in error messages.
+
+    Returns:
+        ``(normalized (B, N), recovered (B,) bool)``: ``recovered[b]`` is True where row b had
+        no finite weight (all ``-inf``: every likelihood zero) and was reset to ``-log N``.
+
+    Raises:
+        FilterError: a log-weight is NaN or ``+inf`` (weights cannot be normalised).
+    """
+    if log_weights.ndim != 2:
+        raise ShapeError(f"{step}: log_weights must be (B, N), got {tuple(log_weights.shape)}")
+    bad = torch.isnan(log_weights) | (log_weights == math.inf)
+    if bool(bad.any()):
+        rows = torch.nonzero(bad.any(1)).flatten()[:10].tolist()
+        raise FilterError(
+            f"{step}: log-weights contain NaN or +inf in batch rows {rows} "
+            "(likelihoods must be finite and non-negative)"
+        )
+    lse = torch.logsumexp(log_weights, dim=1, keepdim=True)
+    recovered = torch.isneginf(lse).squeeze(1)
+    n = log_weights.shape[1]
+    # Rows with zero total mass: subtracting -inf would give NaN; reset them to uniform.
+    safe_lse = torch.where(recovered.unsqueeze(1), torch.zeros_like(lse), lse)
+    normalized = log_weights - safe_lse
+    normalized = torch.where(
+        recovered.unsqueeze(1), torch.full_like(normalized, -math.log(n)), normalized
+    )
+    return normalized, recovered
+
+
+def ess(log_weights: torch.Tensor) -> torch.Tensor:
+    """Effective sample size ``1 / sum_i w_i^2`` of the normalised weights (Jin et al. eq. 11-12).
+
+    Args:
+        log_weights: ``(B, N)``, normalised or not.
+
+    Returns:
+        ``(B,)`` in ``[1, N]``; a row with no mass counts as uniform (ESS = N).
+    """
+    lw, _ = normalize_log_weights(log_weights, step="ess")
+    # 1 / sum w^2 = exp(-logsumexp(2 log w)), stable for tiny weights.
+    return torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
+
+
+def weighted_mean(states: torch.Tensor, log_weights: torch.Tensor) -> torch.Tensor:
+    """Weighted mean of the particles (Klein et al. eq. 2).
+
+    Args:
+        states: ``(B, N, D)``.
+        log_weights: ``(B, N)``, normalised or not.
+
+    Returns:
+        ``(B, D)``.
+    """
+    check_particles(states, log_weights)
+    w = normalize_log_weights(log_weights, step="weighted_mean")[0].exp()
+    return torch.einsum("bn,bnd->bd", w.to(states.dtype), states)
+
+
+def weighted_cov(states: torch.Tensor, log_weights: torch.Tensor) -> torch.Tensor:
+    """Weighted covariance ``sum_i w_i (x_i - m)(x_i - m)^T``: ``(B, N, D)`` -> ``(B, D, D)``."""
+    check_particles(states, log_weights)
+    w = normalize_log_weights(log_weights, step="weighted_cov")[0].exp().to(states.dtype)
+    m = torch.einsum("bn,bnd->bd", w, states)
+    c = states - m.unsqueeze(1)
+    return torch.einsum("bn,bnd,bne->bde", w, c, c)
+
+
+def best_particle(states: torch.Tensor, log_weights: torch.Tensor) -> torch.Tensor:
+    """The highest-weight particle of each row: ``(B, N, D)`` -> ``(B, D)``."""
+    check_particles(states, log_weights)
+    idx = log_weights.argmax(dim=1)
+    return states[torch.arange(states.shape[0], device=states.device), idx]
+
+
+def dominant_mode_mean(
+    states: torch.Tensor,
+    log_weights: torch.Tensor,
+    bandwidth: torch.Tensor | float | None = None,
+    n_starts: int = 8,
+    iters: int = 10,
+) -> torch.Tensor:
+    """Robust estimate for multi-modal posteriors: the mean of the dominant mode.
+
+    Weighted mean shift with a Gaussian kernel, started from the ``n_starts`` highest-weight
+    particles of each row; the converged point with the largest weighted kernel density is the
+    dominant mode. Unlike the weighted mean it does not land between two modes. Cost
+    ``O(B * n_starts * N * D * iters)``, fully vectorised.
+
+    Args:
+        states: ``(B, N, D)``.
+        log_weights: ``(B, N)``.
+        bandwidth: kernel standard deviation per state dimension, a float, a ``(D,)`` or a
+            ``(B, D)`` tensor in state units. Default: Silverman's rule on the weighted standard
+            deviation, ``std_d * ESS ** (-1 / (D + 4))``.
+        n_starts: number of starting particles per row.
+        iters: mean-shift iterations.
+
+    Returns:
+        ``(B, D)``.
+    """
+    check_particles(states, log_weights)
+    b, n, d = states.shape
+    lw = normalize_log_weights(log_weights, step="dominant_mode_mean")[0].to(states.dtype)
+    if bandwidth is None:
+        var = torch.diagonal(weighted_cov(states, lw), dim1=1, dim2=2)
+        factor = ess(lw).to(states.dtype).pow(-1.0 / (d + 4)).unsqueeze(1)
+        h = var.clamp_min(0).sqrt() * factor
+    else:
+        h = torch.as_tensor(bandwidth, dtype=states.dtype, device=states.device)
+        h = h.expand(b, d) if h.ndim <= 1 else h
+    # Dimensions with no spread: any positive bandwidth keeps the kernel finite.
+    h = torch.where(h > 0, h, torch.ones_like(h))
+    k = min(n_starts, n)
+    start = lw.topk(k, dim=1).indices
+    x = torch.gather(states, 1, start.unsqueeze(-1).expand(b, k, d))  # (B, K, D)
+    z = states / h.unsqueeze(1)  # (B, N, D) in bandwidth units
+
+    def log_kernel(x: torch.Tensor) -> torch.Tensor:
+        # (B, K, N): log w_i - |x_k - s_i|^2 / 2 in bandwidth units
+        return lw.unsqueeze(1) - 0.5 * torch.cdist(x / h.unsqueeze(1), z).square()
+
+    for _ in range(iters):
+        a = torch.softmax(log_kernel(x), dim=2)
+        x = torch.bmm(a, states)
+    density = torch.logsumexp(log_kernel(x), dim=2)  # (B, K)
+    best = density.argmax(dim=1)
+    return x[torch.arange(b, device=states.device), best]

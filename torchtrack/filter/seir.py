@@ -1,0 +1,146 @@
+"""Sequential evolutionary importance resampling (SEIR), Jin et al. sec. 4.2, Algorithm 3.
+
+After the SIR importance-sampling step, while the effective sample size is small (and fewer
+than ``max_iter`` rounds ran), each batch row evolves its particle set:
+
+1. COPY (eq. 8): the N current particles;
+2. CROSSOVER (eq. 9): N particles ``X_j + mu (X_i - X_j)``, ``mu ~ U(0, 1)``, with i drawn with
+   probability proportional to the normalised weight ``w_i`` and j proportional to ``1 - w_j``
+   (the paper's ``p(Y|X_i)`` and ``1 - p(Y|X_j)``, read on normalised weights so that any
+   likelihood scale works);
+3. MUTATION (eq. 10): N particles ``X_i + lambda nu``, ``nu ~ N(0, I)``;
+4. SELECTION: N of the 3N particles resampled by weight; the selected particles keep their own
+   likelihoods as weights (renormalised), so the ESS measures how even they are.
+
+The likelihood is re-evaluated on the new particles (2N calls' worth per round: COPY reuses
+its values). Rows that reach the ESS target stop evolving while others continue.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchtrack.errors import ConfigError
+from torchtrack.filter._random import GeneratorLike, rand, randn
+from torchtrack.filter.particles import check_particles, ess, normalize_log_weights
+from torchtrack.filter.resample import _cdf, _invert, get_resampler, resample
+from torchtrack.filter.sir import (
+    Likelihood,
+    MotionFn,
+    StepResult,
+    _gather_states,
+    evaluate_log_likelihood,
+    get_estimator,
+)
+
+__all__ = ["seir_step"]
+
+
+def _iid_draws(weights: torch.Tensor, generator: GeneratorLike) -> torch.Tensor:
+    """N unsorted i.i.d. indices per row from ``weights (B, N)`` (rows with no mass: uniform)."""
+    has = weights.sum(1, keepdim=True) > 0
+    w = torch.where(has, weights, torch.ones_like(weights))
+    u = rand(tuple(weights.shape), generator, torch.float64, weights.device)
+    return _invert(_cdf(w), u)
+
+
+def seir_step(
+    states: torch.Tensor,
+    log_weights: torch.Tensor,
+    motion: MotionFn,
+    likelihood: Likelihood,
+    *,
+    log_likelihood: bool = True,
+    ess_target: float = 0.5,
+    max_iter: int = 5,
+    mutation_std: float | torch.Tensor = 1.0,
+    scheme: str = "systematic",
+    estimator: str = "mean",
+    generator: GeneratorLike = None,
+) -> StepResult:
+    """One SEIR step (Jin et al. Algorithm 3, steps 2-3) for B targets at once.
+
+    Args:
+        states: ``(B, N, D)`` particles of the previous frame.
+        log_weights: ``(B, N)`` their log-weights (resampled to equal weights first).
+        motion: ``motion(states, generator) -> states``.
+        likelihood: ``(B, M, D) -> (B, M)`` log-likelihoods (or likelihoods with
+            ``log_likelihood=False``); called with M = N.
+        ess_target: evolve while ``ESS < ess_target * N``, in (0, 1].
+        max_iter: at most this many evolutionary rounds (the paper's T).
+        mutation_std: lambda of eq. (10), a float or a ``(D,)`` tensor in state units.
+        scheme: resampling scheme for the initial resampling and for SELECTION.
+        estimator: ``"mean"``, ``"best"`` or ``"mode"``.
+        generator: a ``torch.Generator``, a sequence of B generators, or None.
+
+    Returns:
+        StepResult; ``iterations`` counts the rounds each row ran, ``ess`` is the final ESS.
+
+    Raises:
+        ConfigError: bad ``ess_target``, ``max_iter``, scheme or estimator.
+        FilterError: NaN likelihood (message names ``seir_step``).
+    """
+    check_particles(states, log_weights)
+    if not (0.0 < float(ess_target) <= 1.0):
+        raise ConfigError(f"ess_target must be in (0, 1], got {ess_target!r}")
+    if int(max_iter) < 0:
+        raise ConfigError(f"max_iter must be >= 0, got {max_iter!r}")
+    select = get_resampler(scheme)
+    est_fn = get_estimator(estimator)
+    b, n, d = states.shape
+    lam = torch.as_tensor(mutation_std, dtype=states.dtype, device=states.device)
+    if lam.ndim > 1 or (lam.ndim == 1 and lam.shape[0] != d):
+        raise ConfigError(
+            f"mutation_std must be a float or a ({d},) tensor, got {tuple(lam.shape)}"
+        )
+
+    # Step 2: importance sampling from the equally weighted previous set.
+    ancestors, prior_lw, resampled = resample(log_weights, scheme, None, generator, "seir_step")
+    x = motion(_gather_states(states, ancestors), generator)
+    check_particles(x, prior_lw)
+    ll = evaluate_log_likelihood(likelihood, x, log_likelihood, "seir_step")
+    log_evidence = torch.logsumexp(prior_lw + ll, dim=1)
+    lw, recovered = normalize_log_weights(ll, step="seir_step")
+    e = ess(lw)
+    active = (e < ess_target * n) & ~recovered
+    iterations = torch.zeros(b, dtype=torch.long, device=states.device)
+
+    # Step 3: evolutionary importance resampling.
+    for _ in range(int(max_iter)):
+        if not bool(active.any()):
+            break
+        w = lw.exp()
+        i = _iid_draws(w, generator)  # CROSSOVER partners ~ w_i
+        j = _iid_draws((1.0 - w).clamp_min(0), generator)  # ~ 1 - w_j
+        mu = rand((b, n, 1), generator, states.dtype, states.device)
+        xi, xj = _gather_states(x, i), _gather_states(x, j)
+        x_cross = xj + mu * (xi - xj)  # eq. (9)
+        x_mut = x + lam * randn((b, n, d), generator, states.dtype, states.device)  # eq. (10)
+        new = torch.cat([x_cross, x_mut], 1)
+        ll_new = evaluate_log_likelihood(likelihood, new, log_likelihood, "seir_step")
+        pool = torch.cat([x, new], 1)  # COPY + CROSSOVER + MUTATION: (B, 3N, D)
+        pool_ll = torch.cat([ll, ll_new], 1)
+        pool_lw, _ = normalize_log_weights(pool_ll, step="seir_step")
+        pick = select(pool_lw.exp(), generator, n)  # SELECTION: N of the 3N
+        x_sel = _gather_states(pool, pick)
+        ll_sel = torch.gather(pool_ll, 1, pick)
+        lw_sel, _ = normalize_log_weights(ll_sel, step="seir_step")
+        a = active.unsqueeze(1)
+        x = torch.where(a.unsqueeze(2), x_sel, x)
+        ll = torch.where(a, ll_sel, ll)
+        lw = torch.where(a, lw_sel, lw)
+        iterations += active.long()
+        e = ess(lw)
+        active = active & (e < ess_target * n)
+
+    return StepResult(
+        states=x,
+        log_weights=lw,
+        estimate=est_fn(x, lw),
+        ess=e,
+        ancestors=ancestors,
+        resampled=resampled,
+        recovered=recovered,
+        log_evidence=log_evidence,
+        iterations=iterations,
+    )

@@ -1,0 +1,176 @@
+"""Sampling importance resampling (SIR / Condensation) step, batched over targets.
+
+Chateau et al. Fig. 1 and Klein et al. sec. II: (a) resample, (b) predict with the motion
+model, (c) weight with the observation likelihood, (d) estimate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from torchtrack.errors import ConfigError, FilterError, ShapeError
+from torchtrack.filter._random import GeneratorLike
+from torchtrack.filter.particles import (
+    best_particle,
+    check_particles,
+    dominant_mode_mean,
+    ess,
+    normalize_log_weights,
+    weighted_mean,
+)
+from torchtrack.filter.resample import resample
+
+__all__ = [
+    "ESTIMATORS",
+    "Likelihood",
+    "MotionFn",
+    "StepResult",
+    "evaluate_log_likelihood",
+    "get_estimator",
+    "sir_step",
+]
+
+#: ``likelihood(states (B, M, D)) -> (B, M)``: log-likelihoods (``log_likelihood=True``, the
+#: default, numerically safer) or likelihoods >= 0.
+Likelihood = Callable[[torch.Tensor], torch.Tensor]
+#: ``motion(states (B, N, D), generator) -> (B, N, D)``: e.g. ``KleinAR()``.
+MotionFn = Callable[[torch.Tensor, GeneratorLike], torch.Tensor]
+
+ESTIMATORS: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
+    "best": best_particle,
+    "mean": weighted_mean,
+    "mode": dominant_mode_mean,
+}
+
+
+@dataclass
+class StepResult:
+    """Result of one filter step.
+
+    Attributes:
+        states: ``(B, N, D)`` weighted particles after the step.
+        log_weights: ``(B, N)`` normalised log-weights.
+        estimate: ``(B, D)`` state estimate (weighted mean, best particle or dominant mode).
+        ess: ``(B,)`` effective sample size of the returned weights (Jin et al. eq. 11).
+        ancestors: ``(B, N)`` int64: particle j descends from input particle ``ancestors[b, j]``.
+        resampled: ``(B,)`` bool, rows that were resampled at the start of the step.
+        recovered: ``(B,)`` bool, rows whose likelihoods were all zero (log -inf): their weights
+            were reset to uniform and the estimate is the mean of the predicted particles.
+        log_evidence: ``(B,)`` estimate of ``log p(z_t | z_{1:t-1})`` (``-inf`` where recovered).
+        iterations: ``(B,)`` int64 evolutionary iterations (SEIR; 0 for SIR).
+    """
+
+    states: torch.Tensor
+    log_weights: torch.Tensor
+    estimate: torch.Tensor
+    ess: torch.Tensor
+    ancestors: torch.Tensor
+    resampled: torch.Tensor
+    recovered: torch.Tensor
+    log_evidence: torch.Tensor
+    iterations: torch.Tensor
+
+
+def get_estimator(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """Estimator by name; ConfigError lists the valid names."""
+    try:
+        return ESTIMATORS[name]
+    except (KeyError, TypeError):
+        raise ConfigError(
+            f"unknown estimator {name!r}; valid: {', '.join(sorted(ESTIMATORS))}"
+        ) from None
+
+
+def evaluate_log_likelihood(
+    likelihood: Likelihood, states: torch.Tensor, log_likelihood: bool, step: str
+) -> torch.Tensor:
+    """Call ``likelihood`` on ``states (B, M, D)`` and return validated log-likelihoods (B, M).
+
+    Raises:
+        ShapeError: the callable returned the wrong shape.
+        FilterError: NaN, ``+inf`` or (for plain likelihoods) negative values; the message names
+            ``step``.
+    """
+    out = likelihood(states)
+    if not isinstance(out, torch.Tensor) or out.shape != states.shape[:2]:
+        shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        raise ShapeError(
+            f"{step}: likelihood must return (B, M) = {tuple(states.shape[:2])}, got {shape}"
+        )
+    out = out.to(states.dtype)
+    if bool(torch.isnan(out).any()):
+        rows = torch.nonzero(torch.isnan(out).any(1)).flatten()[:10].tolist()
+        raise FilterError(f"{step}: likelihood returned NaN (batch rows {rows})")
+    if log_likelihood:
+        if bool((out == math.inf).any()):
+            raise FilterError(f"{step}: log-likelihood returned +inf")
+        return out
+    if bool((out < 0).any()) or bool((out == math.inf).any()):
+        raise FilterError(f"{step}: likelihood must be finite and >= 0 (got negative or +inf)")
+    return torch.log(out)
+
+
+def _gather_states(states: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``states (B, N, D)``, ``idx (B, M)`` -> ``(B, M, D)``."""
+    return torch.gather(states, 1, idx.unsqueeze(-1).expand(-1, -1, states.shape[2]))
+
+
+def sir_step(
+    states: torch.Tensor,
+    log_weights: torch.Tensor,
+    motion: MotionFn,
+    likelihood: Likelihood,
+    *,
+    log_likelihood: bool = True,
+    scheme: str = "systematic",
+    ess_fraction: float | None = None,
+    estimator: str = "mean",
+    generator: GeneratorLike = None,
+) -> StepResult:
+    """One SIR / Condensation step for B targets at once.
+
+    Args:
+        states: ``(B, N, D)`` particles of the previous frame.
+        log_weights: ``(B, N)`` their log-weights.
+        motion: ``motion(states, generator) -> states``, e.g. ``KleinAR()``.
+        likelihood: ``(B, N, D) -> (B, N)`` log-likelihoods (or likelihoods if
+            ``log_likelihood=False``).
+        scheme: resampling scheme name (see ``torchtrack.filter.resample.RESAMPLERS``).
+        ess_fraction: None resamples always (Condensation); ``f`` resamples rows with
+            ``ESS < f N`` only.
+        estimator: ``"mean"`` (Klein eq. 2), ``"best"`` or ``"mode"`` (dominant mode).
+        generator: a ``torch.Generator``, a sequence of B generators, or None.
+
+    Returns:
+        StepResult.
+
+    Raises:
+        ShapeError, ConfigError: bad inputs or names.
+        FilterError: the likelihood returned NaN (message names ``sir_step``).
+    """
+    check_particles(states, log_weights)
+    est_fn = get_estimator(estimator)
+    ancestors, prior_lw, resampled = resample(
+        log_weights, scheme, ess_fraction, generator, step="sir_step"
+    )
+    predicted = motion(_gather_states(states, ancestors), generator)
+    check_particles(predicted, prior_lw)
+    ll = evaluate_log_likelihood(likelihood, predicted, log_likelihood, "sir_step")
+    joint = prior_lw.to(ll.dtype) + ll
+    log_evidence = torch.logsumexp(joint, dim=1)
+    lw, recovered = normalize_log_weights(joint, step="sir_step")
+    return StepResult(
+        states=predicted,
+        log_weights=lw,
+        estimate=est_fn(predicted, lw),
+        ess=ess(lw),
+        ancestors=ancestors,
+        resampled=resampled,
+        recovered=recovered,
+        log_evidence=log_evidence,
+        iterations=torch.zeros(states.shape[0], dtype=torch.long, device=states.device),
+    )
