@@ -42,6 +42,9 @@ class ChateauFit:
         n_transitions: number of ``(X_t, X_{t+1})`` pairs used.
         n_tracks: number of tracks that contributed at least one pair.
         rms: ``(3,)`` root mean square one-step residual of cx, cy (pixels) and s.
+        A_stderr: ``(6, 6)`` least-squares standard errors of A's free rows (0 elsewhere):
+            ``sqrt(Sigma_kk [(X^T X)^-1]_jj)``. Entries multiplying nearly collinear
+            regressors (c_t and c_{t-1}, s_t and s_{t-1}) are the least determined.
     """
 
     A: torch.Tensor
@@ -50,6 +53,7 @@ class ChateauFit:
     n_transitions: int
     n_tracks: int
     rms: torch.Tensor
+    A_stderr: torch.Tensor
 
     def model(self, window: tuple[float, float] = (1.0, 1.0)) -> ChateauAR:
         """A ``ChateauAR`` with these parameters and reference ``window``."""
@@ -133,6 +137,10 @@ def fit_chateau_dynamics(
     a = torch.zeros(6, 6, dtype=torch.float64)
     a[_FREE] = theta.T
     a[2, 0], a[3, 1], a[5, 4] = 1.0, 1.0, 1.0
+    xs_ = x / col
+    inv_diag = torch.diagonal(torch.linalg.pinv(xs_.T @ xs_)) / col.square()  # (6,)
+    se = torch.zeros(6, 6, dtype=torch.float64)
+    se[_FREE] = torch.sqrt(torch.diagonal(sigma).clamp_min(0).unsqueeze(1) * inv_diag.unsqueeze(0))
     return ChateauFit(
         A=a,
         B=default_chateau_B(),
@@ -140,6 +148,7 @@ def fit_chateau_dynamics(
         n_transitions=m,
         n_tracks=used,
         rms=resid.square().mean(0).sqrt(),
+        A_stderr=se,
     )
 
 

@@ -1,0 +1,101 @@
+import pytest
+import torch
+
+from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.filter.motion import BachooMotion, ChateauAR, KleinAR
+
+BOXES = torch.tensor([[10.0, 20.0, 30.0, 60.0], [100.0, 50.0, 8.0, 16.0]], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR(window=(15.0, 30.0)), BachooMotion()])
+def test_box_round_trip_and_init_shapes(model):
+    s = model.from_boxes(BOXES)
+    torch.testing.assert_close(model.to_boxes(s), BOXES)
+    g = torch.Generator().manual_seed(0)
+    p = model.init(BOXES, 64, g)
+    assert p.shape == (2, 64, model.dim) and p.dtype == torch.float64
+    q = model.predict(p, g)
+    assert q.shape == p.shape and torch.isfinite(q).all()
+    q32 = model.predict(p.float(), g)
+    assert q32.dtype == torch.float32
+    with pytest.raises(ShapeError, match=r"states must be \(B, N, "):
+        model.predict(p[..., :3], g)
+    with pytest.raises(ShapeError, match=r"boxes must be \(B, 4\)"):
+        model.from_boxes(BOXES[0])
+
+
+def test_klein_eq1_moments():
+    m = KleinAR()  # paper defaults 6.4 / 0.64
+    g = torch.Generator().manual_seed(1)
+    n = 200_000
+    s = m.from_boxes(BOXES[:1]).unsqueeze(1).repeat(1, n, 1)
+    s[..., 4] = 3.0  # vx
+    q = m.predict(s, g)
+    dv = q[..., 4] - 3.0
+    assert abs(dv.std().item() - 6.4) < 0.05 and abs(dv.mean().item()) < 0.05
+    # x_t = x_{t-1} + v_t exactly (eq. 1), w random walk with sigma 0.64
+    torch.testing.assert_close(q[..., 0], s[..., 0] + q[..., 4])
+    assert abs((q[..., 2] - 30.0).std().item() - 0.64) < 0.01
+    # init: velocities ~ N(0, 6.4^2), positions on the box (Klein sec. II-B)
+    p = m.init(BOXES[:1], n, g)
+    assert abs(p[..., 5].std().item() - 6.4) < 0.05 and (p[..., 0] == 25.0).all()
+
+
+def test_chateau_predict_matches_eq4_moments():
+    a = torch.eye(6, dtype=torch.float64) * 0.5
+    b = torch.zeros(6, 2, dtype=torch.float64)
+    b[0, 0], b[4, 1], b[1, 0] = 1.0, 1.0, 1.0
+    sigma = torch.tensor([[4.0, 0.1], [0.1, 0.01]], dtype=torch.float64)
+    m = ChateauAR(a, b, sigma)
+    x = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0, 6.0], dtype=torch.float64)
+    n = 200_000
+    q = m.predict(x.expand(1, n, 6).clone(), torch.Generator().manual_seed(2))[0]
+    torch.testing.assert_close(q.mean(0), a @ x, atol=0.02, rtol=0)
+    cov = torch.cov(q.T)
+    torch.testing.assert_close(cov, b @ sigma @ b.T, atol=0.05, rtol=0.03)
+
+
+def test_chateau_config_errors():
+    with pytest.raises(ConfigError, match="A must be 6 x 6"):
+        ChateauAR(A=torch.eye(5))
+    with pytest.raises(ConfigError, match="Sigma must be 3 x 3 to match B"):
+        ChateauAR(Sigma=torch.eye(2))
+    with pytest.raises(ConfigError, match="positive semi-definite"):
+        ChateauAR(Sigma=-torch.eye(3))
+    with pytest.raises(ConfigError, match="unknown parameter keys"):
+        ChateauAR.from_params({"A": [], "B": [], "Sigma": [], "sigma": 1})
+    with pytest.raises(ConfigError, match=r"window must be \(w, h\) > 0"):
+        ChateauAR(window=(0.0, 1.0))
+
+
+def test_bachoo_noise_adapts_and_inflates_on_occlusion():
+    m = BachooMotion(min_sigma=1.0, gain=1.0, occluded_sigma=20.0, history=25)
+    h = m.new_history(BOXES)
+    torch.testing.assert_close(m.noise_std(h), torch.ones(2, 2, dtype=torch.float64))
+    for _ in range(30):  # more than the 25-frame history
+        h = m.update_history(h, torch.tensor([[5.0, -0.2], [0.0, 0.0]], dtype=torch.float64))
+    torch.testing.assert_close(
+        m.noise_std(h), torch.tensor([[5.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    )
+    h2 = m.update_history(
+        h, torch.zeros(2, 2, dtype=torch.float64), occluded=torch.tensor([False, True])
+    )
+    sd = m.noise_std(h2)
+    assert sd[1].tolist() == [20.0, 20.0] and sd[0, 0] == pytest.approx(24 * 5 / 25)
+    # eq. (1): position noise std follows the adapted sigma; eq. (3) v = x_t - x_{t-1}
+    n = 100_000
+    s = m.from_boxes(BOXES).unsqueeze(1).repeat(1, n, 1)
+    s[..., 4] = 2.0
+    q = m.predict(s, torch.Generator().manual_seed(3), history=h2)
+    dx = q[..., 0] - s[..., 0] - 2.0
+    assert dx[0].std().item() == pytest.approx(sd[0, 0].item(), rel=0.02)
+    assert dx[1].std().item() == pytest.approx(20.0, rel=0.02)
+    torch.testing.assert_close(q[..., 4:6], q[..., 0:2] - s[..., 0:2])
+    assert (q[..., 6].std(1) - 0.02).abs().max() < 0.001  # eq. (4) rotation
+    assert ((q[..., 2] / 30.0)[0].std() - 0.01).abs() < 0.001  # eq. (2) relative scale
+    with pytest.raises(ShapeError, match="history is for B=2 targets"):
+        m.predict(s[:1], None, history=h2)
+    with pytest.raises(ConfigError, match="history must be >= 1"):
+        BachooMotion(history=0)
+    with pytest.raises(ConfigError, match="min_sigma must be >= 0"):
+        BachooMotion(min_sigma=-1)

@@ -1,0 +1,101 @@
+import math
+
+import pytest
+import torch
+
+from torchtrack.errors import FilterError, ShapeError
+from torchtrack.filter.particles import (
+    ParticleSet,
+    best_particle,
+    dominant_mode_mean,
+    ess,
+    normalize_log_weights,
+    uniform_log_weights,
+    weighted_cov,
+    weighted_mean,
+)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_normalize_and_ess_match_plain_formulas(dtype):
+    g = torch.Generator().manual_seed(0)
+    # offset beyond exp's float32 range (88): plain exp / sum would overflow
+    lw = torch.randn(5, 50, generator=g, dtype=dtype) * 3 + 100
+    out, rec = normalize_log_weights(lw)
+    assert out.dtype == dtype and not rec.any()
+    w = torch.softmax(lw.double(), 1)
+    tol = 1e-4 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(out.exp().double(), w, atol=tol, rtol=tol)
+    # Jin et al. eq. (11)-(12)
+    torch.testing.assert_close(ess(lw).double(), 1 / (w**2).sum(1), rtol=tol, atol=0)
+
+
+def test_ess_extremes():
+    lw = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, -math.inf, -math.inf, -math.inf]])
+    torch.testing.assert_close(ess(lw), torch.tensor([4.0, 1.0]))
+
+
+def test_all_zero_weights_recover_uniform_and_flag():
+    lw = torch.tensor([[-math.inf] * 4, [0.0, 1.0, -math.inf, 2.0]], dtype=torch.float64)
+    out, rec = normalize_log_weights(lw)
+    assert rec.tolist() == [True, False]
+    torch.testing.assert_close(out[0], torch.full((4,), -math.log(4), dtype=torch.float64))
+    assert torch.isfinite(out[1, [0, 1, 3]]).all() and out[1, 2] == -math.inf
+    assert not torch.isnan(out).any()
+
+
+def test_nan_log_weights_raise_naming_step():
+    lw = torch.tensor([[0.0, float("nan")]])
+    with pytest.raises(FilterError, match="my_step: log-weights contain NaN"):
+        normalize_log_weights(lw, step="my_step")
+    with pytest.raises(FilterError, match=r"\+inf"):
+        normalize_log_weights(torch.tensor([[0.0, math.inf]]))
+
+
+def test_estimates_against_loops():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 20, 4, generator=g, dtype=torch.float64)
+    lw = torch.randn(3, 20, generator=g, dtype=torch.float64)
+    w = torch.softmax(lw, 1)
+    for b in range(3):
+        ref = sum(w[b, i] * x[b, i] for i in range(20))
+        torch.testing.assert_close(weighted_mean(x, lw)[b], ref)
+        c = sum(w[b, i] * torch.outer(x[b, i] - ref, x[b, i] - ref) for i in range(20))
+        torch.testing.assert_close(weighted_cov(x, lw)[b], c)
+        torch.testing.assert_close(best_particle(x, lw)[b], x[b, int(lw[b].argmax())])
+
+
+def test_dominant_mode_beats_mean_on_bimodal_posterior():
+    g = torch.Generator().manual_seed(2)
+    n = 2000
+    a = torch.randn(2, n // 2, 2, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0])
+    b = torch.randn(2, n // 2, 2, generator=g, dtype=torch.float64) + torch.tensor([20.0, 0.0])
+    x = torch.cat([a, b], 1)
+    lw = torch.cat(
+        [torch.full((2, n // 2), math.log(0.7)), torch.full((2, n // 2), math.log(0.3))], 1
+    )
+    lw = lw.double()
+    mean = weighted_mean(x, lw)
+    mode = dominant_mode_mean(x, lw)
+    assert (mean[:, 0] - 6.0).abs().max() < 0.5  # the mean lies between the modes
+    assert (mode - torch.tensor([0.0, 0.0], dtype=torch.float64)).norm(dim=1).max() < 0.3
+    # explicit bandwidth path
+    mode2 = dominant_mode_mean(x, lw, bandwidth=torch.tensor([1.0, 1.0]))
+    assert (mode2[:, 0]).abs().max() < 0.3
+
+
+def test_particle_set_and_shape_errors():
+    x = torch.zeros(2, 3, 4)
+    ps = ParticleSet.uniform(x)
+    torch.testing.assert_close(ps.weights, torch.full((2, 3), 1 / 3))
+    torch.testing.assert_close(ps.ess(), torch.tensor([3.0, 3.0]))
+    assert ps.mean().shape == (2, 4)
+    assert uniform_log_weights(x.double()).dtype == torch.float64
+    with pytest.raises(ShapeError, match=r"states must be a \(B, N, D\) tensor"):
+        ParticleSet(torch.zeros(3, 4), torch.zeros(3))
+    with pytest.raises(ShapeError, match=r"log_weights must have shape \(B, N\) = \(2, 3\)"):
+        ParticleSet(x, torch.zeros(2, 4))
+    with pytest.raises(ShapeError, match="floating point"):
+        ParticleSet(torch.zeros(2, 3, 4, dtype=torch.long), torch.zeros(2, 3))
+    with pytest.raises(ShapeError, match="N >= 1"):
+        ParticleSet(torch.zeros(2, 0, 4), torch.zeros(2, 0))
