@@ -4,33 +4,28 @@ import struct
 import pytest
 import torch
 
-from torchtrack.detect import Detector, SigmoidCalibrator, StumpScorer, load_detector, save_detector
-from torchtrack.detect.heads import IsotonicCalibrator, KernelScorer
+from torchtrack.detect import Detector, load_detector, save_detector
 from torchtrack.detect.model_file import FORMAT_VERSION, read_model_metadata
 from torchtrack.errors import BoxError, ModelFormatError, NotFittedError
 from torchtrack.features.haar import haar_bank
+from torchtrack.learn import BoostedStumps, IsotonicCalibrator, PlattCalibrator, SVMClassifier
+
+
+def toy_data():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(80, 4, generator=g)
+    y = (x[:, 0] - x[:, 2] + 0.5 * torch.randn(80, generator=g) > 0).long()
+    return x, y
 
 
 def make_detector(cal=True, svm=False) -> Detector:
     bank = haar_bank((16, 8), sizes=(8, 4))
     idx = torch.tensor([3, 50, 200, 360])
-    if svm:
-        g = torch.Generator().manual_seed(0)
-        scorer = KernelScorer(
-            torch.randn(5, 4, generator=g),
-            torch.randn(5, generator=g),
-            0.3,
-            "rbf",
-            0.5,
-            torch.zeros(4),
-            torch.ones(4) * 2,
-        )
-    else:
-        scorer = StumpScorer(
-            [0, 1, 2, 3, 1], [0.1, -0.2, 0.0, 0.3, 0.5], [0, 0, 0, 0, 0], [1.0, 0.5, 0.7, 0.2, 0.9]
-        )
-    calib = SigmoidCalibrator(-3.0, 1.2) if cal else None
-    return Detector(bank, idx, scorer, calib, name="toy", summary={"n_pos": 10, "split": ["a.png"]})
+    x, y = toy_data()
+    clf = SVMClassifier(kernel="rbf") if svm else BoostedStumps(n_estimators=5)
+    clf.fit(x, y)
+    calib = PlattCalibrator().fit(clf.decision_function(x).double(), y) if cal else None
+    return Detector(bank, idx, clf, calib, name="toy", summary={"n_pos": 10, "split": ["a.png"]})
 
 
 def frames_boxes():
@@ -61,7 +56,11 @@ def test_round_trip_scores_identically(tmp_path, svm):
 
 
 def test_isotonic_round_trip(tmp_path):
-    det = make_detector().with_calibrator(IsotonicCalibrator([-1.0, 0.0, 2.0], [0.1, 0.2, 0.9]))
+    x, y = toy_data()
+    det = make_detector()
+    det = det.with_calibrator(
+        IsotonicCalibrator().fit(det.classifier.decision_function(x).double(), y)
+    )
     frames, boxes = frames_boxes()
     again = load_detector(save_detector(tmp_path / "m.safetensors", det))
     torch.testing.assert_close(again.score(frames, boxes), det.score(frames, boxes))
@@ -71,7 +70,9 @@ def test_score_is_calibrated_margin():
     det = make_detector()
     frames, boxes = frames_boxes()
     m = det.decision_function(frames, boxes)
-    torch.testing.assert_close(det.score(frames, boxes), 1 / (1 + torch.exp(-3.0 * m + 1.2)))
+    a, b = det.calibrator.a_, det.calibrator.b_
+    assert a < 0  # a useful classifier: probability rises with the margin
+    torch.testing.assert_close(det.score(frames, boxes), 1 / (1 + torch.exp(a * m + b)))
 
 
 def test_uncalibrated_detector_refuses_to_score():
@@ -159,8 +160,10 @@ def test_no_pickle_in_file(tmp_path):
 
 def test_detector_validation():
     bank = haar_bank((16, 8), sizes=(8, 4))
-    scorer = StumpScorer([0, 5], [0.0, 0.0], [0.0, 0.0], [1.0, 1.0])
-    with pytest.raises(ModelFormatError, match="reads 6 features"):
-        Detector(bank, torch.tensor([1, 2]), scorer)
+    clf = BoostedStumps(n_estimators=3).fit(*toy_data())
+    with pytest.raises(ModelFormatError, match="reads 4 features but 2"):
+        Detector(bank, torch.tensor([1, 2]), clf)
     with pytest.raises(ModelFormatError, match="lie in"):
-        Detector(bank, torch.tensor([len(bank)]), StumpScorer([0], [0.0], [0.0], [1.0]))
+        Detector(bank, torch.tensor([0, 1, 2, len(bank)]), clf)
+    with pytest.raises(NotFittedError, match="not fitted"):
+        Detector(bank, torch.tensor([0, 1, 2, 3]), BoostedStumps())

@@ -12,21 +12,10 @@ from typing import Any
 
 import torch
 
-from torchtrack.detect.heads import (
-    IsotonicCalibrator,
-    KernelScorer,
-    SigmoidCalibrator,
-    StumpScorer,
-    calibrator_from_estimator,
-    scorer_from_estimator,
-)
 from torchtrack.errors import ModelFormatError, NotFittedError, ShapeError
 from torchtrack.features.haar import HaarBank, Integrals, haar_features_at, integrals
 
 __all__ = ["Detector"]
-
-Scorer = StumpScorer | KernelScorer
-Calibrator = SigmoidCalibrator | IsotonicCalibrator
 
 
 @dataclass
@@ -37,20 +26,22 @@ class Detector:
         bank: the full Haar bank of the training window.
         feature_index: ``(K,)`` int64, the selected features (indices into ``bank``); the
             classifier sees them in this order.
-        scorer: margins from the ``(M, K)`` selected features (stumps or SVM head).
-        calibrator: margins -> probabilities (Platt sigmoid or isotonic); ``None`` until
-            calibrated.
+        classifier: a fitted :class:`torchtrack.learn.BoostedStumps` or
+            :class:`torchtrack.learn.SVMClassifier` (anything with a torch
+            ``decision_function`` on ``(..., K)``, ``n_features_in_`` and ``to_state()``).
+        calibrator: a fitted :class:`torchtrack.learn.PlattCalibrator` or
+            :class:`~torchtrack.learn.IsotonicCalibrator`; ``None`` until calibrated.
         name: a label, e.g. ``"pedestrian"``.
         summary: JSON-safe training summary (data counts, held-out metrics, split).
 
-    Build one from fitted estimators with :meth:`from_estimators`; save and load it with
-    :func:`torchtrack.detect.save_detector` / :func:`~torchtrack.detect.load_detector`.
+    Save and load it with :func:`torchtrack.detect.save_detector` /
+    :func:`~torchtrack.detect.load_detector`.
     """
 
     bank: HaarBank
     feature_index: torch.Tensor
-    scorer: Scorer
-    calibrator: Calibrator | None = None
+    classifier: Any
+    calibrator: Any = None
     name: str = "detector"
     summary: dict[str, Any] = field(default_factory=dict)
 
@@ -65,25 +56,13 @@ class Detector:
             raise ModelFormatError(
                 f"selected feature indices must lie in [0, {len(self.bank)}) for this bank"
             )
-        if self.scorer.n_inputs > k:
+        n_in = getattr(self.classifier, "n_features_in_", None)
+        if n_in is None:
+            raise NotFittedError("the detector's classifier is not fitted (no n_features_in_)")
+        if int(n_in) != k:
             raise ModelFormatError(
-                f"the classifier reads {self.scorer.n_inputs} features but only {k} are selected"
+                f"the classifier reads {n_in} features but {k} features are selected"
             )
-
-    @classmethod
-    def from_estimators(
-        cls,
-        bank: HaarBank,
-        feature_index: torch.Tensor,
-        classifier: Any,
-        calibrator: Any = None,
-        **kwargs: Any,
-    ) -> Detector:
-        """Export fitted estimators (torchtrack learners or scikit-learn, see
-        :func:`~torchtrack.detect.heads.scorer_from_estimator`) into tensor heads."""
-        scorer = scorer_from_estimator(classifier)
-        cal = None if calibrator is None else calibrator_from_estimator(calibrator)
-        return cls(bank, feature_index, scorer, cal, **kwargs)
 
     @property
     def window(self) -> tuple[int, int]:
@@ -91,8 +70,8 @@ class Detector:
         return self.bank.window
 
     def with_calibrator(self, calibrator: Any) -> Detector:
-        """A copy with another calibration (a head or a fitted calibrator)."""
-        return replace(self, calibrator=calibrator_from_estimator(calibrator))
+        """A copy with another fitted calibrator (``predict_proba`` on margins)."""
+        return replace(self, calibrator=calibrator)
 
     def features(self, frames: torch.Tensor | Integrals, boxes: torch.Tensor) -> torch.Tensor:
         """Selected features ``(B, N, K)`` of ``boxes (B, N, 4)`` (x, y, w, h pixels) on
@@ -107,8 +86,7 @@ class Detector:
                 f"expected {self.feature_index.numel()} selected features in the last axis, "
                 f"got shape {tuple(feats.shape)}"
             )
-        lead = feats.shape[:-1]
-        return self.scorer.decision_function(feats.reshape(-1, feats.shape[-1])).reshape(lead)
+        return self.classifier.decision_function(feats)
 
     def proba_from_margin(self, margin: torch.Tensor) -> torch.Tensor:
         """Calibrated probabilities of margins (eq. 8)."""
@@ -116,7 +94,7 @@ class Detector:
             raise NotFittedError(
                 f"detector {self.name!r} has no calibration; fit one with `torchtrack calibrate`"
             )
-        return self.calibrator(margin)
+        return self.calibrator.predict_proba(margin)
 
     def decision_function(
         self, frames: torch.Tensor | Integrals, boxes: torch.Tensor

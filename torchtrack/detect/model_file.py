@@ -6,14 +6,15 @@ document::
 
     {"format": "torchtrack-detector", "format_version": 1,
      "name": ..., "window": [H, W], "bank": {...}, "selected_features": [{kind, size, y, x}, ...],
-     "classifier": {"type": "stumps" | "svm", ...}, "calibration": {"type": ...} | null,
+     "classifier": {"kind": "boosted_stumps" | "svm", ...},
+     "calibration": {"kind": "platt" | "isotonic", ...} | null,
      "training": {...data counts, split, held-out metrics...},
      "sha256": hex digest of the JSON without this key plus every tensor's name, dtype, shape
                and bytes}
 
 Loading reads the whole file, parses the header by hand (so a truncated file is detected
 before any tensor is touched), checks the format name and version, recomputes the checksum and
-rebuilds every part through validating constructors. Any failure is a :class:`ModelFormatError`
+rebuilds every part through the validating ``from_state`` loaders of :mod:`torchtrack.learn`. Any failure is a :class:`ModelFormatError`
 that names the file and the problem.
 """
 
@@ -29,7 +30,6 @@ from typing import Any
 import torch
 
 from torchtrack.detect.detector import Detector
-from torchtrack.detect.heads import calibrator_from_state, scorer_from_state
 from torchtrack.errors import ConfigError, ModelFormatError
 from torchtrack.features.haar import HaarBank
 from torchtrack.io.atomic import atomic_path
@@ -59,12 +59,12 @@ def save_detector(path: str | os.PathLike, det: Detector) -> Path:
     """
     from safetensors.torch import save_file
 
-    sc_t, sc_m = det.scorer.state()
+    sc_t, sc_m = det.classifier.to_state()
     tensors = {"features.index": det.feature_index.contiguous()}
     tensors.update({f"classifier.{k}": v.contiguous() for k, v in sc_t.items()})
     cal_m = None
     if det.calibrator is not None:
-        cal_t, cal_m = det.calibrator.state()
+        cal_t, cal_m = det.calibrator.to_state()
         tensors.update({f"calibration.{k}": v.contiguous() for k, v in cal_t.items()})
     meta = {
         "format": FORMAT,
@@ -148,6 +148,8 @@ def load_detector(path: str | os.PathLike) -> Detector:
     """
     from safetensors.torch import load as st_load
 
+    from torchtrack.learn import calibrator_from_state, classifier_from_state
+
     p = Path(path)
     data, _, meta = _read(p)
     try:
@@ -167,7 +169,7 @@ def load_detector(path: str | os.PathLike) -> Detector:
         sc_t = {
             k[len("classifier.") :]: v for k, v in tensors.items() if k.startswith("classifier.")
         }
-        scorer = scorer_from_state(sc_t, meta["classifier"])
+        clf = classifier_from_state(sc_t, meta["classifier"])
         cal = None
         if meta.get("calibration") is not None:
             cal_t = {
@@ -179,7 +181,7 @@ def load_detector(path: str | os.PathLike) -> Detector:
         det = Detector(
             bank,
             tensors["features.index"],
-            scorer,
+            clf,
             cal,
             name=str(meta.get("name", "detector")),
             summary=meta.get("training") or {},
