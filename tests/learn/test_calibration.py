@@ -1,0 +1,223 @@
+"""Platt / isotonic calibration against scikit-learn, plus properties and bad input."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from sklearn.base import BaseEstimator, ClassifierMixin
+from sklearn.calibration import CalibratedClassifierCV, _sigmoid_calibration
+from sklearn.frozen import FrozenEstimator
+from sklearn.isotonic import IsotonicRegression
+from sklearn.metrics import brier_score_loss, log_loss
+
+from torchtrack import errors
+from torchtrack.learn import (
+    BoostedStumps,
+    IsotonicCalibrator,
+    PlattCalibrator,
+    SVMClassifier,
+    calibration_metrics,
+    calibrator_from_state,
+    fit_calibrated,
+    reliability_diagram,
+)
+
+
+def _scores(n=500, seed=0, scale=1.0, pos_rate=0.3):
+    rng = np.random.default_rng(seed)
+    y = (rng.random(n) < pos_rate).astype(np.int64)
+    s = (rng.normal(size=n) + 1.7 * y - 0.4) * scale
+    return s, y
+
+
+class _Identity(ClassifierMixin, BaseEstimator):
+    """A 'classifier' whose decision_function is its single input column (precomputed scores)."""
+
+    def fit(self, X, y):
+        self.classes_ = np.unique(y)
+        return self
+
+    def decision_function(self, X):
+        return np.asarray(X)[:, 0]
+
+    def predict(self, X):
+        return self.classes_[(self.decision_function(X) > 0).astype(int)]
+
+
+@pytest.mark.parametrize(
+    ("n", "seed", "scale", "pos_rate"),
+    [(500, 0, 1.0, 0.3), (200, 1, 80.0, 0.5), (1000, 2, 0.02, 0.1), (60, 3, 5.0, 0.8)],
+)
+def test_platt_matches_sklearn_sigmoid(n, seed, scale, pos_rate):
+    s, y = _scores(n, seed, scale, pos_rate)
+    cal = PlattCalibrator().fit(s, y)
+    a, b = _sigmoid_calibration(s, y)
+    # sklearn's sign convention: P = expit(-(a s + b)) = 1 / (1 + exp(a s + b)), same as ours
+    assert abs(cal.a_ - a) < 1e-3 * max(1.0, abs(a)) and abs(cal.b_ - b) < 1e-3
+    # the public route: CalibratedClassifierCV around a frozen score "classifier"
+    ccv = CalibratedClassifierCV(FrozenEstimator(_Identity().fit(s[:, None], y)), method="sigmoid")
+    ccv.fit(s[:, None], y)
+    sk = ccv.calibrated_classifiers_[0].calibrators[0]
+    assert abs(cal.a_ - sk.a_) < 1e-3 * max(1.0, abs(sk.a_)) and abs(cal.b_ - sk.b_) < 1e-3
+    np.testing.assert_allclose(cal.predict_proba(s), ccv.predict_proba(s[:, None])[:, 1], atol=1e-4)
+
+
+def test_platt_sample_weight_matches_sklearn():
+    s, y = _scores(300, 5)
+    sw = np.random.default_rng(5).uniform(0.2, 3.0, size=s.size)
+    cal = PlattCalibrator().fit(s, y, sample_weight=sw)
+    a, b = _sigmoid_calibration(s, y, sample_weight=sw)
+    assert abs(cal.a_ - a) < 1e-3 and abs(cal.b_ - b) < 1e-3
+
+
+def test_flipping_labels_gives_one_minus_p():
+    s, y = _scores(400, 7)
+    p = PlattCalibrator().fit(s, y).predict_proba(s)
+    q = PlattCalibrator().fit(s, 1 - y).predict_proba(s)
+    np.testing.assert_allclose(q, 1 - p, atol=1e-6)
+
+
+def test_scaling_scores_keeps_probabilities():
+    s, y = _scores(400, 8)
+    p = PlattCalibrator().fit(s, y).predict_proba(s)
+    q = PlattCalibrator().fit(s * 1000.0, y).predict_proba(s * 1000.0)
+    np.testing.assert_allclose(q, p, atol=1e-7)
+
+
+def test_torch_input_and_shapes():
+    s, y = _scores()
+    cal = PlattCalibrator().fit(torch.from_numpy(s), torch.from_numpy(y))
+    grid = torch.linspace(-3, 3, 12, dtype=torch.float32).reshape(3, 4)
+    p = cal.predict_proba(grid)
+    assert p.shape == (3, 4) and p.dtype == torch.float32
+    assert cal.a_ < 0 and bool((p.flatten().diff() > 0).all())  # higher score, higher P
+
+
+def test_all_identical_scores_give_base_rate():
+    y = np.array([1, 0, 0, 0, 1, 0, 0, 0, 0, 0])
+    with pytest.warns(UserWarning, match="identical"):
+        cal = PlattCalibrator().fit(np.full(10, 2.5), y)
+    n1, n0 = 2, 8
+    expected = (n1 * (n1 + 1) / (n1 + 2) + n0 / (n0 + 2)) / 10
+    assert cal.a_ == 0.0
+    np.testing.assert_allclose(cal.predict_proba(np.array([-5.0, 2.5, 9.0])), expected)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
+def test_non_finite_scores_rejected_with_index(bad, cls):
+    s, y = _scores(50)
+    s[13] = bad
+    with pytest.raises(errors.DataError, match="index 13"):
+        cls().fit(s, y)
+
+
+@pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
+def test_single_class_and_bad_shapes_rejected(cls):
+    s, _ = _scores(50)
+    with pytest.raises(errors.DataError, match="exactly two classes"):
+        cls().fit(s, np.ones(50))
+    with pytest.raises(errors.ShapeError, match="must have shape"):
+        cls().fit(s, np.ones(49))
+    with pytest.raises(errors.NotFittedError, match="not fitted"):
+        cls().predict_proba(s)
+
+
+def test_isotonic_matches_sklearn_and_roundtrips():
+    s, y = _scores(400, 9)
+    cal = IsotonicCalibrator().fit(s, y)
+    ref = IsotonicRegression(y_min=0, y_max=1, out_of_bounds="clip").fit(s, y)
+    grid = np.linspace(s.min() - 2, s.max() + 2, 2001)
+    np.testing.assert_allclose(cal.predict_proba(grid), ref.predict(grid), atol=1e-12)
+    back = calibrator_from_state(*cal.to_state())
+    np.testing.assert_allclose(
+        back.predict_proba(torch.from_numpy(grid)).numpy(), ref.predict(grid)
+    )
+
+
+def test_calibrator_state_validation():
+    s, y = _scores()
+    t, m = PlattCalibrator().fit(s, y).to_state()
+    back = calibrator_from_state(t, m)
+    assert back.predict_proba(np.array([0.3]))[0] == pytest.approx(
+        PlattCalibrator().fit(s, y).predict_proba(np.array([0.3]))[0]
+    )
+    with pytest.raises(errors.ModelFormatError, match=r"platt\.a: missing"):
+        calibrator_from_state(t, {"kind": "platt", "b": 1.0})
+    with pytest.raises(errors.ModelFormatError, match=r"platt\.b: not finite"):
+        calibrator_from_state(t, {"kind": "platt", "a": 1.0, "b": float("nan")})
+    with pytest.raises(errors.ModelFormatError, match="unknown calibrator kind 'beta'"):
+        calibrator_from_state(t, {"kind": "beta"})
+    ti, mi = IsotonicCalibrator().fit(s, y).to_state()
+    with pytest.raises(errors.ModelFormatError, match=r"isotonic\.x: thresholds not sorted"):
+        calibrator_from_state({"x": ti["x"].flip(0), "y": ti["y"]}, mi)
+    with pytest.raises(errors.ModelFormatError, match=r"isotonic\.y"):
+        calibrator_from_state({"x": ti["x"], "y": ti["y"][:-1]}, mi)
+
+
+def _ece_loop(p, y, n_bins):
+    total = 0.0
+    for b in range(n_bins):
+        lo, hi = b / n_bins, (b + 1) / n_bins
+        m = [
+            (pi, yi)
+            for pi, yi in zip(p, y, strict=True)
+            if lo <= pi < hi or (b == n_bins - 1 and pi == 1.0)
+        ]
+        if m:
+            total += len(m) / len(p) * abs(np.mean([a for a, _ in m]) - np.mean([c for _, c in m]))
+    return total
+
+
+def test_metrics_against_references():
+    s, y = _scores(300, 11)
+    p = PlattCalibrator().fit(s, y).predict_proba(s)
+    p[0] = 1.0
+    met = calibration_metrics(p, y)
+    assert met["nll"] == pytest.approx(log_loss(y, np.clip(p, 1e-15, 1 - 1e-15)), rel=1e-9)
+    assert met["brier"] == pytest.approx(brier_score_loss(y, p), rel=1e-9)
+    assert met["ece"] == pytest.approx(_ece_loop(p, y, 15), abs=1e-12)
+    assert calibration_metrics(p, y, n_bins=7)["ece"] == pytest.approx(
+        _ece_loop(p, y, 7), abs=1e-12
+    )
+    with pytest.raises(errors.DataError, match=r"p\[4\]"):
+        calibration_metrics(np.where(np.arange(300) == 4, 1.5, p), y)
+    with pytest.raises(errors.DataError, match="only 0 and 1"):
+        calibration_metrics(p, y * 2)
+
+
+def test_reliability_diagram_writes_png(tmp_path):
+    s, y = _scores(300)
+    raw = 1 / (1 + np.exp(-s))
+    p = PlattCalibrator().fit(s, y).predict_proba(s)
+    out = reliability_diagram({"raw": raw, "platt": p}, y, tmp_path / "rel.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [f.name for f in tmp_path.iterdir()] == ["rel.png"]
+
+
+def test_fit_calibrated_holdout_and_cv():
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(300, 4)).astype(np.float32)
+    y = (X[:, 0] + 0.5 * rng.normal(size=300) > 0).astype(int)
+    g = torch.Generator().manual_seed(0)
+    fit = fit_calibrated(BoostedStumps(10), X, y, generator=g)
+    assert len(set(fit.train_index.tolist()) & set(fit.calib_index.tolist())) == 0
+    assert len(fit.calib_index) == round(0.3 * (y == 1).sum()) + round(0.3 * (y == 0).sum())
+    np.testing.assert_array_equal(fit.labels.numpy(), y[fit.calib_index.numpy()])
+    assert fit.calibrator.a_ < 0  # higher margin -> higher probability
+    again = fit_calibrated(BoostedStumps(10), X, y, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(again.calib_index, fit.calib_index)
+    cv = fit_calibrated(SVMClassifier(kernel="linear"), X, y, cv=3, method="isotonic")
+    assert isinstance(cv.calibrator, IsotonicCalibrator) and cv.scores.shape == (300,)
+    with pytest.raises(errors.ConfigError, match="holdout must be in"):
+        fit_calibrated(BoostedStumps(3), X, y, holdout=1.2)
+    with pytest.raises(errors.ConfigError, match="cv must be >= 2"):
+        fit_calibrated(BoostedStumps(3), X, y, cv=1)
+    with pytest.raises(errors.ConfigError, match="calibration method must be one of"):
+        fit_calibrated(BoostedStumps(3), X, y, method="beta")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_calibrated(BoostedStumps(3), X, y, cv=2)

@@ -1,0 +1,529 @@
+"""Probability calibration of classifier scores: Platt scaling and isotonic regression.
+
+Chateau et al. (2006), section 2.4: the particle-filter likelihood is the calibrated posterior
+``P(positive | m) = 1 / (1 + exp(A m + B))`` (eq. 5, 8), with ``A, B`` the maximum-likelihood fit
+(eq. 6-7) on a calibration set held out from classifier training (30% in the paper) or obtained
+by cross-validation. The sign convention matches scikit-learn's ``_SigmoidCalibration``
+(``expit(-(a m + b))``), so a good classifier gets ``A < 0``.
+
+Diagnostics: negative log-likelihood, Brier score and expected calibration error (ECE) with
+equal-width probability bins (default 15), plus a reliability diagram written as PNG.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from sklearn.base import BaseEstimator, clone
+
+from torchtrack import errors
+from torchtrack.learn._base import (
+    as_binary_labels,
+    as_float_tensor,
+    check_fitted,
+    check_kind,
+    state_meta,
+    state_tensor,
+)
+
+__all__ = [
+    "CalibratedFit",
+    "IsotonicCalibrator",
+    "PlattCalibrator",
+    "calibration_metrics",
+    "fit_calibrated",
+    "make_calibrator",
+    "platt_fit",
+    "reliability_diagram",
+]
+
+METHODS = ("platt", "isotonic")
+
+
+def _scores(scores: Any, name: str = "scores") -> torch.Tensor:
+    """1-D float64 scores, NaN / inf rejected with the index (DataError)."""
+    return as_float_tensor(scores, name, ndim=1, dtype=torch.float64)
+
+
+def _to_like(p: torch.Tensor, like: Any) -> Any:
+    return p if isinstance(like, torch.Tensor) else p.cpu().numpy()
+
+
+# ------------------------------------------------------------------------------ Platt
+
+
+def platt_fit(
+    scores: torch.Tensor,
+    y01: torch.Tensor,
+    sample_weight: torch.Tensor | None = None,
+    *,
+    max_iter: int = 100,
+    tol: float = 1e-10,
+    min_step: float = 1e-10,
+    sigma: float = 1e-12,
+) -> tuple[float, float, int]:
+    """Platt's sigmoid fit by the robust Newton method of Lin, Lin & Weng (2007, Algorithm 1).
+
+    Minimises the cross-entropy (Chateau eq. 6) against Platt's smoothed targets
+    ``t+ = (N+ + 1) / (N+ + 2)``, ``t- = 1 / (N- + 2)`` (``N`` are weight sums when
+    ``sample_weight`` is given, as in scikit-learn). Each Newton step uses the Hessian plus
+    ``sigma`` on its diagonal and a backtracking line search with the Armijo condition
+    (``1e-4``), and the loss is evaluated in the overflow-free form of Lin et al.
+
+    Args:
+        scores: ``(n,)`` float64 classifier margins.
+        y01: ``(n,)`` labels in ``{0, 1}``.
+        sample_weight: optional ``(n,)`` non-negative weights.
+        tol: stop when both gradient components, divided by the total weight, are below ``tol``.
+
+    Returns:
+        ``(A, B, n_iter)``.
+    """
+    f = scores.to(torch.float64)
+    w = torch.ones_like(f) if sample_weight is None else sample_weight.to(torch.float64)
+    pos = y01.bool()
+    prior1 = float(w[pos].sum())
+    prior0 = float(w[~pos].sum())
+    hi, lo = (prior1 + 1.0) / (prior1 + 2.0), 1.0 / (prior0 + 2.0)
+    t = torch.where(pos, hi, lo).to(torch.float64)
+    total = float(w.sum())
+
+    def loss(a: float, b: float) -> float:
+        z = f * a + b  # fApB
+        # t z + log(1 + exp(-z)) for z >= 0, (t - 1) z + log(1 + exp(z)) otherwise
+        val = torch.where(
+            z >= 0, t * z + torch.log1p(torch.exp(-z)), (t - 1) * z + torch.log1p(torch.exp(z))
+        )
+        return float((w * val).sum())
+
+    A, B = 0.0, math.log((prior0 + 1.0) / (prior1 + 1.0))
+    fval = loss(A, B)
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 (n_iter is returned)
+        z = f * A + B
+        p = torch.sigmoid(-z)  # P(positive) = 1 / (1 + exp(z))
+        q = 1.0 - p
+        d2 = w * p * q
+        h11 = float((f * f * d2).sum()) + sigma
+        h22 = float(d2.sum()) + sigma
+        h21 = float((f * d2).sum())
+        d1 = w * (t - p)
+        g1 = float((f * d1).sum())
+        g2 = float(d1.sum())
+        if abs(g1) < tol * total and abs(g2) < tol * total:
+            break
+        det = h11 * h22 - h21 * h21
+        dA = -(h22 * g1 - h21 * g2) / det
+        dB = -(-h21 * g1 + h11 * g2) / det
+        gd = g1 * dA + g2 * dB
+        step = 1.0
+        while step >= min_step:
+            newA, newB = A + step * dA, B + step * dB
+            newf = loss(newA, newB)
+            if newf < fval + 1e-4 * step * gd:
+                A, B, fval = newA, newB, newf
+                break
+            step /= 2.0
+        if step < min_step:  # no decrease possible: at the optimum to working precision
+            break
+    return A, B, it
+
+
+class PlattCalibrator(BaseEstimator):
+    """Platt scaling: ``P(positive | m) = 1 / (1 + exp(A m + B))`` (Chateau eq. 5-8).
+
+    ``fit`` is the maximum-likelihood fit with Platt's smoothed targets by the robust Newton
+    method of Lin, Lin & Weng (2007), see :func:`platt_fit`.
+
+    All-identical scores carry no ranking information; then ``A = 0`` and ``B`` gives the
+    (smoothed) base rate of the positive class, with a ``UserWarning``.
+
+    Attributes:
+        a_, b_: the fitted ``A`` and ``B``.
+        n_iter_: Newton iterations used.
+    """
+
+    def __init__(self, max_iter: int = 100, tol: float = 1e-10) -> None:
+        self.max_iter = max_iter
+        self.tol = tol
+
+    def fit(self, scores: Any, y: Any, sample_weight: Any = None) -> PlattCalibrator:
+        """Fit on classifier margins ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
+
+        Raises:
+            DataError: NaN / inf scores (index named), a single class, bad sample weights.
+            ShapeError: mismatched lengths.
+        """
+        s = _scores(scores)
+        y01, _ = as_binary_labels(y, s.shape[0])
+        y01 = y01.to(s.device)
+        sw = None
+        if sample_weight is not None:
+            sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
+            if sw.shape != s.shape:
+                raise errors.ShapeError(
+                    f"sample_weight must have shape {tuple(s.shape)}, got {tuple(sw.shape)}"
+                )
+            if bool((sw < 0).any()):
+                raise errors.DataError("sample_weight must be non-negative")
+        if bool((s == s[0]).all()):
+            warnings.warn(
+                "all calibration scores are identical: the calibrator returns the (smoothed) "
+                "positive rate for every score (A = 0)",
+                UserWarning,
+                stacklevel=2,
+            )
+            w = torch.ones_like(s) if sw is None else sw
+            n1, n0 = float(w[y01 == 1].sum()), float(w[y01 == 0].sum())
+            t_mean = (n1 * (n1 + 1) / (n1 + 2) + n0 / (n0 + 2)) / (n1 + n0)
+            self.a_, self.b_, self.n_iter_ = 0.0, math.log((1 - t_mean) / t_mean), 0
+            return self
+        self.a_, self.b_, self.n_iter_ = platt_fit(
+            s, y01, sw, max_iter=int(self.max_iter), tol=float(self.tol)
+        )
+        return self
+
+    def predict_proba(self, scores: Any) -> Any:
+        """Calibrated ``P(positive)`` for margins ``scores (...)`` (any shape, torch or numpy).
+
+        Returns the same shape; float32 for float32 torch input, else float64. NaN scores give
+        NaN probabilities (no check here: this runs in the tracker's hot path).
+        """
+        check_fitted(self, "a_")
+        is_t = isinstance(scores, torch.Tensor)
+        s = scores if is_t else torch.as_tensor(np.asarray(scores, dtype=np.float64))
+        if not s.is_floating_point():
+            s = s.to(torch.float64)
+        p = torch.sigmoid(-(s * self.a_ + self.b_))
+        return p if is_t else p.numpy()
+
+    def to_state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """No tensors; ``A`` and ``B`` live in the JSON metadata (``kind = "platt"``)."""
+        check_fitted(self, "a_")
+        return {}, {"kind": "platt", "a": float(self.a_), "b": float(self.b_)}
+
+    @classmethod
+    def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> PlattCalibrator:
+        """Rebuild from :meth:`to_state`; raises ``ModelFormatError`` naming a bad field."""
+        check_kind(meta, "platt")
+        est = cls()
+        est.a_ = float(state_meta(meta, "a", "platt", (int, float)))
+        est.b_ = float(state_meta(meta, "b", "platt", (int, float)))
+        est.n_iter_ = 0
+        return est
+
+
+# --------------------------------------------------------------------------- isotonic
+
+
+def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """Piecewise-linear interpolation of ``(xp, fp)`` at ``x`` (clipped to ``xp``'s range)."""
+    if xp.numel() == 1:
+        return fp.expand_as(x).clone()
+    xc = x.clamp(xp[0], xp[-1])
+    idx = torch.searchsorted(xp, xc.contiguous(), right=True).clamp(1, xp.numel() - 1)
+    x0, x1 = xp[idx - 1], xp[idx]
+    y0, y1 = fp[idx - 1], fp[idx]
+    dx = x1 - x0
+    frac = torch.where(dx > 0, (xc - x0) / torch.where(dx > 0, dx, 1.0), 0.0)
+    return y0 + frac * (y1 - y0)
+
+
+class IsotonicCalibrator(BaseEstimator):
+    """Isotonic-regression calibration (Zadrozny & Elkan): a monotone step-linear map to [0, 1].
+
+    Fitted with scikit-learn's ``IsotonicRegression(increasing=True, out_of_bounds="clip")``,
+    exported as its threshold tensors and interpolated in torch (linear between thresholds,
+    constant outside), equal to scikit-learn's ``predict``.
+
+    Attributes:
+        x_thresholds_, y_thresholds_: ``(K,)`` float64 tensors.
+    """
+
+    def fit(self, scores: Any, y: Any, sample_weight: Any = None) -> IsotonicCalibrator:
+        """Fit on ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
+
+        Raises:
+            DataError: NaN / inf scores (index named) or a single class.
+        """
+        from sklearn.isotonic import IsotonicRegression
+
+        s = _scores(scores)
+        y01, _ = as_binary_labels(y, s.shape[0])
+        sw = None
+        if sample_weight is not None:
+            sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
+            sw = sw.cpu().numpy()
+        iso = IsotonicRegression(y_min=0.0, y_max=1.0, increasing=True, out_of_bounds="clip")
+        iso.fit(s.cpu().numpy(), y01.cpu().numpy().astype(np.float64), sample_weight=sw)
+        self.x_thresholds_ = torch.as_tensor(iso.X_thresholds_, dtype=torch.float64)
+        self.y_thresholds_ = torch.as_tensor(iso.y_thresholds_, dtype=torch.float64)
+        return self
+
+    def predict_proba(self, scores: Any) -> Any:
+        """Calibrated ``P(positive)`` for ``scores (...)``, same shape (torch or numpy)."""
+        check_fitted(self, "x_thresholds_")
+        is_t = isinstance(scores, torch.Tensor)
+        s = scores if is_t else torch.as_tensor(np.asarray(scores, dtype=np.float64))
+        dt = s.dtype if s.is_floating_point() else torch.float64
+        xp = self.x_thresholds_.to(s.device)
+        fp = self.y_thresholds_.to(s.device)
+        p = _interp(s.to(torch.float64).reshape(-1), xp, fp).reshape(s.shape).to(dt)
+        return p if is_t else p.numpy()
+
+    def to_state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        check_fitted(self, "x_thresholds_")
+        tensors = {"x": self.x_thresholds_.clone(), "y": self.y_thresholds_.clone()}
+        return tensors, {"kind": "isotonic"}
+
+    @classmethod
+    def from_state(cls, tensors: dict[str, torch.Tensor], meta: dict) -> IsotonicCalibrator:
+        """Rebuild from :meth:`to_state`; raises ``ModelFormatError`` naming a bad field."""
+        kind = "isotonic"
+        check_kind(meta, kind)
+        x = state_tensor(tensors, "x", kind, ndim=1, dtype=torch.float64)
+        y = state_tensor(tensors, "y", kind, shape=(x.shape[0],), dtype=torch.float64)
+        if x.numel() < 1:
+            raise errors.ModelFormatError(f"{kind}.x: empty")
+        if bool((x[1:] < x[:-1]).any()):
+            raise errors.ModelFormatError(f"{kind}.x: thresholds not sorted")
+        if bool(((y < 0) | (y > 1)).any()) or bool((y[1:] < y[:-1]).any()):
+            raise errors.ModelFormatError(f"{kind}.y: values not monotone in [0, 1]")
+        est = cls()
+        est.x_thresholds_ = x.clone()
+        est.y_thresholds_ = y.clone()
+        return est
+
+
+def make_calibrator(method: str) -> PlattCalibrator | IsotonicCalibrator:
+    """A new unfitted calibrator by name: ``"platt"`` or ``"isotonic"``."""
+    if method == "platt":
+        return PlattCalibrator()
+    if method == "isotonic":
+        return IsotonicCalibrator()
+    raise errors.ConfigError(
+        f"calibration method must be one of {', '.join(METHODS)}; got {method!r}"
+    )
+
+
+# ------------------------------------------------------------------------ diagnostics
+
+
+def calibration_metrics(p: Any, y: Any, n_bins: int = 15) -> dict[str, float]:
+    """NLL, Brier score and ECE of probabilities ``p (n,)`` for labels ``y (n,)`` in ``{0, 1}``.
+
+    * ``nll``: mean of ``-[y log p + (1 - y) log(1 - p)]``, ``p`` clipped to ``[1e-15, 1 - 1e-15]``.
+    * ``brier``: mean of ``(p - y)^2``.
+    * ``ece``: ``sum_b (n_b / n) |mean(y in b) - mean(p in b)|`` over ``n_bins`` equal-width bins
+      of ``[0, 1]`` (bin ``b`` holds ``b / n_bins <= p < (b + 1) / n_bins``; ``p = 1`` goes to the
+      last bin); empty bins contribute nothing.
+
+    Raises:
+        DataError: probabilities outside ``[0, 1]`` or NaN; labels other than 0 / 1.
+    """
+    pt = as_float_tensor(p, "p", ndim=1, dtype=torch.float64)
+    if bool(((pt < 0) | (pt > 1)).any()):
+        first = int(((pt < 0) | (pt > 1)).nonzero()[0, 0])
+        raise errors.DataError(f"p must lie in [0, 1]; p[{first}] = {pt[first].item()}")
+    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64).to(pt.device)
+    if yt.shape != pt.shape:
+        raise errors.ShapeError(f"y must have shape {tuple(pt.shape)}, got {tuple(yt.shape)}")
+    if bool(((yt != 0) & (yt != 1)).any()):
+        raise errors.DataError("y must contain only 0 and 1")
+    pc = pt.clamp(1e-15, 1 - 1e-15)
+    nll = float(-(yt * pc.log() + (1 - yt) * (1 - pc).log()).mean())
+    brier = float(((pt - yt) ** 2).mean())
+    if int(n_bins) < 1:
+        raise errors.ConfigError(f"n_bins must be >= 1, got {n_bins}")
+    b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
+    sp = torch.bincount(b, weights=pt, minlength=n_bins)
+    sy = torch.bincount(b, weights=yt, minlength=n_bins)
+    # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
+    ece = float((sp - sy).abs().sum() / pt.numel())
+    return {"nll": nll, "brier": brier, "ece": ece}
+
+
+def reliability_diagram(
+    p: Any,
+    y: Any,
+    path: str | Path,
+    *,
+    n_bins: int = 15,
+    title: str | None = None,
+    label: str = "calibrated",
+) -> Path:
+    """Write a reliability diagram (PNG, atomically) and return its path.
+
+    Top: the observed positive frequency against the mean predicted probability per equal-width
+    bin (one curve per entry when ``p`` is a dict ``{label: probabilities}``, e.g. before and
+    after calibration), with the diagonal. Bottom: histogram of the predicted probabilities.
+    Uses matplotlib's Agg canvas directly (no pyplot, no global backend change).
+
+    Args:
+        p: probabilities ``(n,)``, or a dict of label -> ``(n,)`` probabilities.
+        y: labels ``(n,)`` in ``{0, 1}``.
+        path: destination ``.png`` file.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from torchtrack.io.atomic import atomic_path
+
+    curves = p if isinstance(p, dict) else {label: p}
+    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64).cpu()
+    fig = Figure(figsize=(5.5, 6.5))
+    FigureCanvasAgg(fig)
+    ax, axh = fig.subplots(2, 1, gridspec_kw={"height_ratios": [3, 1]}, sharex=True)
+    ax.plot([0, 1], [0, 1], ls="--", color="0.5", lw=1, label="perfect")
+    edges = np.linspace(0, 1, n_bins + 1)
+    for name, pv in curves.items():
+        pt = as_float_tensor(pv, f"p[{name}]", ndim=1, dtype=torch.float64).cpu()
+        m = calibration_metrics(pt, yt, n_bins)
+        b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
+        cnt = torch.bincount(b, minlength=n_bins)
+        mp = torch.bincount(b, weights=pt, minlength=n_bins) / cnt.clamp_min(1)
+        my = torch.bincount(b, weights=yt, minlength=n_bins) / cnt.clamp_min(1)
+        keep = (cnt > 0).numpy()
+        ax.plot(
+            mp.numpy()[keep],
+            my.numpy()[keep],
+            marker="o",
+            label=f"{name} (ECE {m['ece']:.3f}, NLL {m['nll']:.3f})",
+        )
+        axh.hist(pt.numpy(), bins=edges, histtype="step", label=name)
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("observed positive frequency")
+    ax.set_title(title or f"Reliability diagram ({n_bins} equal-width bins)")
+    ax.legend(loc="upper left", fontsize=8)
+    axh.set_xlabel("predicted probability")
+    axh.set_ylabel("count")
+    axh.set_yscale("log")
+    fig.tight_layout()
+    dest = Path(path)
+    with atomic_path(dest) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    return dest
+
+
+# ----------------------------------------------------------------- fit with hold-out / CV
+
+
+@dataclass
+class CalibratedFit:
+    """Result of :func:`fit_calibrated`.
+
+    Attributes:
+        classifier: fitted classifier (on the training part, or on all data with ``cv``).
+        calibrator: fitted calibrator.
+        scores: ``(m,)`` calibration margins (hold-out part or out-of-fold scores), float64.
+        labels: ``(m,)`` their labels in ``{0, 1}``.
+        train_index, calib_index: sample indices used for the classifier and the calibrator
+            (with ``cv``, both are all samples: scores come out of fold).
+    """
+
+    classifier: Any
+    calibrator: PlattCalibrator | IsotonicCalibrator
+    scores: torch.Tensor
+    labels: torch.Tensor
+    train_index: torch.Tensor
+    calib_index: torch.Tensor
+
+
+def _stratified_perm(y01: torch.Tensor, generator: torch.Generator | None) -> list[torch.Tensor]:
+    out = []
+    for c in (0, 1):
+        idx = (y01 == c).nonzero().squeeze(1).cpu()
+        out.append(idx[torch.randperm(idx.numel(), generator=generator)])
+    return out
+
+
+def _margins(clf: Any, X: Any) -> torch.Tensor:
+    m = clf.decision_function(X)
+    return torch.as_tensor(
+        np.asarray(m.cpu() if isinstance(m, torch.Tensor) else m), dtype=torch.float64
+    )
+
+
+def _take(X: Any, idx: torch.Tensor) -> Any:
+    if isinstance(X, torch.Tensor):
+        return X.index_select(0, idx.to(X.device))
+    return np.asarray(X)[idx.numpy()]
+
+
+def fit_calibrated(
+    classifier: BaseEstimator,
+    X: Any,
+    y: Any,
+    *,
+    method: str = "platt",
+    holdout: float = 0.3,
+    cv: int | None = None,
+    generator: torch.Generator | None = None,
+) -> CalibratedFit:
+    """Fit a classifier and a calibrator on separate data (Chateau section 2.4; Platt 1999).
+
+    * ``cv=None``: a stratified random ``holdout`` fraction (default 0.3, as in the paper) is
+      kept out of classifier training and used to fit the calibrator.
+    * ``cv=K``: K stratified folds; a clone of the classifier is fit on K-1 folds and scores the
+      remaining one; the calibrator is fit on all out-of-fold scores and the returned classifier
+      is refit on all data (Platt's cross-validation scheme).
+
+    Args:
+        classifier: unfitted sklearn-style estimator with ``decision_function`` (cloned).
+        X: features ``(n, T)``; y: labels ``(n,)``.
+        generator: torch generator for the split (reproducible runs).
+
+    Raises:
+        ConfigError: ``holdout`` outside (0, 1), ``cv < 2``, unknown method, or too few samples
+            of a class for the split.
+    """
+    make_calibrator(method)  # validate the name before any fitting
+    n = int(X.shape[0])
+    y01, _ = as_binary_labels(y, n)
+    y01 = y01.cpu()
+    per_class = _stratified_perm(y01, generator)
+    yv = y if isinstance(y, torch.Tensor) else torch.as_tensor(np.asarray(y))
+    if cv is None:
+        if not 0.0 < float(holdout) < 1.0:
+            raise errors.ConfigError(f"holdout must be in (0, 1), got {holdout}")
+        train, calib = [], []
+        for idx in per_class:
+            k = round(float(holdout) * idx.numel())
+            if k < 1 or k >= idx.numel():
+                raise errors.ConfigError(
+                    f"holdout={holdout} leaves no samples of a class for training or calibration "
+                    f"({idx.numel()} samples in that class)"
+                )
+            calib.append(idx[:k])
+            train.append(idx[k:])
+        tr, ca = torch.cat(train).sort().values, torch.cat(calib).sort().values
+        clf = clone(classifier).fit(_take(X, tr), _take(yv, tr))
+        scores = _margins(clf, _take(X, ca))
+        labels = y01[ca]
+    else:
+        K = int(cv)
+        if K < 2:
+            raise errors.ConfigError(f"cv must be >= 2 folds, got {cv}")
+        if min(idx.numel() for idx in per_class) < K:
+            raise errors.ConfigError(f"cv={K} folds need at least {K} samples of each class")
+        fold = torch.empty(n, dtype=torch.long)
+        for idx in per_class:
+            fold[idx] = torch.arange(idx.numel()) % K
+        scores = torch.empty(n, dtype=torch.float64)
+        for k in range(K):
+            tr = (fold != k).nonzero().squeeze(1)
+            te = (fold == k).nonzero().squeeze(1)
+            part = clone(classifier).fit(_take(X, tr), _take(yv, tr))
+            scores[te] = _margins(part, _take(X, te))
+        clf = clone(classifier).fit(X, y)
+        tr = ca = torch.arange(n)
+        labels = y01
+    cal = make_calibrator(method).fit(scores, labels)
+    return CalibratedFit(clf, cal, scores, labels, tr, ca)
