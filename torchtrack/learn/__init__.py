@@ -35,7 +35,9 @@ __all__ = [
     "PlattCalibrator",
     "SVMClassifier",
     "calibration_metrics",
+    "calibrator_from_dict",
     "calibrator_from_state",
+    "calibrator_to_dict",
     "classifier_from_state",
     "fit_calibrated",
     "make_calibrator",
@@ -78,3 +80,45 @@ def calibrator_from_state(tensors: Mapping[str, torch.Tensor], meta: Mapping[str
         ModelFormatError: unknown ``kind`` or an invalid field (named).
     """
     return _dispatch(CALIBRATORS, "calibrator", tensors, meta)
+
+
+def calibrator_to_dict(calibrator: Any) -> dict[str, Any]:
+    """A fitted calibrator as a JSON-safe dict: ``{"calibrator": meta, "tensors": {name: list}}``.
+
+    Tensors become lists of Python floats (float64 values round-trip exactly through JSON).
+    """
+    tensors, meta = calibrator.to_state()
+    return {
+        "calibrator": meta,
+        "tensors": {
+            k: {"dtype": str(v.dtype).removeprefix("torch."), "data": v.tolist()}
+            for k, v in tensors.items()
+        },
+    }
+
+
+_JSON_DTYPES = {"float64": torch.float64, "float32": torch.float32, "int64": torch.int64}
+
+
+def calibrator_from_dict(d: Mapping[str, Any]) -> Any:
+    """Inverse of :func:`calibrator_to_dict`, validated like a model file.
+
+    Raises:
+        ModelFormatError: missing keys, unknown dtypes or kinds, or an invalid field (named).
+    """
+    if not isinstance(d, Mapping) or not isinstance(d.get("calibrator"), Mapping):
+        raise errors.ModelFormatError("calibration JSON needs a 'calibrator' object")
+    raw = d.get("tensors", {})
+    if not isinstance(raw, Mapping):
+        raise errors.ModelFormatError("calibration JSON: 'tensors' must be an object")
+    tensors = {}
+    for name, entry in raw.items():
+        if not isinstance(entry, Mapping) or entry.get("dtype") not in _JSON_DTYPES:
+            raise errors.ModelFormatError(
+                f"calibration JSON: tensor {name!r} needs a dtype in {sorted(_JSON_DTYPES)}"
+            )
+        try:
+            tensors[name] = torch.tensor(entry.get("data"), dtype=_JSON_DTYPES[entry["dtype"]])
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise errors.ModelFormatError(f"calibration JSON: tensor {name!r}: {exc}") from None
+    return calibrator_from_state(tensors, d["calibrator"])

@@ -1,0 +1,245 @@
+"""``torchtrack calibrate``: CSV and model inputs, outputs, diagnostics and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.cli import main
+from torchtrack.learn import (
+    BoostedStumps,
+    IsotonicCalibrator,
+    PlattCalibrator,
+    calibrator_from_dict,
+    select_features,
+)
+
+
+def _scores(n=200, seed=0):
+    rng = np.random.default_rng(seed)
+    y = (rng.random(n) < 0.4).astype(int)
+    s = rng.normal(size=n) * 1.5 + 2.0 * y
+    return s, y
+
+
+def _write_csv(path, s, y, header=True, label_map=None):
+    lines = ["score,label"] if header else []
+    for a, b in zip(s, y, strict=True):
+        lines.append(f"{float(a)!r},{label_map[b] if label_map else b}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_csv_platt_json_and_plot(tmp_path, capsys):
+    s, y = _scores()
+    _write_csv(tmp_path / "s.csv", s, y)
+    out, png = tmp_path / "cal.json", tmp_path / "rel.png"
+    rc = main(
+        ["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(out), "--plot", str(png)]
+    )
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "NLL" in text and "after (5-fold CV)" in text and "A = " in text
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "torchtrack-calibration" and doc["n_pos"] == int(y.sum())
+    cal = calibrator_from_dict(doc)
+    ref = PlattCalibrator().fit(s, y)
+    assert cal.a_ == pytest.approx(ref.a_, abs=1e-12) and cal.b_ == pytest.approx(ref.b_, abs=1e-12)
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    after = doc["metrics"]["after (in-sample)"]
+    assert after["nll"] < doc["metrics"]["before (logistic)"]["nll"]
+
+
+def test_csv_no_header_isotonic_pm1_labels(tmp_path):
+    s, y = _scores(150, 1)
+    _write_csv(tmp_path / "s.csv", s, y, header=False, label_map={0: -1, 1: 1})
+    out = tmp_path / "iso.json"
+    rc = main(
+        [
+            "calibrate",
+            "--scores",
+            str(tmp_path / "s.csv"),
+            "--method",
+            "isotonic",
+            "--json",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    cal = calibrator_from_dict(json.loads(out.read_text()))
+    ref = IsotonicCalibrator().fit(s, y)
+    grid = np.linspace(-5, 6, 101)
+    np.testing.assert_array_equal(cal.predict_proba(grid), ref.predict_proba(grid))
+
+
+def test_csv_header_with_named_columns_in_other_order(tmp_path):
+    s, y = _scores(60, 2)
+    lines = ["id,label,score"] + [
+        f"{i},{b},{float(a)!r}" for i, (a, b) in enumerate(zip(s, y, strict=True))
+    ]
+    (tmp_path / "s.csv").write_text("\n".join(lines))
+    out = tmp_path / "c.json"
+    assert main(["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(out)]) == 0
+    assert calibrator_from_dict(json.loads(out.read_text())).a_ == pytest.approx(
+        PlattCalibrator().fit(s, y).a_, abs=1e-12
+    )
+
+
+def test_csv_bad_rows_reported_by_line(tmp_path, capsys):
+    (tmp_path / "s.csv").write_text("score,label\n0.5,1\nabc,0\n0.1\n\n0.3,0\nnan,1\n")
+    rc = main(
+        ["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(tmp_path / "o.json")]
+    )
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "3 bad row(s)" in err and "line 3" in err and "line 4" in err and "line 7" in err
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_csv_single_class_and_identical_scores(tmp_path, capsys):
+    (tmp_path / "one.csv").write_text("1.0,1\n2.0,1\n0.5,1\n")
+    assert (
+        main(
+            ["calibrate", "--scores", str(tmp_path / "one.csv"), "--json", str(tmp_path / "o.json")]
+        )
+        == 1
+    )
+    assert "exactly two classes" in capsys.readouterr().err
+    (tmp_path / "same.csv").write_text("".join(f"0.7,{i % 2}\n" for i in range(20)))
+    assert (
+        main(
+            [
+                "calibrate",
+                "--scores",
+                str(tmp_path / "same.csv"),
+                "--json",
+                str(tmp_path / "o.json"),
+            ]
+        )
+        == 0
+    )
+    assert "identical" in capsys.readouterr().err
+
+
+def test_argument_errors(tmp_path, capsys):
+    (tmp_path / "s.csv").write_text("0.1,0\n0.9,1\n")
+    assert main(["calibrate", "--scores", str(tmp_path / "s.csv")]) == 1
+    assert "--json" in capsys.readouterr().err
+    assert main(["calibrate", "m.safetensors", "--scores", str(tmp_path / "s.csv")]) == 1
+    assert "not both" in capsys.readouterr().err
+    assert (
+        main(["calibrate", str(tmp_path / "missing.safetensors"), "--pos", "a", "--neg", "b"]) == 1
+    )
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["calibrate", "--scores", str(tmp_path / "nope.csv"), "--json", "o.json"]) == 1
+    assert "cannot read" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------- model input
+
+
+def _blob_crops(n, positive, rng, size=16):
+    imgs = rng.integers(60, 140, size=(n, size, size)).astype(np.float64)
+    if positive:  # a bright vertical bar in the middle: easy but noisy class
+        imgs[:, 2:-2, size // 2 - 2 : size // 2 + 2] += rng.uniform(10, 80, size=(n, 1, 1))
+    return np.clip(imgs, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture
+def tiny_model(tmp_path):
+    from torchtrack.detect import Detector, save_detector
+    from torchtrack.features.haar import haar_bank, haar_features_dense
+
+    rng = np.random.default_rng(0)
+    bank = haar_bank((16, 16), sizes=(8, 4), stride=2)
+    pos, neg = _blob_crops(60, True, rng), _blob_crops(60, False, rng)
+    crops = torch.from_numpy(np.concatenate([pos, neg]))[:, None]
+    y = torch.cat((torch.ones(60), torch.zeros(60))).long()
+    X = haar_features_dense(crops, bank)
+    idx = select_features(X, y, 5)
+    clf = BoostedStumps(10).fit(X[:, idx], y)
+    det = Detector(bank, idx, clf, None, name="bar")
+    path = tmp_path / "bar.safetensors"
+    save_detector(path, det)
+    for name, arr in (("pos", _blob_crops(40, True, rng)), ("neg", _blob_crops(50, False, rng))):
+        d = tmp_path / name
+        d.mkdir()
+        for i, im in enumerate(arr):
+            cv2.imwrite(str(d / f"{i:03d}.png"), im)
+    return path
+
+
+def test_model_in_place_and_json(tiny_model, tmp_path, capsys):
+    from torchtrack.detect import load_detector
+
+    before = tiny_model.read_bytes()
+    js = tmp_path / "c.json"
+    args = [
+        "calibrate",
+        str(tiny_model),
+        "--pos",
+        str(tmp_path / "pos"),
+        "--neg",
+        str(tmp_path / "neg"),
+    ]
+    assert main([*args, "--json", str(js), "--quiet"]) == 0
+    assert tiny_model.read_bytes() == before  # --json leaves the model alone
+    assert "before (logistic)" in capsys.readouterr().out
+    assert main([*args, "--quiet", "--plot", str(tmp_path / "r.png")]) == 0
+    det = load_detector(tiny_model)
+    assert isinstance(det.calibrator, PlattCalibrator)
+    assert det.summary["recalibration"]["n_pos"] == 40
+    # the stored calibration is the Platt fit of the detector's margins on those crops
+    from torchtrack.io.crops import load_crops
+
+    margins = []
+    for name in ("pos", "neg"):
+        imgs = load_crops(tmp_path / name, det.window).images
+        boxes = torch.tensor([0.0, 0.0, 16.0, 16.0]).expand(imgs.shape[0], 1, 4)
+        margins.append(det.decision_function(imgs, boxes)[:, 0].double())
+    ref = PlattCalibrator().fit(torch.cat(margins), torch.cat((torch.ones(40), torch.zeros(50))))
+    assert det.calibrator.a_ == pytest.approx(ref.a_, abs=1e-9)
+    assert calibrator_from_dict(json.loads(js.read_text())).b_ == pytest.approx(ref.b_, abs=1e-9)
+    # a second run reports the model's current calibration as "before"; -o writes a copy
+    out2 = tmp_path / "iso.safetensors"
+    assert main([*args, "--quiet", "--method", "isotonic", "-o", str(out2)]) == 0
+    assert "before (model's platt)" in capsys.readouterr().out
+    assert isinstance(load_detector(out2).calibrator, IsotonicCalibrator)
+    assert isinstance(load_detector(tiny_model).calibrator, PlattCalibrator)
+
+
+def test_model_bad_crop_folder(tiny_model, tmp_path, capsys):
+    (tmp_path / "neg" / "notes.bin").write_bytes(b"not an image")
+    args = [
+        "calibrate",
+        str(tiny_model),
+        "--pos",
+        str(tmp_path / "pos"),
+        "--neg",
+        str(tmp_path / "neg"),
+    ]
+    assert main([*args, "--quiet", "--json", str(tmp_path / "c.json")]) == 0
+    assert "notes.bin" in capsys.readouterr().err
+    assert main([*args, "--quiet", "--strict", "--json", str(tmp_path / "c.json")]) == 1
+    assert "notes.bin" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert (
+        main(
+            [
+                "calibrate",
+                str(tiny_model),
+                "--pos",
+                str(tmp_path / "empty"),
+                "--neg",
+                str(tmp_path / "neg"),
+                "--quiet",
+            ]
+        )
+        == 1
+    )
+    assert "no usable image" in capsys.readouterr().err
+    assert main(["calibrate", str(tiny_model), "--pos", str(tmp_path / "pos")]) == 1
+    assert "--neg" in capsys.readouterr().err

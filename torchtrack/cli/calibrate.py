@@ -1,0 +1,313 @@
+"""``torchtrack calibrate``: Platt (or isotonic) calibration of a detector or of a score file.
+
+Two inputs (Chateau et al. 2006, section 2.4):
+
+* a model file plus folders of labelled calibration crops (not used in training): the crops are
+  scored by the detector, a calibrator is fitted to the margins and written into the model
+  (atomically; ``-o`` writes a copy) or, with ``--json``, to a JSON file;
+* a CSV of ``score,label`` rows (header optional; labels two distinct numbers, the larger is
+  positive): the calibrator is written to ``--json``.
+
+It prints NLL, Brier score and ECE (equal-width bins, default 15) before calibration, after it
+on the calibration data itself, and after it by 5-fold cross-validation (the honest estimate),
+and can draw a reliability diagram (``--plot``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+_EPILOG = """\
+examples:
+  # recalibrate a detector on held-out labelled crops, in place, with a reliability plot
+  torchtrack calibrate pedestrian.safetensors --pos calib/pos --neg calib/neg \\
+      --plot reliability.png
+
+  # isotonic instead of Platt, written to a new model file
+  torchtrack calibrate car.safetensors --pos calib/cars --neg calib/background \\
+      --method isotonic -o car-isotonic.safetensors
+
+  # any classifier's scores: a CSV with columns score,label (header optional)
+  torchtrack calibrate --scores scores.csv --json platt.json --plot reliability.png
+
+"before" is the model's current calibration when it has one; otherwise the logistic
+1/(1+exp(-m)) of the raw margin (or the scores themselves when all lie in [0, 1]).
+ECE uses equal-width probability bins (--bins, default 15).
+"""
+
+JSON_FORMAT = "torchtrack-calibration"
+JSON_VERSION = 1
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="fit Platt / isotonic calibration for a detector or a CSV of scores",
+        description=(
+            "Fit P(positive | m) = 1 / (1 + exp(A m + B)) (Platt, Chateau et al. eq. 5-8) or an "
+            "isotonic map to a detector's margins on labelled crops, or to a CSV of scores and "
+            "labels; print NLL / Brier / ECE before and after; optionally plot reliability."
+        ),
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", nargs="?", metavar="MODEL", help="detector model file to calibrate")
+    p.add_argument("--pos", nargs="+", metavar="DIR", help="folders of positive calibration crops")
+    p.add_argument("--neg", nargs="+", metavar="DIR", help="folders of negative calibration crops")
+    p.add_argument("--scores", metavar="CSV", help="CSV of score,label rows instead of a model")
+    p.add_argument("--method", choices=("platt", "isotonic"), default="platt")
+    p.add_argument("--json", metavar="OUT", help="write the calibration to this JSON file")
+    p.add_argument(
+        "-o", "--output", metavar="MODEL", help="write the calibrated model here (default: MODEL)"
+    )
+    p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
+    p.add_argument("--bins", type=int, default=15, help="ECE / diagram bins (default 15)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the CV folds (default 0)")
+    p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
+    """Read ``score,label`` rows.
+
+    A first line that does not parse as numbers is a header; it may name the columns ``score``
+    and ``label`` in any order (other columns are ignored), otherwise the first two columns are
+    used. Blank lines and lines starting with ``#`` are skipped.
+
+    Returns:
+        ``(scores (n,) float64, labels (n,) float64)`` torch tensors.
+
+    Raises:
+        DataError: the file is missing or empty, or rows are bad (up to 10 listed by line
+            number: wrong column count, non-numbers, NaN / inf).
+    """
+    import csv
+    import math
+
+    import torch
+
+    from torchtrack.errors import DataError
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise DataError(f"cannot read score file {str(p)!r}: {exc}") from None
+    except UnicodeDecodeError:
+        raise DataError(f"score file {str(p)!r} is not UTF-8 text") from None
+    rows = [
+        (i, r)
+        for i, r in enumerate(csv.reader(text.splitlines()), start=1)
+        if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
+    ]
+    if not rows:
+        raise DataError(f"score file {str(p)!r} has no rows")
+    si, li = 0, 1
+    first = [c.strip() for c in rows[0][1]]
+    try:
+        [float(c) for c in first[:2]]
+    except ValueError:
+        names = [c.lower() for c in first]
+        if "score" in names and "label" in names:
+            si, li = names.index("score"), names.index("label")
+        rows = rows[1:]
+    scores, labels, bad = [], [], []
+    for line, r in rows:
+        if len(r) <= max(si, li):
+            bad.append(f"line {line}: expected at least {max(si, li) + 1} columns, got {len(r)}")
+            continue
+        try:
+            s, lab = float(r[si]), float(r[li])
+        except ValueError:
+            bad.append(f"line {line}: not numbers: {','.join(r)[:60]!r}")
+            continue
+        if not (math.isfinite(s) and math.isfinite(lab)):
+            bad.append(f"line {line}: non-finite value (score {r[si]!r}, label {r[li]!r})")
+            continue
+        scores.append(s)
+        labels.append(lab)
+    if bad:
+        more = f"\n  ... and {len(bad) - 10} more" if len(bad) > 10 else ""
+        raise DataError(
+            f"{len(bad)} bad row(s) in {str(p)!r} (expected score,label):\n  "
+            + "\n  ".join(bad[:10])
+            + more
+        )
+    if not scores:
+        raise DataError(f"score file {str(p)!r} has a header but no data rows")
+    return torch.tensor(scores, dtype=torch.float64), torch.tensor(labels, dtype=torch.float64)
+
+
+def crop_margins(det: Any, folders: list[str], *, strict: bool, progress: bool, chunk: int = 256):
+    """Detector margins ``(n,)`` float64 of every crop in ``folders`` (whole-window boxes).
+
+    Returns:
+        ``(margins, n_skipped)``.
+    """
+    import torch
+
+    from torchtrack.io.crops import CropSet, load_crops
+
+    sets = [load_crops(f, det.window, strict=strict, progress=progress) for f in folders]
+    crops = CropSet.concat(sets)
+    for path, why in crops.skipped:
+        print(f"warning: skipped {path}: {why}", file=sys.stderr)
+    h, w = det.window
+    out = []
+    for i in range(0, len(crops), chunk):
+        imgs = crops.images[i : i + chunk]
+        boxes = torch.tensor([0.0, 0.0, float(w), float(h)]).expand(imgs.shape[0], 1, 4)
+        out.append(det.decision_function(imgs, boxes)[:, 0].to(torch.float64))
+    return torch.cat(out), len(crops.skipped)
+
+
+# ---------------------------------------------------------------------------- metrics
+
+
+def cv_probabilities(method: str, s: Any, y01: Any, k: int = 5, seed: int = 0) -> Any:
+    """Out-of-fold calibrated probabilities ``(n,)`` (stratified ``k`` folds), or ``None`` when a
+    class has fewer than ``k`` samples."""
+    import torch
+
+    from torchtrack.learn import make_calibrator
+
+    g = torch.Generator().manual_seed(seed)
+    fold = torch.empty(s.shape[0], dtype=torch.long)
+    for c in (0, 1):
+        idx = (y01 == c).nonzero().squeeze(1)
+        if idx.numel() < k:
+            return None
+        fold[idx[torch.randperm(idx.numel(), generator=g)]] = torch.arange(idx.numel()) % k
+    p = torch.empty_like(s)
+    import warnings
+
+    for f in range(k):
+        tr, te = fold != f, fold == f
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            cal = make_calibrator(method).fit(s[tr], y01[tr])
+        p[te] = cal.predict_proba(s[te])
+    return p
+
+
+def _format_table(rows: list[tuple[str, dict[str, float]]], bins: int) -> str:
+    width = max(len(r[0]) for r in rows) + 2
+    head = f"{'':<{width}}{'NLL':>9}{'Brier':>9}{f'ECE({bins})':>9}"
+    lines = [head]
+    for name, m in rows:
+        lines.append(f"{name:<{width}}{m['nll']:>9.4f}{m['brier']:>9.4f}{m['ece']:>9.4f}")
+    return "\n".join(lines)
+
+
+# -------------------------------------------------------------------------------- run
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import warnings
+
+    import torch
+
+    from torchtrack.errors import ConfigError
+    from torchtrack.io.atomic import write_text_atomic
+    from torchtrack.learn import (
+        calibration_metrics,
+        calibrator_to_dict,
+        make_calibrator,
+        reliability_diagram,
+    )
+    from torchtrack.learn._base import as_binary_labels
+
+    if (args.model is None) == (args.scores is None):
+        raise ConfigError("give either a MODEL (with --pos and --neg) or --scores CSV, not both")
+    if args.bins < 1:
+        raise ConfigError(f"--bins must be >= 1, got {args.bins}")
+    det = None
+    if args.scores is not None:
+        if args.pos or args.neg or args.output:
+            raise ConfigError("--pos / --neg / --output need a MODEL, not --scores")
+        if not args.json:
+            raise ConfigError("--scores needs --json OUT to write the calibration to")
+        s, labels = read_scores_csv(args.scores)
+        y01, _ = as_binary_labels(labels, s.shape[0], name="labels")
+        source: dict[str, Any] = {"scores": str(args.scores)}
+        if bool(((s >= 0) & (s <= 1)).all()):
+            before_name, p_before = "before (scores as P)", s
+        else:
+            before_name, p_before = "before (logistic)", torch.sigmoid(s)
+    else:
+        if not args.pos or not args.neg:
+            raise ConfigError("a MODEL needs labelled calibration crops: --pos DIR and --neg DIR")
+        from torchtrack.detect import load_detector, save_detector
+
+        det = load_detector(args.model)
+        progress = not args.quiet
+        m_pos, sk_pos = crop_margins(det, args.pos, strict=args.strict, progress=progress)
+        m_neg, sk_neg = crop_margins(det, args.neg, strict=args.strict, progress=progress)
+        s = torch.cat((m_pos, m_neg))
+        y01 = torch.cat((torch.ones(len(m_pos)), torch.zeros(len(m_neg)))).long()
+        source = {"model": str(args.model), "pos": args.pos, "neg": args.neg}
+        if det.calibrator is not None:
+            kind = det.calibrator.to_state()[1]["kind"]
+            before_name = f"before (model's {kind})"
+            p_before = det.calibrator.predict_proba(s)
+        else:
+            before_name, p_before = "before (logistic)", torch.sigmoid(s)
+        source["skipped_files"] = sk_pos + sk_neg
+
+    n_pos, n_neg = int(y01.sum()), int((1 - y01).sum())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        cal = make_calibrator(args.method).fit(s, y01)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    p_after = cal.predict_proba(s)
+    rows = [
+        (before_name, calibration_metrics(p_before, y01, args.bins)),
+        ("after (in-sample)", calibration_metrics(p_after, y01, args.bins)),
+    ]
+    p_cv = cv_probabilities(args.method, s, y01, 5, args.seed)
+    if p_cv is not None:
+        rows.append(("after (5-fold CV)", calibration_metrics(p_cv, y01, args.bins)))
+    print(f"calibration data: {n_pos + n_neg} scores ({n_pos} positive, {n_neg} negative)")
+    print(f"method: {args.method}")
+    if args.method == "platt":
+        print(f"P(positive | m) = 1 / (1 + exp(A m + B)),  A = {cal.a_:.6g},  B = {cal.b_:.6g}")
+    print(_format_table(rows, args.bins))
+    if p_cv is None:
+        print("(5-fold CV skipped: a class has fewer than 5 samples)")
+
+    metrics = {name: m for name, m in rows}
+    record = {
+        "method": args.method,
+        "n_pos": n_pos,
+        "n_neg": n_neg,
+        "ece_bins": args.bins,
+        "metrics": metrics,
+        "source": source,
+    }
+    if args.json:
+        doc = {"format": JSON_FORMAT, "format_version": JSON_VERSION, **calibrator_to_dict(cal)}
+        doc.update(record)
+        write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        print(f"wrote {args.json}")
+    elif det is not None:
+        out = args.output or args.model
+        new = det.with_calibrator(cal)
+        new.summary = {**det.summary, "recalibration": record}
+        save_detector(out, new)
+        print(f"wrote calibration into {out}")
+    if args.plot:
+        curves = {before_name: p_before, "after (in-sample)": p_after}
+        if p_cv is not None:
+            curves["after (5-fold CV)"] = p_cv
+        reliability_diagram(curves, y01, args.plot, n_bins=args.bins)
+        print(f"wrote {args.plot}")
+    return 0
