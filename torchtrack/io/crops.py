@@ -17,6 +17,7 @@ Documented conversions (the same for training and for calibration crops):
 
 from __future__ import annotations
 
+import fnmatch
 import math
 import os
 from dataclasses import dataclass, field
@@ -161,6 +162,7 @@ def load_crops(
     crop_size: tuple[int, int] | None = None,
     exclude: set[str] | None = None,
     only: set[str] | None = None,
+    pattern: str | None = None,
     strict: bool = False,
     progress: bool = False,
 ) -> CropSet:
@@ -173,6 +175,8 @@ def load_crops(
         crop_size: ``(H0, W0)`` the region refers to; required with ``region``.
         exclude: file names (not paths) to leave out, e.g. a held-out test split.
         only: file names to keep (all others are left out).
+        pattern: shell pattern the file names must match (e.g. ``"pos-*.pgm"``); files that
+            do not match are left out silently.
         strict: raise instead of skipping unreadable or non-image files.
         progress: show a progress bar.
 
@@ -185,6 +189,9 @@ def load_crops(
     """
     _check_geometry(window, region, crop_size)
     files, skipped = list_image_files(folder)
+    if pattern is not None:
+        files = [p for p in files if fnmatch.fnmatch(p.name, pattern)]
+        skipped = [s for s in skipped if fnmatch.fnmatch(Path(s[0]).name, pattern)]
     if exclude:
         files = [p for p in files if p.name not in exclude]
     if only is not None:

@@ -1,0 +1,64 @@
+from pathlib import Path
+
+import pytest
+
+from torchtrack.detect.config import load_train_config, read_name_list
+from torchtrack.errors import ConfigError
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("name", ["pedestrian", "vehicle"])
+def test_shipped_configs_load(name):
+    cfg = load_train_config(CONFIGS / f"{name}.toml")
+    assert cfg.name == name and cfg.learn.n_features == 40 and cfg.learn.calibration_fraction == 0.3
+    assert all(Path(p).is_absolute() for p in cfg.data.positives + cfg.data.exclude)
+    for lst in cfg.data.exclude:
+        assert len(read_name_list(lst)) > 10
+
+
+def test_overrides_apply():
+    cfg = load_train_config(CONFIGS / "vehicle.toml", {"learn.n_features": 80, "seed": 3})
+    assert cfg.learn.n_features == 80 and cfg.seed == 3
+
+
+def write(tmp_path, text):
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    return p
+
+
+BASE = 'window = [40, 100]\n[data]\npositives = ["p"]\nnegatives = ["n"]\n'
+
+
+def test_unknown_keys_named(tmp_path):
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['n_featurs'\] in \[learn\]"):
+        load_train_config(write(tmp_path, BASE + "[learn]\nn_featurs = 3\n"))
+    with pytest.raises(ConfigError, match=r"\['colour'\] in \[top level\]"):
+        load_train_config(write(tmp_path, "colour = 1\n" + BASE))
+    with pytest.raises(ConfigError, match="unknown config key"):
+        load_train_config(write(tmp_path, BASE), {"learn.nope": 1})
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        ("[learn]\nclassifier = 'tree'\n", "learn.classifier"),
+        ("[learn]\ncalibration_fraction = 1.5\n", "calibration_fraction"),
+        ("[learn]\ncalibration = 'beta'\n", "learn.calibration"),
+        ("[mining]\nrounds = 2\n", "negative_images"),
+        ("[data]\n", "not valid TOML"),
+    ],
+)
+def test_bad_values(tmp_path, extra, match):
+    with pytest.raises(ConfigError, match=match):
+        load_train_config(write(tmp_path, BASE + extra))
+
+
+def test_no_negatives_and_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="no negatives"):
+        load_train_config(write(tmp_path, 'window = [8, 8]\n[data]\npositives = ["p"]\n'))
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_train_config(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="does not exist"):
+        read_name_list(tmp_path / "missing.txt")
