@@ -6,9 +6,12 @@ particle j of row b is a copy of old particle ``ancestors[b, j]``. Returning ind
 states lets callers carry any per-particle data along the ancestry (per-particle observation
 models, Klein et al. section III).
 
-All schemes invert the weights' cumulative distribution with ``torch.searchsorted`` on sorted
-uniforms; the CDF is accumulated in float64 whatever the weights' dtype, so float32 weights
-with N = 10^6 do not lose mass to rounding. Randomness comes only from ``generator``.
+All schemes turn the weights' cumulative distribution (accumulated in float64 whatever the
+weights' dtype, so float32 weights with N = 10^6 lose no mass to rounding) into cumulative
+offspring counts, then counts into sorted ancestors with one histogram and one cumulative sum:
+O(N) per row, no Python loop over particles or rows. Systematic and stratified counts are closed
+forms; multinomial and residual counts need one sorted search. Randomness comes only from
+``generator``.
 """
 
 from __future__ import annotations
@@ -35,10 +38,11 @@ __all__ = [
 Resampler = Callable[..., torch.Tensor]
 
 
-def _cdf(weights: torch.Tensor) -> torch.Tensor:
-    """``(B, N)`` float64 CDF with the last entry exactly 1."""
+def _cdf(weights: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """``(B, N)`` float64 CDF times ``scale``, the last entry exactly ``scale``."""
     c = weights.to(torch.float64).cumsum(1)
-    return c / c[:, -1:]
+    # In place: fresh large allocations cost page faults on CPU, a visible share of the time.
+    return c.mul_(scale / c[:, -1:].clone())
 
 
 def _invert(cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -46,6 +50,58 @@ def _invert(cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     idx = torch.searchsorted(cdf, u.contiguous(), right=True)
     # u < 1 = cdf[-1] always; the clamp only guards rounding on u -> 1.
     return idx.clamp_(max=cdf.shape[1] - 1)
+
+
+def _ancestors_from_cumcounts(cum: torch.Tensor, n_out: int) -> torch.Tensor:
+    """Offspring cumulative counts ``cum (B, N)`` (non-decreasing, last = n_out) -> ancestors.
+
+    ``cum[b, i]`` is the number of offspring of particles ``0..i``; the ancestor of new particle
+    j is ``#{i : cum[b, i] <= j}``: a histogram of ``cum`` and a cumulative sum, O(N) with no
+    search (faster than a binary search per particle).
+    """
+    b = cum.shape[0]
+    if b > 1:
+        cum = cum + (torch.arange(b, device=cum.device) * (n_out + 1)).unsqueeze(1)
+    hist = torch.bincount(cum.flatten(), minlength=b * (n_out + 1)).view(b, n_out + 1)
+    return hist[:, :n_out].cumsum(1)
+
+
+def _count_below(u: torch.Tensor, cdf: torch.Tensor) -> torch.Tensor:
+    """``#{j : u[b, j] < cdf[b, i]}`` for row-sorted ``u (B, M)`` and ``cdf (B, N)`` -> (B, N).
+
+    On CPU one NumPy ``searchsorted`` over all rows at once (rows shifted apart by 2 b; NumPy's
+    search exploits sorted queries and is several times faster than ``torch.searchsorted``).
+    """
+    if u.device.type == "cpu":
+        import numpy as np
+
+        b, m = u.shape
+        shift = 2.0 * torch.arange(b, dtype=torch.float64).unsqueeze(1)
+        uu = (u + shift).flatten().numpy()
+        cc = (cdf + shift).flatten().numpy()
+        cnt = torch.from_numpy(np.searchsorted(uu, cc, side="left")).view(b, -1)
+        return cnt - (torch.arange(b) * m).unsqueeze(1)
+    return torch.searchsorted(u.contiguous(), cdf.contiguous(), right=False)
+
+
+def _sorted_uniforms(
+    b: int,
+    m: int,
+    generator: GeneratorLike,
+    device: torch.device,
+    count: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Row-sorted i.i.d. uniforms ``(B, m)`` from normalised sums of exponential spacings (O(m),
+    no sort). With ``count (B,)``, row b holds ``count[b]`` sorted uniforms followed by 2.0
+    (never below a CDF value)."""
+    e = -torch.log1p(-rand((b, m + 1), generator, torch.float64, device))
+    s = e.cumsum(1)
+    if count is None:
+        return s[:, :m] / s[:, -1:]
+    total = torch.gather(s, 1, count.unsqueeze(1))  # S_{count+1}
+    u = s[:, :m] / total
+    j = torch.arange(m, device=device).unsqueeze(0)
+    return torch.where(j < count.unsqueeze(1), u, torch.full_like(u, 2.0))
 
 
 def _check_weights(weights: torch.Tensor) -> None:
@@ -57,7 +113,7 @@ def _check_weights(weights: torch.Tensor) -> None:
 def multinomial(
     weights: torch.Tensor, generator: GeneratorLike = None, n_out: int | None = None
 ) -> torch.Tensor:
-    """Multinomial resampling: N i.i.d. draws from the weights, ``(B, N) -> (B, N)``.
+    """Multinomial resampling: i.i.d. draws from the weights, ``(B, N) -> (B, M)``.
 
     Sorted uniforms come from normalised cumulative sums of exponential spacings (O(N), no
     sort), as in ``particles.resampling.multinomial``; the ancestors come out sorted.
@@ -65,62 +121,62 @@ def multinomial(
     _check_weights(weights)
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
-    e = -torch.log1p(-rand((b, n + 1), generator, torch.float64, weights.device))
-    s = e.cumsum(1)
-    u = s[:, :-1] / s[:, -1:]
-    return _invert(_cdf(weights), u)
+    u = _sorted_uniforms(b, n, generator, weights.device)
+    return _ancestors_from_cumcounts(_count_below(u, _cdf(weights)), n)
 
 
 def stratified(
     weights: torch.Tensor, generator: GeneratorLike = None, n_out: int | None = None
 ) -> torch.Tensor:
-    """Stratified resampling: one uniform in each stratum ``[j/N, (j+1)/N)``."""
+    """Stratified resampling: one uniform in each stratum ``[j/M, (j+1)/M)``.
+
+    Offspring counts need no search: with ``k = floor(M c)``, the number of points
+    ``(j + U_j) / M`` below a CDF value c is ``k + [U_k < M c - k]``.
+    """
     _check_weights(weights)
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
-    j = torch.arange(n, dtype=torch.float64, device=weights.device)
-    u = (j + rand((b, n), generator, torch.float64, weights.device)) / n
-    return _invert(_cdf(weights), u)
+    uj = rand((b, n), generator, torch.float64, weights.device)
+    x = _cdf(weights, n)
+    k = x.floor().long().clamp_(0, n)
+    extra = torch.gather(uj, 1, k.clamp(max=n - 1)) < x.sub_(k)
+    return _ancestors_from_cumcounts(k.add_(extra.logical_and_(k < n)), n)
 
 
 def systematic(
     weights: torch.Tensor, generator: GeneratorLike = None, n_out: int | None = None
 ) -> torch.Tensor:
-    """Systematic resampling: one uniform per row, shifted by ``j/N``."""
+    """Systematic resampling: points ``(j + U) / M`` with one uniform U per row.
+
+    Offspring counts need no search: ``ceil(M c - U)`` points lie below a CDF value c.
+    """
     _check_weights(weights)
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
-    j = torch.arange(n, dtype=torch.float64, device=weights.device)
-    u = (j + rand((b, 1), generator, torch.float64, weights.device)) / n
-    return _invert(_cdf(weights), u)
+    u = rand((b, 1), generator, torch.float64, weights.device)
+    cum = _cdf(weights, n).sub_(u).ceil_().clamp_(0, n).long()
+    return _ancestors_from_cumcounts(cum, n)
 
 
 def residual(
     weights: torch.Tensor, generator: GeneratorLike = None, n_out: int | None = None
 ) -> torch.Tensor:
-    """Residual resampling: ``floor(N w_i)`` deterministic copies, the rest multinomial on the
-    residual weights ``N w_i - floor(N w_i)``."""
+    """Residual resampling: ``floor(M w_i)`` deterministic copies, the remaining
+    ``R = M - sum floor(M w_i)`` drawn multinomially from the residuals ``M w_i - floor(M w_i)``."""
     _check_weights(weights)
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
     w64 = weights.to(torch.float64)
     nw = w64 * (n / w64.sum(1, keepdim=True))
-    counts = nw.floor()
-    rest = nw - counts
-    counts = counts.long()
-    r = n - counts.sum(1)  # (B,) residual draws per row, 0 <= r < N
-    # N unsorted i.i.d. draws per row; only the first r[b] count (i.i.d., so any r of them do).
-    u = rand((b, n), generator, torch.float64, weights.device)
+    floor = nw.floor()
+    rest = nw - floor
+    floor = floor.long()
+    r = n - floor.sum(1)  # (B,) residual draws per row, 0 <= r <= M
     has_rest = rest.sum(1, keepdim=True) > 0
     rest = torch.where(has_rest, rest, torch.ones_like(rest))
-    extra = _invert(_cdf(rest), u)
-    keep = torch.arange(n, device=weights.device).unsqueeze(0) < r.unsqueeze(1)
-    counts.scatter_add_(1, extra, keep.long())
-    # counts -> indices: each row sums to N, so the flat repeat has B * N entries.
-    flat = torch.repeat_interleave(
-        torch.arange(b * n_in, device=weights.device), counts.flatten(), output_size=b * n
-    )
-    return flat.view(b, n) - (torch.arange(b, device=weights.device) * n_in).unsqueeze(1)
+    u = _sorted_uniforms(b, n, generator, weights.device, count=r)
+    cum = floor.cumsum(1) + _count_below(u, _cdf(rest))
+    return _ancestors_from_cumcounts(cum, n)
 
 
 RESAMPLERS: dict[str, Resampler] = {
