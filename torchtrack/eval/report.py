@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-__all__ = ["fmt", "klein_table_row", "overall_table", "per_sequence_table", "results_markdown"]
+__all__ = [
+    "bachoo_table",
+    "fmt",
+    "klein_table_row",
+    "overall_table",
+    "per_sequence_table",
+    "results_markdown",
+]
 
 #: Klein et al. 2010, Table I, sequence I (BoBoT, 1016 frames): average IoU in percent.
 KLEIN_TABLE_I_SEQ_I = {

@@ -327,7 +327,7 @@ def _parse_value(v: str) -> Any:
     low = v.lower()
     if low in ("true", "false"):
         return low == "true"
-    if low in ("none", "null"):
+    if low == "null":  # not "none": it is a real value of some options (e.g. adapt=none)
         return None
     for cast in (int, float):
         try:
@@ -339,7 +339,8 @@ def _parse_value(v: str) -> Any:
 
 def parse_tracker_spec(spec: str) -> tuple[str, dict[str, Any]]:
     """Split ``"name"`` or ``"name:key=value,key=value"`` into the name and its parameters
-    (values become bool / int / float / None where they parse as such, else strings).
+    (values become bool (true/false), int, float or None (null) where they parse as such,
+    else strings).
 
     Example: ``parse_tracker_spec("adaptive-haar:adapt=none,particles=500")``.
 

@@ -1,0 +1,161 @@
+"""Frame sources: folders, file lists, video files, cameras; colour modes; bad frames."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.errors import ConfigError, DataError, VideoError
+from torchtrack.io.video import (
+    FrameSource,
+    list_image_files,
+    natural_key,
+    open_source,
+    read_image,
+    to_numpy_bgr,
+)
+
+
+def _write(path, img):
+    assert cv2.imwrite(str(path), img)
+
+
+@pytest.fixture
+def folder(tmp_path):
+    """Three 8x10 frames: pure red, pure blue (as BGR on disk), and a grayscale ramp."""
+    red = np.zeros((8, 10, 3), np.uint8)
+    red[:, :, 2] = 200  # BGR: red channel last
+    blue = np.zeros((8, 10, 3), np.uint8)
+    blue[:, :, 0] = 150
+    gray = np.tile(np.arange(10, dtype=np.uint8) * 20, (8, 1))
+    _write(tmp_path / "f1.png", red)
+    _write(tmp_path / "f2.png", blue)
+    _write(tmp_path / "f10.png", gray)
+    (tmp_path / "notes.txt").write_text("not an image")
+    return tmp_path
+
+
+def test_folder_yields_rgb_uint8_chw_in_natural_order(folder):
+    with open_source(folder) as src:
+        frames = list(src)
+        assert src.kind == "folder" and len(src) == 3 and src.fps is None
+        assert [p.name for p in src.files] == ["f1.png", "f2.png", "f10.png"]
+    assert all(f.dtype == torch.uint8 and f.shape == (3, 8, 10) for f in frames)
+    assert frames[0][0].eq(200).all() and frames[0][1:].eq(0).all()  # red is channel 0
+    assert frames[1][2].eq(150).all() and frames[1][:2].eq(0).all()  # blue is channel 2
+    # grayscale expanded to three equal channels
+    assert torch.equal(frames[2][0], frames[2][1]) and torch.equal(frames[2][0], frames[2][2])
+    assert frames[2][0, 0].tolist() == [20 * i for i in range(10)]
+
+
+def test_color_modes(folder):
+    keep = list(FrameSource(folder, color="keep"))
+    assert [f.shape[0] for f in keep] == [3, 3, 1]
+    gray = list(FrameSource(folder, color="gray"))
+    assert [f.shape[0] for f in gray] == [1, 1, 1]
+    # BT.601 luma of pure red 200 = 0.299 * 200
+    assert abs(int(gray[0][0, 0, 0]) - round(0.299 * 200)) <= 1
+    with pytest.raises(ConfigError, match="color must be one of"):
+        FrameSource(folder, color="bgr")
+
+
+def test_unreadable_frame_is_counted_and_skipped(folder):
+    (folder / "f2.png").write_bytes(b"this is not a png")
+    src = FrameSource(folder)
+    items = list(src.items())
+    assert [i for i, _ in items] == [0, 1, 2]
+    assert items[1][1] is None and items[0][1] is not None
+    assert src.n_bad == 1 and src.bad_frames[0].index == 1
+    assert "cannot be decoded" in src.bad_frames[0].reason
+    src2 = FrameSource(folder)
+    assert len(list(src2)) == 2 and src2.n_bad == 1
+
+
+def test_file_list_source(folder):
+    src = FrameSource([folder / "f10.png", folder / "f1.png"])
+    assert src.kind == "files"
+    frames = list(src)
+    assert frames[1][0].eq(200).all()
+    with pytest.raises(VideoError, match="list of frame files is empty"):
+        FrameSource([])
+
+
+def test_video_file_roundtrip(tmp_path):
+    path = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (32, 24))
+    if not w.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG AVI files")
+    for k in range(5):
+        img = np.zeros((24, 32, 3), np.uint8)
+        img[:, :, 2] = 40 * k  # red grows
+        w.write(img)
+    w.release()
+    with open_source(path) as src:
+        frames = list(src)
+        assert src.kind == "video" and len(src) == 5 and src.fps == pytest.approx(10.0)
+        assert not src.ended_early and src.n_bad == 0
+    assert len(frames) == 5 and frames[0].shape == (3, 24, 32)
+    reds = [float(f[0].float().mean()) for f in frames]
+    assert reds == pytest.approx([40 * k for k in range(5)], abs=6)  # lossy MJPG
+    assert max(float(f[2].float().mean()) for f in frames) < 6
+
+
+def test_sources_that_cannot_be_opened(tmp_path):
+    with pytest.raises(VideoError, match="does not exist"):
+        FrameSource(tmp_path / "missing.mp4")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(VideoError, match="holds no image file"):
+        FrameSource(tmp_path / "empty")
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"\x00garbage" * 100)
+    with pytest.raises(VideoError, match="cannot be opened"):
+        FrameSource(bad)
+    with pytest.raises(VideoError, match="camera index 97 cannot be opened"):
+        FrameSource(97)
+    with pytest.raises(VideoError, match="camera index 98"):
+        FrameSource("98")
+
+
+def test_read_image_errors_and_bgr_roundtrip(tmp_path, folder):
+    with pytest.raises(DataError, match="does not exist"):
+        read_image(tmp_path / "nope.png")
+    (tmp_path / "bad.jpg").write_bytes(b"")
+    with pytest.raises(DataError, match="cannot be decoded"):
+        read_image(tmp_path / "bad.jpg")
+    img = cv2.imread(str(folder / "f1.png"))
+    assert np.array_equal(to_numpy_bgr(read_image(folder / "f1.png")), img)
+    g = read_image(folder / "f10.png", color="keep")
+    assert to_numpy_bgr(g).shape == (8, 10, 3)
+
+
+def test_16bit_and_alpha_images(tmp_path):
+    img16 = np.full((4, 5), 257 * 100, np.uint16)
+    _write(tmp_path / "a.png", img16)
+    assert read_image(tmp_path / "a.png", color="keep").unique().tolist() == [100]
+    rgba = np.zeros((4, 5, 4), np.uint8)
+    rgba[..., 1] = 77
+    rgba[..., 3] = 255
+    _write(tmp_path / "b.png", rgba)
+    t = read_image(tmp_path / "b.png")
+    assert t.shape == (3, 4, 5) and t[1].eq(77).all()
+
+
+def test_natural_key_and_listing(tmp_path):
+    assert sorted(["img10.jpg", "img2.jpg", "img1.jpg"], key=natural_key) == [
+        "img1.jpg",
+        "img2.jpg",
+        "img10.jpg",
+    ]
+    with pytest.raises(VideoError, match="does not exist"):
+        list_image_files(tmp_path / "nothing")
+
+
+def test_real_grayscale_sequence_frame(data_dir):
+    """Freeman1 is stored as grayscale JPEG: C = 3 equal channels by default, C = 1 with keep."""
+    first = data_dir / "tracking" / "otb" / "Freeman1" / "img" / "0001.jpg"
+    rgb = read_image(first)
+    assert rgb.shape == (3, 240, 360)
+    assert torch.equal(rgb[0], rgb[1]) and torch.equal(rgb[1], rgb[2])
+    assert read_image(first, color="keep").shape == (1, 240, 360)
