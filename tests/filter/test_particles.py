@@ -99,3 +99,14 @@ def test_particle_set_and_shape_errors():
         ParticleSet(torch.zeros(2, 3, 4, dtype=torch.long), torch.zeros(2, 3))
     with pytest.raises(ShapeError, match="N >= 1"):
         ParticleSet(torch.zeros(2, 0, 4), torch.zeros(2, 0))
+
+
+def test_has_nan_or_posinf_fast_path_edge_cases():
+    from torchtrack.filter.particles import has_nan_or_posinf
+
+    big = torch.full((4,), 3e38)  # float32 sum overflows to +inf: not an error
+    assert not has_nan_or_posinf(big)
+    assert not has_nan_or_posinf(torch.tensor([0.0, -math.inf]))
+    assert has_nan_or_posinf(torch.tensor([math.inf, -math.inf]))  # sum is NaN
+    assert has_nan_or_posinf(torch.tensor([1.0, math.inf]))
+    assert has_nan_or_posinf(torch.tensor([1.0, math.nan]))

@@ -101,11 +101,13 @@ class KleinAR:
         b, n, _ = states.shape
         e = randn((b, n, 4), generator, states.dtype, states.device)
         sig = states.new_tensor([self.sigma_xy, self.sigma_xy, self.sigma_wh, self.sigma_wh])
-        e = e * sig
-        v = states[..., 4:6] + e[..., 0:2]
-        c = states[..., 0:2] + v
-        wh = (states[..., 2:4] + e[..., 2:4]).clamp_min(self.min_size)
-        return torch.cat([c, wh, v], dim=2)
+        e.mul_(sig)
+        out = states.clone()  # one output buffer, updated in place (no concatenation)
+        out[..., 4:6] += e[..., 0:2]  # v_t = v_{t-1} + G(0, sigma^2)
+        out[..., 0:2] += out[..., 4:6]  # x_t = x_{t-1} + v_t
+        out[..., 2:4] += e[..., 2:4]
+        out[..., 2:4].clamp_(min=self.min_size)
+        return out
 
     __call__ = predict
 

@@ -23,6 +23,8 @@ __all__ = [
     "check_particles",
     "dominant_mode_mean",
     "ess",
+    "ess_normalized",
+    "has_nan_or_posinf",
     "normalize_log_weights",
     "uniform_log_weights",
     "weighted_cov",
@@ -92,6 +94,19 @@ def check_particles(states: torch.Tensor, log_weights: torch.Tensor | None = Non
         raise ShapeError(f"log_weights must be floating point, got {log_weights.dtype}")
 
 
+def has_nan_or_posinf(x: torch.Tensor) -> bool:
+    """True if ``x`` holds a NaN or ``+inf`` (``-inf`` is allowed: a zero weight).
+
+    One reduction pass in the common case: a sum is finite or ``-inf`` only when no entry is
+    NaN or ``+inf`` (NaN propagates; ``+inf`` alone gives ``+inf``, with ``-inf`` NaN). A
+    non-finite sum can also come from overflow, so only then are the entries inspected.
+    """
+    total = x.sum()
+    if bool(torch.isfinite(total)) or bool(total == -math.inf):
+        return False
+    return bool((torch.isnan(x) | (x == math.inf)).any())
+
+
 def uniform_log_weights(states: torch.Tensor) -> torch.Tensor:
     """``(B, N)`` log-weights ``-log N`` for ``states (B, N, D)``, same dtype and device."""
     b, n = states.shape[:2]
@@ -116,8 +131,8 @@ def normalize_log_weights(
     """
     if log_weights.ndim != 2:
         raise ShapeError(f"{step}: log_weights must be (B, N), got {tuple(log_weights.shape)}")
-    bad = torch.isnan(log_weights) | (log_weights == math.inf)
-    if bool(bad.any()):
+    if has_nan_or_posinf(log_weights):
+        bad = torch.isnan(log_weights) | (log_weights == math.inf)
         rows = torch.nonzero(bad.any(1)).flatten()[:10].tolist()
         raise FilterError(
             f"{step}: log-weights contain NaN or +inf in batch rows {rows} "
@@ -145,6 +160,11 @@ def ess(log_weights: torch.Tensor) -> torch.Tensor:
         ``(B,)`` in ``[1, N]``; a row with no mass counts as uniform (ESS = N).
     """
     lw, _ = normalize_log_weights(log_weights, step="ess")
+    return ess_normalized(lw)
+
+
+def ess_normalized(lw: torch.Tensor) -> torch.Tensor:
+    """ESS of already normalised log-weights ``(B, N)`` (no checks): ``(B,)``."""
     # 1 / sum w^2 = exp(-logsumexp(2 log w)), stable for tiny weights.
     return torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
 

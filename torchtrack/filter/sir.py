@@ -6,7 +6,6 @@ model, (c) weight with the observation likelihood, (d) estimate.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -18,7 +17,8 @@ from torchtrack.filter.particles import (
     best_particle,
     check_particles,
     dominant_mode_mean,
-    ess,
+    ess_normalized,
+    has_nan_or_posinf,
     normalize_log_weights,
     weighted_mean,
 )
@@ -102,16 +102,18 @@ def evaluate_log_likelihood(
             f"{step}: likelihood must return (B, M) = {tuple(states.shape[:2])}, got {shape}"
         )
     out = out.to(states.dtype)
-    if bool(torch.isnan(out).any()):
-        rows = torch.nonzero(torch.isnan(out).any(1)).flatten()[:10].tolist()
-        raise FilterError(f"{step}: likelihood returned NaN (batch rows {rows})")
-    if log_likelihood:
-        if bool((out == math.inf).any()):
-            raise FilterError(f"{step}: log-likelihood returned +inf")
-        return out
-    if bool((out < 0).any()) or bool((out == math.inf).any()):
-        raise FilterError(f"{step}: likelihood must be finite and >= 0 (got negative or +inf)")
-    return torch.log(out)
+    if not log_likelihood:
+        # Negative values have no logarithm; checking after log would report them as NaN.
+        if bool((out < 0).any()):
+            raise FilterError(f"{step}: likelihood must be finite and >= 0 (got negative values)")
+        out = torch.log(out)
+    if has_nan_or_posinf(out):  # one pass in the common case
+        if bool(torch.isnan(out).any()):
+            rows = torch.nonzero(torch.isnan(out).any(1)).flatten()[:10].tolist()
+            raise FilterError(f"{step}: likelihood returned NaN (batch rows {rows})")
+        what = "log-likelihood" if log_likelihood else "likelihood"
+        raise FilterError(f"{step}: {what} returned +inf")
+    return out
 
 
 def _gather_states(states: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -167,7 +169,7 @@ def sir_step(
         states=predicted,
         log_weights=lw,
         estimate=est_fn(predicted, lw),
-        ess=ess(lw),
+        ess=ess_normalized(lw),
         ancestors=ancestors,
         resampled=resampled,
         recovered=recovered,
