@@ -291,7 +291,7 @@ def evaluate(
     Raises:
         ConfigError: bad tracker specs, ``jobs < 1``, no sequence.
     """
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
     from torchtrack.eval.report import results_markdown
 
