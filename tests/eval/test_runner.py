@@ -111,3 +111,12 @@ def test_parallel_jobs_give_the_same_results(data_dir, tmp_path):
         ra, rb = a["per_sequence"][name]["camshift"], b["per_sequence"][name]["camshift"]
         for k in ("auc", "mean_iou", "precision_20", "track_ratio"):
             assert ra[k] == rb[k]
+
+
+def test_source_ending_early_counts_missing_frames(seq, test_trackers):
+    """A video shorter than its ground truth (header lied): the missing frames are bad frames."""
+    short = seq.head(6)
+    short.frames = short.frames[:4]
+    res = run_sequence("test-static", short)
+    assert res.error is None and res.bad_frames == [4, 5]
+    assert torch.equal(res.boxes[5], res.boxes[3]) and not res.visible[4:].any()

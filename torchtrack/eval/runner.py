@@ -217,9 +217,12 @@ def run_sequence(
         res.traceback = traceback.format_exc(limit=8)
     finally:
         src.close()
-    if res.error is None and i < t - 1 and not res.bad_frames:
-        # The source ended before the ground truth did (a video shorter than its header).
+    if res.error is None and i < t - 1:
+        # The source ended before the ground truth did (a video shorter than its header): the
+        # missing frames count as unreadable ones (last box carried, not visible).
         res.bad_frames.extend(range(i + 1, t))
+        if initialised:
+            boxes[i + 1 :] = boxes[i]
     if res.error is None and not initialised:
         res.error = "TrackerError: no frame with a readable image and a present target to start on"
     res.tracker_failures = getattr(tracker, "failures", None)
