@@ -139,6 +139,8 @@ def test_csv_without_header_and_corner_header(tmp_path):
     p = tmp_path / "a.csv"
     p.write_text("1,2,3,4\n5,6,7,8\n")
     assert read_box_csv(p).tolist() == [[1, 2, 3, 4], [5, 6, 7, 8]]
+    p.write_text("nan,nan,nan,nan\n5,6,7,8\n")  # a NaN first row is not a header
+    assert read_box_csv(p)[1].tolist() == [5, 6, 7, 8]
     q = tmp_path / "b.csv"
     q.write_text("x1,y1,x2,y2\n1,2,4,6\n")
     assert read_box_csv(q).tolist() == [[1, 2, 3, 4]]

@@ -219,6 +219,14 @@ _CSV_COLUMN_SETS = {
 }
 
 
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
 def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.Tensor:
     """Read a CSV of boxes into ``(T, 4)`` float64 xywh 0-based boxes.
 
@@ -243,7 +251,7 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
     if not rows:
         raise SequenceError(f"box CSV {p} is empty")
     header = [c.strip().lower() for c in rows[0]]
-    has_header = any(re.fullmatch(r"[a-z_]\w*", c) for c in header if c)
+    has_header = not all(_is_float(c) for c in header if c)
     if not has_header:
         return parse_box_file(p, "xywh")
     fmt = None
