@@ -51,12 +51,40 @@ def _column_block(X: Any, f0: int, f1: int, device: torch.device) -> torch.Tenso
     else:
         block = torch.from_numpy(np.ascontiguousarray(np.asarray(X[:, f0:f1])))
     block = block.to(device=device, dtype=torch.float32).t().contiguous()
-    if not bool(torch.isfinite(block).all()):
+    # one cheap reduction first; the exact (slower) search only runs when something is off
+    if not bool(torch.isfinite(block.sum(dtype=torch.float64))) and not bool(
+        torch.isfinite(block).all()
+    ):
         bad = (~torch.isfinite(block)).nonzero()[0]
         raise errors.DataError(
             f"X contains NaN or inf; the first at row {int(bad[1])}, column {f0 + int(bad[0])}"
         )
     return block
+
+
+def _uniform_codes(cols: torch.Tensor, n_bins: int, n_sample: int = 1024) -> torch.Tensor:
+    """Code ``cols (k, n)`` into ``n_bins`` bins: uint8 ``(k, n)``.
+
+    Bins ``1 .. n_bins - 2`` split each column's robust range ``[lo, hi)`` (its 0.5% and 99.5%
+    quantiles, from an evenly spaced subsample of at most ``n_sample`` rows) into equal widths;
+    bin 0 holds values below ``lo`` and bin ``n_bins - 1`` values from ``hi`` up. So
+    ``code > b`` iff ``x >= lo + b (hi - lo) / (n_bins - 2)``: every bin boundary is a stump
+    threshold. Elementwise arithmetic only (a quantile search per value was 10x slower).
+    """
+    _k, n = cols.shape
+    m = min(n, n_sample)
+    rows = torch.linspace(0, n - 1, m, device=cols.device).round().long()
+    sub = cols.index_select(1, rows).sort(dim=1).values
+    lo = sub[:, int(0.005 * (m - 1))]
+    hi = sub[:, round(0.995 * (m - 1))]
+    flat = hi <= lo  # (nearly) constant in the subsample: fall back to the full range
+    if bool(flat.any()):
+        lo = torch.where(flat, sub[:, 0], lo)
+        hi = torch.where(flat, sub[:, -1], hi)
+    span = (hi - lo).clamp_min(torch.finfo(torch.float32).tiny)
+    scale = (n_bins - 2) / span
+    t = (cols - lo[:, None]).mul_(scale[:, None]).floor_().add_(1.0).clamp_(0, n_bins - 1)
+    return t.to(torch.uint8)
 
 
 def _quantile_edges(cols: torch.Tensor, n_bins: int, n_sample: int = 4096) -> torch.Tensor:
@@ -129,12 +157,16 @@ def _weighted_hist(
     # int64 index buffer reused across chunks: converting uint8 codes into a cache-sized buffer
     # is several times faster than one big `.long()` (measured: 1.0 s vs 3.7 s per 12k x 42k pass)
     buf = torch.empty(k_max, m, dtype=torch.long, device=codes.device)
-    for f0 in range(0, F, k_max):
-        f1 = min(F, f0 + k_max)
-        b = buf[: f1 - f0]
-        block = codes[f0:f1] if rows is None else codes[f0:f1].index_select(1, rows)
-        b.copy_(block)
-        out[f0:f1].scatter_add_(1, b, weights.expand(f1 - f0, m))
+    outer = k_max * 32  # gather the sample subset for many columns at once (fewer calls)
+    for g0 in range(0, F, outer):
+        g1 = min(F, g0 + outer)
+        # gather with an expanded index is ~5x faster than index_select along dim 1 (uint8)
+        group = codes[g0:g1] if rows is None else codes[g0:g1].gather(1, rows.expand(g1 - g0, m))
+        for f0 in range(g0, g1, k_max):
+            f1 = min(g1, f0 + k_max)
+            b = buf[: f1 - f0]
+            b.copy_(group[f0 - g0 : f1 - g0])
+            out[f0:f1].scatter_add_(1, b, weights.expand(f1 - f0, m))
     return out
 
 
@@ -155,16 +187,17 @@ def select_features(
     max_rounds: int | None = None,
     chunk_size: int | None = None,
     progress: bool = False,
+    num_threads: int | None = 1,
 ) -> torch.Tensor:
     """AdaBoost feature selection (Tieu & Viola; Chateau et al. 2006, section 3.2).
 
     Discrete AdaBoost on decision stumps over all ``F`` columns: each round picks the stump
     (feature, threshold, polarity) of least weighted error, then reweights the samples
     (``alpha = 1/2 ln((1 - err) / err)``). Rounds continue until ``n_features`` distinct features
-    have been picked. Thresholds are searched on ``n_bins`` quantile bins per column (quantiles of
-    an evenly spaced subsample of at most 4096 rows): the column is coded once into ``uint8`` bins
-    (``F * n`` bytes), and each round needs one weighted histogram over the samples whose weight
-    changed. Columns are read in chunks, so ``X`` may be a large numpy array or memmap.
+    have been picked. Thresholds are searched on ``n_bins`` bins per column: equal-width bins over
+    the column's robust range (0.5% to 99.5% quantiles of an evenly spaced row subsample) plus
+    one open bin at each end. Each column is coded once into ``uint8`` bins (``F * n`` bytes),
+    and each round needs one weighted histogram over the samples whose weight changed. Columns are read in chunks, so ``X`` may be a large numpy array or memmap.
 
     If a stump separates the training data perfectly, AdaBoost's weights stop changing and it
     would pick the same stump forever; from then on the remaining features are taken among those
@@ -182,6 +215,9 @@ def select_features(
             unselected ones as above.
         chunk_size: columns per histogram chunk (default 64 on CPU, 4096 on CUDA).
         progress: show a tqdm progress bar.
+        num_threads: torch CPU threads while selecting (restored afterwards); ``None`` keeps the
+            current setting. Default 1: the work is many small ``scatter_add_`` calls that do not
+            scale, and on a loaded 2-core machine two threads were 3-10x slower than one.
 
     Returns:
         ``(n_features,)`` int64 column indices in selection order.
@@ -191,6 +227,23 @@ def select_features(
         DataError: NaN / inf in ``X`` (row and column named), a single class in ``y``.
         ConfigError: ``n_features`` larger than ``F`` or not positive, bad ``n_bins``.
     """
+    if num_threads is not None and int(num_threads) != torch.get_num_threads():
+        prev = torch.get_num_threads()
+        torch.set_num_threads(max(1, int(num_threads)))
+        try:
+            return select_features(
+                X,
+                y,
+                n_features,
+                sample_weight=sample_weight,
+                n_bins=n_bins,
+                max_rounds=max_rounds,
+                chunk_size=chunk_size,
+                progress=progress,
+                num_threads=None,
+            )
+        finally:
+            torch.set_num_threads(prev)
     if getattr(X, "ndim", None) != 2:
         raise errors.ShapeError(
             f"X must be a 2-D (n, F) feature matrix, got shape {getattr(X, 'shape', None)}"
@@ -213,14 +266,16 @@ def select_features(
     codes = torch.empty(F, n, dtype=torch.uint8, device=device)
     for f0 in range(0, F, 4 * chunk):
         f1 = min(F, f0 + 4 * chunk)
-        cols = _column_block(X, f0, f1, device)
-        codes[f0:f1] = _encode(cols, _quantile_edges(cols, n_bins))
+        codes[f0:f1] = _uniform_codes(_column_block(X, f0, f1, device), n_bins)
         pbar.update(f1 - f0)
     pbar.close()
 
     ysign = (2 * y01 - 1).to(torch.float64)  # +1 positive, -1 negative
+    neg = y01 == 0
     # Signed histogram H[f, b] = sum of (w+ - w-) over samples in bin b: one histogram serves
-    # both classes because err(+ polarity, edge b) = W- + cumsum(H)[b].
+    # both polarities because, with C = cumsum(H), err(x >= edge b -> positive) = (W- + C[b]) / W
+    # and the opposite polarity has error 1 - that. Weights are not renormalised every round
+    # (argmin / argmax do not care), only when their total drifts far from 1.
     H = _weighted_hist(codes, w * ysign, n_bins, chunk)
     selected: list[int] = []
     chosen = torch.zeros(F, dtype=torch.bool, device=device)
@@ -231,16 +286,21 @@ def select_features(
     while len(selected) < n_features:
         if rounds >= max_rounds:
             exclude = True
-        w_neg = float(w[y01 == 0].sum())
-        err_pos = w_neg + torch.cumsum(H, dim=1)[:, : n_bins - 1]  # (F, n_bins - 1)
-        err = torch.minimum(err_pos, 1.0 - err_pos)
+        total = float(w.sum())
+        w_neg = float(w[neg].sum())
+        C = torch.cumsum(H[:, :-1], dim=1)  # (F, n_bins - 1), contiguous (fast argmin)
         if exclude:
-            err = err.masked_fill(chosen[:, None], math.inf)
-        flat = int(torch.argmin(err))
-        f, b = divmod(flat, n_bins - 1)
-        e = float(err_pos[f, b])
-        polarity = 1 if e <= 0.5 else -1
-        e = min(e, 1.0 - e)
+            i_min = int(torch.argmin(C.masked_fill(chosen[:, None], math.inf)))
+            i_max = int(torch.argmax(C.masked_fill(chosen[:, None], -math.inf)))
+        else:
+            i_min, i_max = int(torch.argmin(C)), int(torch.argmax(C))
+        e_pos = (w_neg + float(C[divmod(i_min, n_bins - 1)])) / total  # x >= edge -> positive
+        e_neg = 1.0 - (w_neg + float(C[divmod(i_max, n_bins - 1)])) / total  # x >= edge -> negative
+        del C
+        if e_pos <= e_neg:
+            (f, b), polarity, e = divmod(i_min, n_bins - 1), 1, e_pos
+        else:
+            (f, b), polarity, e = divmod(i_max, n_bins - 1), -1, e_neg
         stump = (f, b, polarity)
         if stump == last and not exclude:
             # weights did not move (perfect stump): AdaBoost is stuck; pick new features only
@@ -252,7 +312,8 @@ def select_features(
             selected.append(f)
             pbar.update(1)
         rounds += 1
-        # reweight: misclassified samples gain exp(2 alpha) relative to correct ones
+        # reweight: misclassified samples gain exp(2 alpha) relative to correct ones; only the
+        # smaller of the two sets is touched (its histogram is added to H)
         e_c = min(max(e, _EPS_ERR), 1.0 - _EPS_ERR)
         factor = (1.0 - e_c) / e_c  # = exp(2 alpha)
         pred_pos = (codes[f].long() > b) if polarity > 0 else (codes[f].long() <= b)
@@ -268,8 +329,9 @@ def select_features(
         _weighted_hist(codes, delta, n_bins, chunk, rows=rows, out=H)
         w[rows] *= mult
         z = float(w.sum())
-        w /= z
-        H /= z
+        if not 1e-100 < z < 1e100:
+            w /= z
+            H /= z
     pbar.close()
     return torch.tensor(selected, dtype=torch.long)
 
