@@ -94,14 +94,13 @@ def _sorted_uniforms(
     """Row-sorted i.i.d. uniforms ``(B, m)`` from normalised sums of exponential spacings (O(m),
     no sort). With ``count (B,)``, row b holds ``count[b]`` sorted uniforms followed by 2.0
     (never below a CDF value)."""
-    e = -torch.log1p(-rand((b, m + 1), generator, torch.float64, device))
-    s = e.cumsum(1)
+    # -log(1 - U) ~ Exp(1), computed in place (fresh buffers cost page faults on CPU).
+    s = rand((b, m + 1), generator, torch.float64, device).neg_().log1p_().neg_().cumsum_(1)
     if count is None:
-        return s[:, :m] / s[:, -1:]
-    total = torch.gather(s, 1, count.unsqueeze(1))  # S_{count+1}
-    u = s[:, :m] / total
+        return s[:, :m].div_(s[:, -1:])
+    u = s[:, :m].div_(torch.gather(s, 1, count.unsqueeze(1)))  # S_j / S_{count+1}
     j = torch.arange(m, device=device).unsqueeze(0)
-    return torch.where(j < count.unsqueeze(1), u, torch.full_like(u, 2.0))
+    return u.masked_fill_(j >= count.unsqueeze(1), 2.0)
 
 
 def _check_weights(weights: torch.Tensor) -> None:
@@ -138,9 +137,12 @@ def stratified(
     n = n_in if n_out is None else int(n_out)
     uj = rand((b, n), generator, torch.float64, weights.device)
     x = _cdf(weights, n)
-    k = x.floor().long().clamp_(0, n)
-    extra = torch.gather(uj, 1, k.clamp(max=n - 1)) < x.sub_(k)
-    return _ancestors_from_cumcounts(k.add_(extra.logical_and_(k < n)), n)
+    # k = floor(M c) clamped to M - 1; at c = 1 the fraction is then 1 and U_k < 1 counts the
+    # last point, so cum = M there as it must.
+    k = x.floor().clamp_(max=n - 1)
+    frac = x.sub_(k)
+    ki = k.long()
+    return _ancestors_from_cumcounts(ki.add_(torch.gather(uj, 1, ki) < frac), n)
 
 
 def systematic(
@@ -166,16 +168,19 @@ def residual(
     _check_weights(weights)
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
-    w64 = weights.to(torch.float64)
-    nw = w64 * (n / w64.sum(1, keepdim=True))
+    nw = weights.to(torch.float64, copy=True)
+    nw.mul_(n / nw.sum(1, keepdim=True))
     floor = nw.floor()
-    rest = nw - floor
+    rest = nw.sub_(floor)  # residual weights M w - floor(M w), in place
     floor = floor.long()
     r = n - floor.sum(1)  # (B,) residual draws per row, 0 <= r <= M
-    has_rest = rest.sum(1, keepdim=True) > 0
-    rest = torch.where(has_rest, rest, torch.ones_like(rest))
+    empty = rest.sum(1) <= 0
+    if bool(empty.any()):  # every weight an exact multiple of 1/M: no residual mass
+        rest[empty] = 1.0
+    # Always M uniforms per row (not max(r)): a row's random stream must not depend on the
+    # other rows of the batch (a batch of B equals B single runs with the same generators).
     u = _sorted_uniforms(b, n, generator, weights.device, count=r)
-    cum = floor.cumsum(1) + _count_below(u, _cdf(rest))
+    cum = floor.cumsum_(1).add_(_count_below(u, _cdf(rest)))
     return _ancestors_from_cumcounts(cum, n)
 
 
