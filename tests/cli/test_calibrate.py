@@ -243,3 +243,54 @@ def test_model_bad_crop_folder(tiny_model, tmp_path, capsys):
     assert "no usable image" in capsys.readouterr().err
     assert main(["calibrate", str(tiny_model), "--pos", str(tmp_path / "pos")]) == 1
     assert "--neg" in capsys.readouterr().err
+
+
+def test_model_region_crops(tiny_model, tmp_path):
+    rng = np.random.default_rng(5)
+    for name in ("pos", "neg"):
+        d = tmp_path / f"{name}_pad"
+        d.mkdir()
+        for f in sorted((tmp_path / name).iterdir()):
+            im = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            big = rng.integers(0, 255, size=(20, 20)).astype(np.uint8)
+            big[2:18, 2:18] = im
+            cv2.imwrite(str(d / f.name), big)
+    plain, padded = tmp_path / "plain.json", tmp_path / "padded.json"
+    base = ["calibrate", str(tiny_model), "--quiet"]
+    assert (
+        main(
+            [
+                *base,
+                "--pos",
+                str(tmp_path / "pos"),
+                "--neg",
+                str(tmp_path / "neg"),
+                "--json",
+                str(plain),
+            ]
+        )
+        == 0
+    )
+    pad = ["--pos", str(tmp_path / "pos_pad"), "--neg", str(tmp_path / "neg_pad")]
+    assert (
+        main(
+            [
+                *base,
+                *pad,
+                "--crop-size",
+                "20",
+                "20",
+                "--region",
+                "2",
+                "2",
+                "16",
+                "16",
+                "--json",
+                str(padded),
+            ]
+        )
+        == 0
+    )
+    a = calibrator_from_dict(json.loads(plain.read_text())).a_
+    assert calibrator_from_dict(json.loads(padded.read_text())).a_ == pytest.approx(a, abs=1e-9)
+    assert main([*base, *pad, "--region", "2", "2", "16", "16", "--json", str(padded)]) == 1

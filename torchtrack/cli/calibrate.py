@@ -26,6 +26,10 @@ examples:
   torchtrack calibrate pedestrian.safetensors --pos calib/pos --neg calib/neg \\
       --plot reliability.png
 
+  # INRIA-style crops (96x160 with the person in the central 64x128 box)
+  torchtrack calibrate pedestrian.safetensors --pos calib/persons --neg calib/background \
+      --crop-size 160 96 --region 16 16 64 128
+
   # isotonic instead of Platt, written to a new model file
   torchtrack calibrate car.safetensors --pos calib/cars --neg calib/background \\
       --method isotonic -o car-isotonic.safetensors
@@ -57,6 +61,16 @@ def register(subparsers) -> None:
     p.add_argument("model", nargs="?", metavar="MODEL", help="detector model file to calibrate")
     p.add_argument("--pos", nargs="+", metavar="DIR", help="folders of positive calibration crops")
     p.add_argument("--neg", nargs="+", metavar="DIR", help="folders of negative calibration crops")
+    p.add_argument(
+        "--region",
+        nargs=4,
+        type=int,
+        metavar=("X", "Y", "W", "H"),
+        help="object box inside each crop (with --crop-size), e.g. INRIA 96x160: 16 16 64 128",
+    )
+    p.add_argument(
+        "--crop-size", nargs=2, type=int, metavar=("H", "W"), help="crop size --region refers to"
+    )
     p.add_argument("--scores", metavar="CSV", help="CSV of score,label rows instead of a model")
     p.add_argument("--method", choices=("platt", "isotonic"), default="platt")
     p.add_argument("--json", metavar="OUT", help="write the calibration to this JSON file")
@@ -145,7 +159,16 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
     return torch.tensor(scores, dtype=torch.float64), torch.tensor(labels, dtype=torch.float64)
 
 
-def crop_margins(det: Any, folders: list[str], *, strict: bool, progress: bool, chunk: int = 256):
+def crop_margins(
+    det: Any,
+    folders: list[str],
+    *,
+    strict: bool,
+    progress: bool,
+    region: tuple[int, int, int, int] | None = None,
+    crop_size: tuple[int, int] | None = None,
+    chunk: int = 256,
+):
     """Detector margins ``(n,)`` float64 of every crop in ``folders`` (whole-window boxes).
 
     Returns:
@@ -155,7 +178,12 @@ def crop_margins(det: Any, folders: list[str], *, strict: bool, progress: bool, 
 
     from torchtrack.io.crops import CropSet, load_crops
 
-    sets = [load_crops(f, det.window, strict=strict, progress=progress) for f in folders]
+    sets = [
+        load_crops(
+            f, det.window, region=region, crop_size=crop_size, strict=strict, progress=progress
+        )
+        for f in folders
+    ]
     crops = CropSet.concat(sets)
     for path, why in crops.skipped:
         print(f"warning: skipped {path}: {why}", file=sys.stderr)
@@ -248,9 +276,16 @@ def run(args: argparse.Namespace) -> int:
         from torchtrack.detect import load_detector, save_detector
 
         det = load_detector(args.model)
-        progress = not args.quiet
-        m_pos, sk_pos = crop_margins(det, args.pos, strict=args.strict, progress=progress)
-        m_neg, sk_neg = crop_margins(det, args.neg, strict=args.strict, progress=progress)
+        if (args.region is None) != (args.crop_size is None):
+            raise ConfigError("--region and --crop-size go together")
+        opts = {
+            "strict": args.strict,
+            "progress": not args.quiet,
+            "region": tuple(args.region) if args.region else None,
+            "crop_size": tuple(args.crop_size) if args.crop_size else None,
+        }
+        m_pos, sk_pos = crop_margins(det, args.pos, **opts)
+        m_neg, sk_neg = crop_margins(det, args.neg, **opts)
         s = torch.cat((m_pos, m_neg))
         y01 = torch.cat((torch.ones(len(m_pos)), torch.zeros(len(m_neg)))).long()
         source = {"model": str(args.model), "pos": args.pos, "neg": args.neg}
