@@ -128,31 +128,33 @@ class HaarLikelihood:
         self.coef = torch.tensor([1.0, -2.0, 1.0, -1.0, 2.0, -1.0])
 
     def _features(self, boxes: torch.Tensor) -> torch.Tensor:
-        """``boxes (M, 4)`` float32 -> ``(M, F)`` area-normalised Haar responses."""
-        x, y, w, h = boxes.unbind(1)
+        """``boxes (M, 4)`` float32 -> ``(M, F)`` area-normalised Haar responses.
+
+        Layout: the particle axis M is innermost everywhere (``(corner, feature, M)``), so
+        every broadcast and the final weighted sum run over long contiguous rows; indices are
+        int32 (half the memory traffic of int64).
+        """
+        x, y, w, h = (v.unsqueeze(0).unsqueeze(0) for v in boxes.T.contiguous())  # (1, 1, M)
         wmax, hmax = self.w1 - 1, self.h1 - 1
 
-        def coords(o, s, frac, hi):
-            return (
-                (o.unsqueeze(1).unsqueeze(2) + frac * s.unsqueeze(1).unsqueeze(2))
-                .round_()
-                .clamp_(0, hi)
-                .long()
-            )
+        def coords(o, s, frac, hi, scale=1):
+            c = (o + frac.T.contiguous().unsqueeze(2) * s).round_().clamp_(0, hi).to(torch.int32)
+            return c.mul_(scale) if scale != 1 else c
 
-        # horizontal: 3 x-coords, 2 y-coords per feature
-        hx = coords(x, w, self.a3, wmax)  # (M, f, 3)
-        hy = coords(y, h, self.a2, hmax)  # (M, f, 2)
-        idx_h = hy.unsqueeze(3) * self.w1 + hx.unsqueeze(2)  # (M, f, 2, 3)
-        m, f = idx_h.shape[:2]
-        fh = self.flat.index_select(0, idx_h.view(-1)).view(m, f, 6) @ self.coef
-        # vertical: 3 y-coords, 2 x-coords (top-minus-bottom)
-        vy = coords(y, h, self.a3, hmax)  # (M, f, 3)
-        vx = coords(x, w, self.a2, wmax)  # (M, f, 2)
-        idx_v = vy.unsqueeze(2) * self.w1 + vx.unsqueeze(3)  # (M, f, 2 [x], 3 [y])
-        fv = self.flat.index_select(0, idx_v.view(-1)).view(m, f, 6) @ self.coef
-        area = (w * h).clamp_min(1.0).unsqueeze(1)
-        return torch.cat([fh, fv], 1) / area
+        m = boxes.shape[0]
+        f = self.a3.shape[0]
+        # horizontal (left minus right): 3 x-coords x 2 y-coords per feature
+        hx = coords(x, w, self.a3, wmax)  # (3, f, M)
+        hy = coords(y, h, self.a2, hmax, self.w1)  # (2, f, M), already row offsets
+        idx = (hy.unsqueeze(1) + hx.unsqueeze(0)).reshape(-1)  # (2 y, 3 x, f, M)
+        fh = self.coef @ self.flat.index_select(0, idx).view(6, f * m)
+        # vertical (top minus bottom): 3 y-coords x 2 x-coords; same coefficient order
+        vy = coords(y, h, self.a3, hmax, self.w1)  # (3, f, M)
+        vx = coords(x, w, self.a2, wmax)  # (2, f, M)
+        idx = (vx.unsqueeze(1) + vy.unsqueeze(0)).reshape(-1)  # (2 x, 3 y, f, M)
+        fv = self.coef @ self.flat.index_select(0, idx).view(6, f * m)
+        area = (w * h).clamp_min(1.0).view(1, m)
+        return (torch.cat([fh.view(f, m), fv.view(f, m)], 0) / area).T  # (M, F)
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
         b, m, _ = states.shape

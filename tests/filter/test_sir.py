@@ -264,3 +264,24 @@ def test_cuda_step_device_follows_input(step):
     r = step(x, uniform_log_weights(x), m, lambda s: -((s[..., 0] - 12.0) ** 2), generator=g)
     assert r.states.device.type == "cuda" and r.estimate.device.type == "cuda"
     assert not torch.isnan(r.states).any()
+
+
+def test_results_independent_of_thread_count():
+    m = KleinAR()
+    lik = _row_lik(_targets())
+    boxes = torch.tensor([[40.0, 30.0, 20.0, 30.0]] * 3, dtype=torch.float64)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            g = torch.Generator().manual_seed(0)
+            x = m.init(boxes, 20_000, g)
+            r = sir_step(x, uniform_log_weights(x), m, lik, generator=g)
+            r = sir_step(r.states, r.log_weights, m, lik, scheme="residual", generator=g)
+            out.append(r)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(out[0].ancestors, out[1].ancestors)
+    torch.testing.assert_close(out[0].states, out[1].states, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(out[0].estimate, out[1].estimate, rtol=1e-12, atol=1e-9)

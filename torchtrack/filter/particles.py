@@ -26,6 +26,7 @@ __all__ = [
     "ess_normalized",
     "has_nan_or_posinf",
     "normalize_log_weights",
+    "normalize_with_lse",
     "uniform_log_weights",
     "weighted_cov",
     "weighted_mean",
@@ -129,6 +130,15 @@ def normalize_log_weights(
     Raises:
         FilterError: a log-weight is NaN or ``+inf`` (weights cannot be normalised).
     """
+    normalized, recovered, _ = normalize_with_lse(log_weights, step)
+    return normalized, recovered
+
+
+def normalize_with_lse(
+    log_weights: torch.Tensor, step: str = "normalize_log_weights"
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``normalize_log_weights`` that also returns the row log-sum-exp ``(B,)`` (``-inf`` for
+    recovered rows): the log of the total unnormalised weight, e.g. a log-evidence."""
     if log_weights.ndim != 2:
         raise ShapeError(f"{step}: log_weights must be (B, N), got {tuple(log_weights.shape)}")
     if has_nan_or_posinf(log_weights):
@@ -140,14 +150,17 @@ def normalize_log_weights(
         )
     lse = torch.logsumexp(log_weights, dim=1, keepdim=True)
     recovered = torch.isneginf(lse).squeeze(1)
-    n = log_weights.shape[1]
+    if not bool(recovered.any()):
+        return log_weights - lse, recovered, lse.squeeze(1)
     # Rows with zero total mass: subtracting -inf would give NaN; reset them to uniform.
+    n = log_weights.shape[1]
     safe_lse = torch.where(recovered.unsqueeze(1), torch.zeros_like(lse), lse)
-    normalized = log_weights - safe_lse
     normalized = torch.where(
-        recovered.unsqueeze(1), torch.full_like(normalized, -math.log(n)), normalized
+        recovered.unsqueeze(1),
+        torch.full_like(log_weights, -math.log(n)),
+        log_weights - safe_lse,
     )
-    return normalized, recovered
+    return normalized, recovered, lse.squeeze(1)
 
 
 def ess(log_weights: torch.Tensor) -> torch.Tensor:

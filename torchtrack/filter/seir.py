@@ -22,12 +22,13 @@ import torch
 
 from torchtrack.errors import ConfigError
 from torchtrack.filter._random import GeneratorLike, rand, randn
-from torchtrack.filter.particles import check_particles, ess, normalize_log_weights
+from torchtrack.filter.particles import check_particles, ess_normalized, normalize_log_weights
 from torchtrack.filter.resample import _cdf, _invert, get_resampler, resample
 from torchtrack.filter.sir import (
     Likelihood,
     MotionFn,
     StepResult,
+    _estimate,
     _gather_states,
     evaluate_log_likelihood,
     get_estimator,
@@ -101,7 +102,7 @@ def seir_step(
     ll = evaluate_log_likelihood(likelihood, x, log_likelihood, "seir_step")
     log_evidence = torch.logsumexp(prior_lw + ll, dim=1)
     lw, recovered = normalize_log_weights(ll, step="seir_step")
-    e = ess(lw)
+    e = ess_normalized(lw)
     active = (e < ess_target * n) & ~recovered
     iterations = torch.zeros(b, dtype=torch.long, device=states.device)
 
@@ -130,13 +131,13 @@ def seir_step(
         ll = torch.where(a, ll_sel, ll)
         lw = torch.where(a, lw_sel, lw)
         iterations += active.long()
-        e = ess(lw)
+        e = ess_normalized(lw)
         active = active & (e < ess_target * n)
 
     return StepResult(
         states=x,
         log_weights=lw,
-        estimate=est_fn(x, lw),
+        estimate=_estimate(estimator, est_fn, x, lw),
         ess=e,
         ancestors=ancestors,
         resampled=resampled,

@@ -19,7 +19,7 @@ from torchtrack.filter.particles import (
     dominant_mode_mean,
     ess_normalized,
     has_nan_or_posinf,
-    normalize_log_weights,
+    normalize_with_lse,
     weighted_mean,
 )
 from torchtrack.filter.resample import resample
@@ -116,6 +116,13 @@ def evaluate_log_likelihood(
     return out
 
 
+def _estimate(name: str, fn, states: torch.Tensor, lw: torch.Tensor) -> torch.Tensor:
+    """Estimate from normalised ``lw``; the weighted mean skips re-normalisation."""
+    if name == "mean":
+        return torch.einsum("bn,bnd->bd", lw.exp().to(states.dtype), states)
+    return fn(states, lw)
+
+
 def _gather_states(states: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """``states (B, N, D)``, ``idx (B, M)`` -> ``(B, M, D)``."""
     return torch.gather(states, 1, idx.unsqueeze(-1).expand(-1, -1, states.shape[2]))
@@ -163,12 +170,11 @@ def sir_step(
     check_particles(predicted, prior_lw)
     ll = evaluate_log_likelihood(likelihood, predicted, log_likelihood, "sir_step")
     joint = prior_lw.to(ll.dtype) + ll
-    log_evidence = torch.logsumexp(joint, dim=1)
-    lw, recovered = normalize_log_weights(joint, step="sir_step")
+    lw, recovered, log_evidence = normalize_with_lse(joint, step="sir_step")
     return StepResult(
         states=predicted,
         log_weights=lw,
-        estimate=est_fn(predicted, lw),
+        estimate=_estimate(estimator, est_fn, predicted, lw),
         ess=ess_normalized(lw),
         ancestors=ancestors,
         resampled=resampled,
