@@ -66,8 +66,12 @@ def test_eval_bad_inputs(tmp_path, capsys):
     assert "--max-frames must be >= 2" in capsys.readouterr().err
 
 
-def test_list_trackers(capsys):
+def test_list_trackers_and_import(capsys):
     assert main(["eval", "--list-trackers"]) == 0
     out = capsys.readouterr().out
     for name in ("mil", "camshift", "csrt", "kcf"):
         assert name in out
+    assert main(["eval", "--import", "eval.crash_tracker", "--list-trackers"]) == 0
+    assert "test-crash" in capsys.readouterr().out
+    assert main(["eval", "--import", "no_such_module_xyz", "--list-trackers"]) == 1
+    assert "cannot import tracker module 'no_such_module_xyz'" in capsys.readouterr().err

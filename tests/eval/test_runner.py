@@ -100,19 +100,6 @@ def test_bad_tracker_lists_fail_before_running(seq, tmp_path, test_trackers):
     assert not (tmp_path / "o" / "results.json").exists()
 
 
-def test_parallel_jobs_give_the_same_results(data_dir, tmp_path):
-    """Spawned workers (builtin trackers only: the registry is rebuilt in each process)."""
-    root = data_dir / "tracking"
-    seqs = [s.head(6) for s in find_sequences(root / "otb" / "Crossing")]
-    seqs += [s.head(6) for s in find_sequences(root / "bobot_pedestrian")]
-    a = evaluate(seqs, ["camshift"], tmp_path / "serial", progress=False)
-    b = evaluate(seqs, ["camshift"], tmp_path / "par", jobs=2, progress=False)
-    for name in ("Crossing", "bobot_pedestrian"):
-        ra, rb = a["per_sequence"][name]["camshift"], b["per_sequence"][name]["camshift"]
-        for k in ("auc", "mean_iou", "precision_20", "track_ratio"):
-            assert ra[k] == rb[k]
-
-
 def test_source_ending_early_counts_missing_frames(seq, test_trackers):
     """A video shorter than its ground truth (header lied): the missing frames are bad frames."""
     short = seq.head(6)
@@ -120,3 +107,29 @@ def test_source_ending_early_counts_missing_frames(seq, test_trackers):
     res = run_sequence("test-static", short)
     assert res.error is None and res.bad_frames == [4, 5]
     assert torch.equal(res.boxes[5], res.boxes[3]) and not res.visible[4:].any()
+
+
+def test_parallel_jobs_and_a_crashing_worker(tmp_path):
+    """Spawned workers give the same results as a serial run; a worker process dying
+    mid-sequence breaks the pool, and the harness reruns the other pairs and records the crash
+    against the culprit only. (Spawned workers rebuild the registry: test trackers come from
+    an importable module.)"""
+    make_sequence(tmp_path / "seqs" / "a", n=4)
+    seqs = find_sequences(tmp_path / "seqs")
+    summary = evaluate(
+        seqs,
+        ["camshift", "test-crash"],
+        tmp_path / "out",
+        jobs=2,
+        progress=False,
+        modules=["eval.crash_tracker"],
+    )
+    par = summary["per_sequence"]["a"]["camshift"]
+    assert par["error"] is None
+    serial = run_sequence("camshift", seqs[0]).metrics(seqs[0].boxes).to_dict()
+    for k in ("auc", "mean_iou", "precision_20", "track_ratio"):
+        assert par[k] == serial[k]
+    assert "crashed" in summary["per_sequence"]["a"]["test-crash"]["error"]
+    assert summary["overall"]["test-crash"]["n_failed"] == 1
+    with pytest.raises(ConfigError, match="cannot import tracker module"):
+        evaluate(seqs, ["camshift"], tmp_path / "o", modules=["no_such_module_xyz"])

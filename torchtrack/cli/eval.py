@@ -64,6 +64,15 @@ def register(subparsers) -> None:
         help="ground truth with more/fewer rows than frames: fail (default) or keep the common "
         "prefix",
     )
+    p.add_argument(
+        "--import",
+        dest="modules",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="import a Python module that registers your own trackers (register_tracker); "
+        "repeatable; also imported by --jobs workers",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
@@ -71,9 +80,16 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import importlib
+
     from torchtrack.errors import ConfigError
     from torchtrack.track.base import available_trackers, tracker_info, tracker_names
 
+    for mod in args.modules:
+        try:
+            importlib.import_module(mod)
+        except ImportError as exc:
+            raise ConfigError(f"cannot import tracker module {mod!r}: {exc}") from exc
     if args.list_trackers:
         avail = set(available_trackers())
         for n in tracker_names():
@@ -108,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=not args.no_progress,
         command=command,
+        modules=args.modules,
     )
     print(overall_table(summary))
     print(f"results: {args.out}/results.json, {args.out}/results.md")
@@ -138,6 +155,8 @@ def _command_line(args: argparse.Namespace) -> str:
         parts += ["--max-frames", str(args.max_frames)]
     if args.on_mismatch != "error":
         parts += ["--on-mismatch", args.on_mismatch]
+    for m in args.modules:
+        parts += ["--import", m]
     if args.seed:
         parts += ["--seed", str(args.seed)]
     return " ".join(shlex.quote(str(p)) for p in parts)

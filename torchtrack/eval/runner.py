@@ -30,12 +30,14 @@ Protocol
 * Trackers that take a ``generator`` argument get ``torch.Generator().manual_seed(seed)``, fresh
   for every sequence, so runs are reproducible and independent of ``jobs``.
 * With ``jobs > 1`` sequences run in spawned processes, each limited to one torch / OpenCV
-  thread (so timings are per core).
+  thread (so timings are per core). A worker that crashes (a segfault in native code) is
+  recorded as a failure of its (tracker, sequence) pair only; the other pairs are rerun.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import importlib
 import json
 import math
 import multiprocessing as mp
@@ -44,6 +46,7 @@ import re
 import time
 import traceback
 from collections.abc import Callable
+from collections.abc import Sequence as Sequence_
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -232,7 +235,7 @@ def run_sequence(
 # ---------------------------------------------------------------------------------------------
 # The whole evaluation
 # ---------------------------------------------------------------------------------------------
-def _worker_init() -> None:
+def _worker_init(modules: tuple[str, ...] = ()) -> None:
     torch.set_num_threads(1)
     try:
         import cv2
@@ -240,6 +243,8 @@ def _worker_init() -> None:
         cv2.setNumThreads(1)
     except Exception:  # pragma: no cover - cv2 is a dependency
         pass
+    for m in modules:
+        importlib.import_module(m)
 
 
 def _task(spec: str, seq: Sequence, reinit: bool, seed: int, invisible: str, color: str) -> dict:
@@ -273,6 +278,7 @@ def evaluate(
     color: str = "rgb",
     progress: bool = True,
     command: str | None = None,
+    modules: Sequence_[str] = (),
 ) -> dict:
     """Run every tracker on every sequence and write the results (module doc).
 
@@ -287,6 +293,8 @@ def evaluate(
         seed, color: see :func:`run_sequence`.
         progress: show a tqdm bar over frames.
         command: the command line to record in the outputs.
+        modules: Python modules to import first, here and in every worker process (modules
+            that register their own trackers with ``register_tracker``).
 
     Returns:
         The dict written to ``results.json``.
@@ -304,6 +312,11 @@ def evaluate(
         raise ConfigError("no sequence to evaluate")
     if invisible not in ("box", "miss"):
         raise ConfigError(f"invisible must be 'box' or 'miss', got {invisible!r}")
+    for mod in modules:
+        try:
+            importlib.import_module(mod)
+        except ImportError as exc:
+            raise ConfigError(f"cannot import tracker module {mod!r}: {exc}") from exc
     validate_tracker_specs(trackers)
     seqs = _unique_names(sequences)
     out = Path(out_dir)
@@ -331,19 +344,14 @@ def evaluate(
                 rec = _task_record(res, s, m, invisible)
                 done(rec)
         else:
-            ctx = mp.get_context("spawn")
-            with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
-                futs = {
-                    pool.submit(_task, spec, s, m, seed, invisible, color): (spec, s, m)
-                    for spec, s, m in tasks
-                }
-                for f in as_completed(futs):
-                    spec, s, m = futs[f]
-                    try:
-                        rec = f.result()
-                    except Exception as exc:  # a worker died: record, go on
-                        rec = _failed_record(spec, s, m, exc)
-                    done(rec)
+            crashed = _run_pool(tasks, jobs, modules, (seed, invisible, color), done, bar)
+            # A worker that dies (e.g. a segfault inside OpenCV) breaks the whole pool and
+            # every unfinished task with it; rerun those one process each, so that only the
+            # culprit is recorded as crashed.
+            for task in crashed:
+                if _run_pool([task], 1, modules, (seed, invisible, color), done, bar):
+                    spec, s, m = task
+                    done(_failed_record(spec, s, m, RuntimeError(CRASH_MESSAGE)))
                     bar.update(len(s))
     finally:
         bar.close()
@@ -357,6 +365,37 @@ def evaluate(
         summary["plots"] = write_plots(summary, out)
         write_text_atomic(out / "results.json", json.dumps(summary, indent=1) + "\n")
     return summary
+
+
+CRASH_MESSAGE = "the tracker process crashed (killed or a segmentation fault in native code)"
+
+
+def _run_pool(tasks, jobs, modules, opts, done, bar) -> list:
+    """Run ``tasks`` in a spawned pool; return the tasks lost to a crashed worker."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    seed, invisible, color = opts
+    lost = []
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(
+        jobs, mp_context=ctx, initializer=_worker_init, initargs=(tuple(modules),)
+    ) as pool:
+        futs = {
+            pool.submit(_task, spec, s, m, seed, invisible, color): (spec, s, m)
+            for spec, s, m in tasks
+        }
+        for f in as_completed(futs):
+            spec, s, m = futs[f]
+            try:
+                rec = f.result()
+            except BrokenProcessPool:
+                lost.append((spec, s, m))
+                continue
+            except Exception as exc:  # anything else a worker raised: record, go on
+                rec = _failed_record(spec, s, m, exc)
+            done(rec)
+            bar.update(len(s))
+    return lost
 
 
 def _task_record(res: RunResult, seq: Sequence, reinit: bool, invisible: str) -> dict:
