@@ -285,3 +285,77 @@ def test_results_independent_of_thread_count():
     assert torch.equal(out[0].ancestors, out[1].ancestors)
     torch.testing.assert_close(out[0].states, out[1].states, rtol=1e-12, atol=1e-9)
     torch.testing.assert_close(out[0].estimate, out[1].estimate, rtol=1e-12, atol=1e-9)
+
+
+def test_seir_rows_with_different_iteration_counts_match_single_runs():
+    # Row 0: broad likelihood (no evolution needed); rows 1, 2: sharp (several rounds).
+    g0 = torch.Generator().manual_seed(3)
+    x0 = torch.randn(3, 300, 2, generator=g0, dtype=torch.float64) * 10.0
+    target = torch.tensor([[0.0, 0.0], [3.0, -2.0], [-5.0, 4.0]], dtype=torch.float64)
+    scale = torch.tensor([100.0, 0.3, 0.6], dtype=torch.float64)
+
+    def make_lik(rows):
+        def lik(s):
+            d2 = ((s - target[rows].unsqueeze(1)) ** 2).sum(-1)
+            return -0.5 * d2 / scale[rows].unsqueeze(1) ** 2
+
+        return lik
+
+    def motion(s, generator=None):
+        if generator is None or isinstance(generator, torch.Generator):
+            return s + torch.randn(s.shape, generator=generator, dtype=s.dtype)
+        return s + torch.stack(
+            [torch.randn(s.shape[1:], generator=g, dtype=s.dtype) for g in generator]
+        )
+
+    def run(rows, gens):
+        x, lw = x0[rows], uniform_log_weights(x0[rows])
+        out = []
+        for _ in range(2):
+            r = seir_step(
+                x,
+                lw,
+                motion,
+                make_lik(rows),
+                ess_target=0.6,
+                max_iter=6,
+                mutation_std=0.3,
+                generator=gens,
+            )
+            x, lw = r.states, r.log_weights
+            out.append(r)
+        return out
+
+    batch = run(slice(0, 3), [torch.Generator().manual_seed(20 + b) for b in range(3)])
+    assert len(set(batch[0].iterations.tolist())) > 1, batch[0].iterations
+    for b in range(3):
+        single = run(slice(b, b + 1), [torch.Generator().manual_seed(20 + b)])
+        for rb, rs in zip(batch, single, strict=True):
+            assert torch.equal(rb.iterations[b : b + 1], rs.iterations)
+            torch.testing.assert_close(rb.states[b : b + 1], rs.states, rtol=1e-12, atol=1e-9)
+            assert torch.equal(rb.ancestors[b : b + 1], rs.ancestors)
+
+
+def test_seir_ancestors_follow_copies_and_mutations():
+    n = 200
+    x0 = torch.arange(n, dtype=torch.float64).view(1, n, 1).repeat(2, 1, 1)  # distinct integers
+
+    def lik(s):
+        return -0.5 * (s[..., 0] - 120.0) ** 2 / 4.0
+
+    r = seir_step(
+        x0,
+        uniform_log_weights(x0),
+        lambda s, g: s,  # identity motion: predicted particle j is input particle ancestors[j]
+        lik,
+        ess_target=0.9,
+        max_iter=4,
+        mutation_std=0.0,  # a mutation child equals its parent
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert (r.iterations >= 1).all()
+    assert r.ancestors.min() >= 0 and r.ancestors.max() < n
+    vals = r.states[..., 0]
+    exact = vals == vals.round()  # copies and mutations (crossovers are almost never integers)
+    assert exact.sum() > 0
+    torch.testing.assert_close(vals[exact], x0[..., 0].gather(1, r.ancestors)[exact])

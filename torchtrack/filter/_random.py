@@ -15,12 +15,14 @@ import torch
 
 from torchtrack.errors import ConfigError
 
-__all__ = ["GeneratorLike", "rand", "randn"]
+__all__ = ["GeneratorLike", "rand", "randn", "subset"]
 
 GeneratorLike = torch.Generator | Sequence[torch.Generator] | None
 
 
-def _draw(fn, shape: tuple[int, ...], generator: GeneratorLike, dtype, device) -> torch.Tensor:
+def _draw(
+    fn, shape: tuple[int, ...], generator: GeneratorLike, dtype, device, active=None
+) -> torch.Tensor:
     if generator is None or isinstance(generator, torch.Generator):
         return fn(shape, generator=generator, dtype=dtype, device=device)
     gens = list(generator)
@@ -31,19 +33,49 @@ def _draw(fn, shape: tuple[int, ...], generator: GeneratorLike, dtype, device) -
         )
     if not gens:
         return torch.empty(shape, dtype=dtype, device=device)
-    # One call per batch row (a loop over targets, not over particles).
-    return torch.stack([fn(shape[1:], generator=g, dtype=dtype, device=device) for g in gens])
+    # One call per batch row (a loop over targets, not over particles). Inactive rows draw
+    # nothing (zeros), so their streams advance exactly as in a single run of that row.
+    flags = [True] * len(gens) if active is None else [bool(v) for v in active.tolist()]
+    return torch.stack(
+        [
+            fn(shape[1:], generator=g, dtype=dtype, device=device)
+            if on
+            else torch.zeros(shape[1:], dtype=dtype, device=device)
+            for g, on in zip(gens, flags, strict=True)
+        ]
+    )
 
 
 def rand(
-    shape: tuple[int, ...], generator: GeneratorLike, dtype: torch.dtype, device: torch.device
+    shape: tuple[int, ...],
+    generator: GeneratorLike,
+    dtype: torch.dtype,
+    device: torch.device,
+    active: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Uniform [0, 1) draws of ``shape = (B, ...)``; row b comes from ``generator[b]`` if a list."""
-    return _draw(torch.rand, tuple(shape), generator, dtype, device)
+    """Uniform [0, 1) draws of ``shape = (B, ...)``; row b comes from ``generator[b]`` if a list.
+
+    ``active (B,)`` bool: with a list of generators, inactive rows get zeros and consume
+    nothing from their generator (ignored for a single generator).
+    """
+    return _draw(torch.rand, tuple(shape), generator, dtype, device, active)
 
 
 def randn(
-    shape: tuple[int, ...], generator: GeneratorLike, dtype: torch.dtype, device: torch.device
+    shape: tuple[int, ...],
+    generator: GeneratorLike,
+    dtype: torch.dtype,
+    device: torch.device,
+    active: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Standard normal draws of ``shape = (B, ...)``; row b from ``generator[b]`` if a list."""
-    return _draw(torch.randn, tuple(shape), generator, dtype, device)
+    """Standard normal draws of ``shape = (B, ...)``; row b from ``generator[b]`` if a list
+    (see ``rand`` for ``active``)."""
+    return _draw(torch.randn, tuple(shape), generator, dtype, device, active)
+
+
+def subset(generator: GeneratorLike, rows: list[int]) -> GeneratorLike:
+    """The generators of batch ``rows`` (a list stays a list; a single generator is shared)."""
+    if generator is None or isinstance(generator, torch.Generator):
+        return generator
+    gens = list(generator)
+    return [gens[r] for r in rows]

@@ -14,6 +14,11 @@ than ``max_iter`` rounds ran), each batch row evolves its particle set:
 
 The likelihood is re-evaluated on the new particles (2N calls' worth per round: COPY reuses
 its values). Rows that reach the ESS target stop evolving while others continue.
+
+``StepResult.ancestors`` follows the particles through the rounds: a COPY or MUTATION child
+keeps its parent's ancestor, a CROSSOVER child the ancestor of the parent it lies closer to
+(``mu >= 0.5``: X_i, else X_j), so per-particle data (Klein et al.'s per-particle observation
+models) can still be carried along.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from __future__ import annotations
 import torch
 
 from torchtrack.errors import ConfigError
-from torchtrack.filter._random import GeneratorLike, rand, randn
+from torchtrack.filter._random import GeneratorLike, rand, randn, subset
 from torchtrack.filter.particles import check_particles, ess_normalized, normalize_log_weights
 from torchtrack.filter.resample import _cdf, _invert, get_resampler, resample
 from torchtrack.filter.sir import (
@@ -37,11 +42,13 @@ from torchtrack.filter.sir import (
 __all__ = ["seir_step"]
 
 
-def _iid_draws(weights: torch.Tensor, generator: GeneratorLike) -> torch.Tensor:
+def _iid_draws(
+    weights: torch.Tensor, generator: GeneratorLike, active: torch.Tensor
+) -> torch.Tensor:
     """N unsorted i.i.d. indices per row from ``weights (B, N)`` (rows with no mass: uniform)."""
     has = weights.sum(1, keepdim=True) > 0
     w = torch.where(has, weights, torch.ones_like(weights))
-    u = rand(tuple(weights.shape), generator, torch.float64, weights.device)
+    u = rand(tuple(weights.shape), generator, torch.float64, weights.device, active)
     return _invert(_cdf(w), u)
 
 
@@ -106,23 +113,34 @@ def seir_step(
     active = (e < ess_target * n) & ~recovered
     iterations = torch.zeros(b, dtype=torch.long, device=states.device)
 
-    # Step 3: evolutionary importance resampling.
+    # Step 3: evolutionary importance resampling. Only active rows draw random numbers (with
+    # one generator per row, a row's stream then does not depend on the other rows); the
+    # likelihood still sees all B rows, because it is tied to the batch layout.
+    anc = ancestors
     for _ in range(int(max_iter)):
-        if not bool(active.any()):
+        rows = torch.nonzero(active).flatten()
+        if rows.numel() == 0:
             break
         w = lw.exp()
-        i = _iid_draws(w, generator)  # CROSSOVER partners ~ w_i
-        j = _iid_draws((1.0 - w).clamp_min(0), generator)  # ~ 1 - w_j
-        mu = rand((b, n, 1), generator, states.dtype, states.device)
+        i = _iid_draws(w, generator, active)  # CROSSOVER partners ~ w_i
+        j = _iid_draws((1.0 - w).clamp_min(0), generator, active)  # ~ 1 - w_j
+        mu = rand((b, n, 1), generator, states.dtype, states.device, active)
         xi, xj = _gather_states(x, i), _gather_states(x, j)
         x_cross = xj + mu * (xi - xj)  # eq. (9)
-        x_mut = x + lam * randn((b, n, d), generator, states.dtype, states.device)  # eq. (10)
+        noise = randn((b, n, d), generator, states.dtype, states.device, active)
+        x_mut = x + lam * noise  # eq. (10)
         new = torch.cat([x_cross, x_mut], 1)
         ll_new = evaluate_log_likelihood(likelihood, new, log_likelihood, "seir_step")
         pool = torch.cat([x, new], 1)  # COPY + CROSSOVER + MUTATION: (B, 3N, D)
         pool_ll = torch.cat([ll, ll_new], 1)
-        pool_lw, _ = normalize_log_weights(pool_ll, step="seir_step")
-        pick = select(pool_lw.exp(), generator, n)  # SELECTION: N of the 3N
+        # Ancestry: a crossover child descends from the parent it lies closer to.
+        cross_anc = torch.where(
+            mu.squeeze(2) >= 0.5, torch.gather(anc, 1, i), torch.gather(anc, 1, j)
+        )
+        pool_anc = torch.cat([anc, cross_anc, anc], 1)
+        pool_lw, _ = normalize_log_weights(pool_ll[rows], step="seir_step")
+        pick = torch.zeros(b, n, dtype=torch.long, device=states.device)
+        pick[rows] = select(pool_lw.exp(), subset(generator, rows.tolist()), n)  # SELECTION
         x_sel = _gather_states(pool, pick)
         ll_sel = torch.gather(pool_ll, 1, pick)
         lw_sel, _ = normalize_log_weights(ll_sel, step="seir_step")
@@ -130,6 +148,7 @@ def seir_step(
         x = torch.where(a.unsqueeze(2), x_sel, x)
         ll = torch.where(a, ll_sel, ll)
         lw = torch.where(a, lw_sel, lw)
+        anc = torch.where(a, torch.gather(pool_anc, 1, pick), anc)
         iterations += active.long()
         e = ess_normalized(lw)
         active = active & (e < ess_target * n)
@@ -139,7 +158,7 @@ def seir_step(
         log_weights=lw,
         estimate=_estimate(estimator, est_fn, x, lw),
         ess=e,
-        ancestors=ancestors,
+        ancestors=anc,
         resampled=resampled,
         recovered=recovered,
         log_evidence=log_evidence,
