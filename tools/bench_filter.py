@@ -7,9 +7,11 @@ Usage:
     python tools/bench_filter.py --sir-one B N   # one SIR config in this process; prints JSON
                                                  # with median ms and peak RSS (used internally)
 
-Resampling: each repetition runs every implementation once in turn (round-robin), so load
-changes on a shared machine hit all of them alike; medians over repetitions. torchtrack runs at
-1 and at 2 intra-op threads; filterpy and `particles` (numba) are single-threaded.
+Resampling: each repetition runs torchtrack (1 intra-op thread), `particles` (numba) and
+filterpy once in turn (round-robin), so load changes on a shared machine hit all of them alike;
+medians over repetitions. torchtrack with 2 threads is timed in a separate pass afterwards
+(idle OpenMP workers spin after a parallel region and would slow the next implementation).
+filterpy and `particles` are single-threaded.
 
 SIR step: B independent targets in one 320x240 BoBoT frame (integral image from
 torchtrack.features.integral), N particles each, Klein AR motion, systematic resampling,
@@ -73,7 +75,6 @@ def bench_resampling(ns: list[int], reps_for) -> list[dict]:
 
             impls = {
                 "torchtrack_1t": t1,
-                "torchtrack_2t": t2,
                 "particles": lambda peer_p=peer_p, w=w, n=n: peer_p(w, n),
                 "filterpy": lambda peer_f=peer_f, w=w: peer_f(w),
             }
@@ -88,6 +89,15 @@ def bench_resampling(ns: list[int], reps_for) -> list[dict]:
                     t = time.perf_counter()
                     f()
                     times[k].append(time.perf_counter() - t)
+            # 2 threads in a separate pass: idle OpenMP workers spin for a while after a
+            # parallel region and would slow whatever runs next in a round-robin.
+            times["torchtrack_2t"] = []
+            t2()  # warm-up
+            for _ in range(reps):
+                t = time.perf_counter()
+                t2()
+                times["torchtrack_2t"].append(time.perf_counter() - t)
+            torch.set_num_threads(1)
             med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
             rows.append({"n": n, "scheme": scheme, **med, "reps": reps, "reps_fp": reps_filterpy})
             print(

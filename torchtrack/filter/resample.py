@@ -156,8 +156,11 @@ def systematic(
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
     u = rand((b, 1), generator, torch.float64, weights.device)
-    cum = _cdf(weights, n).sub_(u).ceil_().clamp_(0, n).long()
-    return _ancestors_from_cumcounts(cum, n)
+    c = weights.to(torch.float64).cumsum(1)
+    # c <- M c / c_last - U in one fused pass; 0 <= c / c_last <= 1 exactly (monotone cumsum of
+    # non-negative weights), so ceil lies in [0, M] without a clamp.
+    torch.addcmul(-u, c, n / c[:, -1:], out=c)
+    return _ancestors_from_cumcounts(c.ceil_().long(), n)
 
 
 def residual(
