@@ -360,6 +360,33 @@ def report(res_rows, sir_rows, cmd: str, load_before: str) -> str:
             f"| {r['likelihood_ms']:.2f} | {r['filter_only_ms']:.2f} | {r['peak_rss_mib']:.0f} "
             f"| {r['rss_before_mib']:.0f} | {per:.0f} |"
         )
+    lines += ["", "## Goals (computed from the tables above)", ""]
+    for r in res_rows:
+        if r["n"] != 10**5:
+            continue
+        vs_fp = r["filterpy"] / r["torchtrack_1t"]
+        vs_p = r["torchtrack_1t"] / r["particles"]
+        lines.append(
+            f"- N = 10^5, {r['scheme']}: {vs_fp:.1f}x faster than filterpy (goal >= 10x: "
+            f"{'met' if vs_fp >= 10 else 'missed'}); {vs_p:.2f}x the time of `particles` "
+            f"(goal <= 1.5x: {'met' if vs_p <= 1.5 else 'missed'})"
+        )
+    for r in sir_rows:
+        if (r["B"], r["N"]) == (100, 1000):
+            lines.append(
+                f"- SIR step (B, N) = (100, 1000), {r['threads']} thread(s): "
+                f"{r['step_ms']:.1f} ms median (goal < 10 ms: "
+                f"{'met' if r['step_ms'] < 10 else 'missed'}); the filter alone: "
+                f"{r['filter_only_ms']:.1f} ms"
+            )
+    big = [r for r in sir_rows if r["B"] * r["N"] == 10**6]
+    if big:
+        per = ", ".join(
+            f"(B, N) = ({r['B']}, {r['N']:,}): "
+            f"{(r['peak_rss_mib'] - r['rss_before_mib']) * 2**20 / 10**6:.0f} B"
+            for r in big
+        )
+        lines.append(f"- Memory at B * N = 10^6, growth per particle: {per}")
     return "\n".join(lines) + "\n"
 
 
