@@ -88,6 +88,9 @@ def test_registry_names_valid_choices():
         resample(torch.zeros(1, 3), ess_fraction=1.5)
     with pytest.raises(ShapeError, match=r"weights must be a \(B, N\) tensor"):
         get_resampler("systematic")(torch.ones(3))
+    for scheme in SCHEMES:
+        with pytest.raises(FilterError, match="positive finite sum in every row"):
+            get_resampler(scheme)(torch.zeros(2, 5))
     with pytest.raises(FilterError, match="resample: log-weights contain NaN"):
         resample(torch.tensor([[0.0, float("nan")]]))
 

@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import torch
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, FilterError, ShapeError
 from torchtrack.filter._random import GeneratorLike, rand
 from torchtrack.filter.particles import ess, normalize_log_weights
 
@@ -38,11 +38,22 @@ __all__ = [
 Resampler = Callable[..., torch.Tensor]
 
 
+def _totals(c: torch.Tensor) -> torch.Tensor:
+    """Row totals ``(B, 1)`` of a cumulative sum; FilterError unless positive and finite."""
+    last = c[:, -1:].clone()
+    if not bool(((last > 0) & torch.isfinite(last)).all()):
+        raise FilterError(
+            "resampling weights must be non-negative with a positive finite sum in every row "
+            "(use resample() with log-weights to get all-zero rows restarted uniform)"
+        )
+    return last
+
+
 def _cdf(weights: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
     """``(B, N)`` float64 CDF times ``scale``, the last entry exactly ``scale``."""
     c = weights.to(torch.float64).cumsum(1)
     # In place: fresh large allocations cost page faults on CPU, a visible share of the time.
-    return c.mul_(scale / c[:, -1:].clone())
+    return c.mul_(scale / _totals(c))
 
 
 def _invert(cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -159,7 +170,7 @@ def systematic(
     c = weights.to(torch.float64).cumsum(1)
     # c <- M c / c_last - U in one fused pass; 0 <= c / c_last <= 1 exactly (monotone cumsum of
     # non-negative weights), so ceil lies in [0, M] without a clamp.
-    torch.addcmul(-u, c, n / c[:, -1:], out=c)
+    torch.addcmul(-u, c, n / _totals(c), out=c)
     return _ancestors_from_cumcounts(c.ceil_().long(), n)
 
 
@@ -172,7 +183,7 @@ def residual(
     b, n_in = weights.shape
     n = n_in if n_out is None else int(n_out)
     nw = weights.to(torch.float64, copy=True)
-    nw.mul_(n / nw.sum(1, keepdim=True))
+    nw.mul_(n / _totals(nw.sum(1, keepdim=True)))
     floor = nw.floor()
     rest = nw.sub_(floor)  # residual weights M w - floor(M w), in place
     floor = floor.long()
