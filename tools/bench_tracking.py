@@ -67,7 +67,9 @@ def speed_table(summary: dict, ref: str = "mil") -> str:
     return "\n".join(rows)
 
 
-def render(summary: dict, data_name: str, jobs: int | None, wall: float | None) -> str:
+def render(
+    summary: dict, data_name: str, jobs: int | None, wall: float | None, stem: str = "tracking"
+) -> str:
     """The benchmark page from a ``results.json`` summary."""
     seqs = summary["sequences"]
     trackers = summary["trackers"]
@@ -111,7 +113,7 @@ def render(summary: dict, data_name: str, jobs: int | None, wall: float | None) 
         "",
         overall_table(summary),
         "",
-        "![success](tracking_success.png) ![precision](tracking_precision.png)",
+        f"![success]({stem}_success.png) ![precision]({stem}_precision.png)",
         "",
         "## Speed",
         "",
@@ -151,7 +153,7 @@ def write_doc(text: str, out: Path, doc: Path) -> None:
     for kind in ("success", "precision"):
         src = out / f"{kind}.png"
         if src.is_file():
-            write_bytes_atomic(doc.parent / f"tracking_{kind}.png", src.read_bytes())
+            write_bytes_atomic(doc.parent / f"{doc.stem}_{kind}.png", src.read_bytes())
     write_text_atomic(doc, text + "\n")
 
 
@@ -173,7 +175,9 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.render_only:
         summary = json.loads((args.out / "results.json").read_text())
-        text = render(summary, args.data.name, summary.get("jobs"), summary.get("wall_seconds"))
+        text = render(
+            summary, args.data.name, summary.get("jobs"), summary.get("wall_seconds"), args.doc.stem
+        )
         write_doc(text, args.out, args.doc)
         print(text)
         return 0
@@ -197,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     summary["wall_seconds"] = wall
     summary["jobs"] = args.jobs
     write_text_atomic(args.out / "results.json", json.dumps(summary, indent=1) + "\n")
-    text = render(summary, args.data.name, args.jobs, wall)
+    text = render(summary, args.data.name, args.jobs, wall, args.doc.stem)
     write_doc(text, args.out, args.doc)
     print(text)
     return 0
