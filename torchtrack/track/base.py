@@ -51,7 +51,12 @@ __all__ = [
 ]
 
 #: Modules whose import registers trackers. Later tracker modules append themselves here.
-BUILTIN_TRACKER_MODULES: list[str] = ["torchtrack.track.opencv"]
+BUILTIN_TRACKER_MODULES: list[str] = [
+    "torchtrack.track.opencv",
+    "torchtrack.track.detector_pf",
+    "torchtrack.track.histogram",
+    "torchtrack.track.cotrain",
+]
 
 
 @dataclass
