@@ -33,7 +33,7 @@ from torchtrack.eval.report import (  # noqa: E402
     overall_table,
     per_sequence_table,
 )
-from torchtrack.eval.runner import evaluate  # noqa: E402
+from torchtrack.eval.runner import evaluate, summarise  # noqa: E402
 from torchtrack.io.atomic import write_bytes_atomic, write_text_atomic  # noqa: E402
 from torchtrack.io.sequences import find_sequences  # noqa: E402
 from torchtrack.track.base import available_trackers  # noqa: E402
@@ -171,7 +171,32 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="rewrite the page from OUT/results.json without running anything",
     )
+    ap.add_argument(
+        "--from-records",
+        action="store_true",
+        help="rebuild results.json from the per-run records OUT/sequences*/*/*.json (e.g. of "
+        "an interrupted run: missing pairs are listed) and rewrite the page",
+    )
     args = ap.parse_args(argv)
+
+    if args.from_records:
+        seqs = find_sequences(args.data)
+        records = [json.loads(p.read_text()) for p in sorted(args.out.glob("sequences*/*/*.json"))]
+        trackers = args.trackers or sorted({r["tracker"] for r in records})
+        names = {s.name for s in seqs}
+        records = [r for r in records if r["sequence"] in names and r["tracker"] in trackers]
+        done = {(r["sequence"], r["tracker"]) for r in records if r["mode"] == "ope"}
+        missing = [f"{t} on {s.name}" for s in seqs for t in trackers if (s.name, t) not in done]
+        cmd = "python tools/bench_tracking.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        summary = summarise(records, seqs, trackers, command=cmd.strip())
+        summary["missing_runs"] = missing
+        write_text_atomic(args.out / "results.json", json.dumps(summary, indent=1) + "\n")
+        text = render(summary, args.data.name, None, None, args.doc.stem)
+        if missing:
+            text += "\n## Runs missing from this page\n\n" + "\n".join(f"- {m}" for m in missing)
+        write_doc(text, args.out, args.doc)
+        print(text)
+        return 0
 
     if args.render_only:
         summary = json.loads((args.out / "results.json").read_text())
