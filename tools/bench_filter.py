@@ -409,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         ns = [10**3, 10**4, 10**5, 10**6]
         res = bench_resampling(
-            ns, lambda n: {10**3: (51, 21), 10**4: (31, 11), 10**5: (21, 5), 10**6: (9, 3)}[n]
+            ns, lambda n: {10**3: (51, 21), 10**4: (31, 11), 10**5: (41, 5), 10**6: (9, 3)}[n]
         )
         small = [(1, 2000), (10, 1000), (100, 1000)]
         runs = [(b, n, t, 15) for t in (1, 2) for b, n in small]
