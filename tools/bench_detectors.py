@@ -35,10 +35,10 @@ import torch
 
 from torchtrack.detect import Detector
 from torchtrack.detect.config import load_train_config, read_name_list
-from torchtrack.detect.evaluate import crop_scores, detection_rate_at_fpr, roc_auc
+from torchtrack.detect.evaluate import detection_rate_at_fpr, roc_auc
 from torchtrack.detect.training import load_training_data, mine_hard_negatives
-from torchtrack.features.haar import haar_bank, haar_features_dense
-from torchtrack.io.atomic import write_text_atomic
+from torchtrack.features.haar import haar_bank, haar_features_at, haar_features_dense, integrals
+from torchtrack.io.atomic import atomic_path, write_text_atomic
 from torchtrack.io.crops import (
     CropSet,
     crops_from_boxes,
@@ -120,7 +120,8 @@ def test_set(name: str, cfg, data_root: Path) -> tuple[torch.Tensor, torch.Tenso
     return pos.images, neg.images, what
 
 
-def run_class(name: str, feature_counts: list[int], data_root: Path, log) -> list[dict]:
+def prepare(name: str, t_max: int, data_root: Path, log) -> dict:
+    """Training features of the ``t_max`` selected columns and test features, computed once."""
     cfg = load_train_config(REPO / "configs" / f"{name}.toml")
     gen = torch.Generator().manual_seed(cfg.seed)
     window = tuple(cfg.window)
@@ -128,7 +129,6 @@ def run_class(name: str, feature_counts: list[int], data_root: Path, log) -> lis
     data = load_training_data(cfg, generator=gen)
     pos, neg = data.positives.images, data.negatives.images
     log(f"[{name}] train: {pos.shape[0]} pos, {neg.shape[0]} neg; bank {len(bank)} features")
-    t_max = max(feature_counts)
     x = haar_features_dense(torch.cat((pos, neg)), bank)
     y = torch.cat((torch.ones(pos.shape[0]), torch.zeros(neg.shape[0]))).long()
     for r in range(cfg.mining.rounds + 1):
@@ -151,22 +151,65 @@ def run_class(name: str, feature_counts: list[int], data_root: Path, log) -> lis
         x = torch.cat((x, haar_features_dense(hard.images, bank)))
         y = torch.cat((y, torch.zeros(len(hard), dtype=torch.long)))
         log(f"[{name}] mined {len(hard)} hard negatives")
+    xsel = x[:, idx].contiguous()
+    del x
     tpos, tneg, what = test_set(name, cfg, data_root)
-    labels = torch.cat((torch.ones(tpos.shape[0]), torch.zeros(tneg.shape[0])))
+    tcrops = torch.cat((tpos, tneg))
+    full = torch.tensor([0.0, 0.0, float(window[1]), float(window[0])]).expand(
+        tcrops.shape[0], 1, 4
+    )
+    tsel = haar_features_at(integrals(tcrops), full, bank, idx)[:, 0]
+    labels = torch.cat((torch.ones(tpos.shape[0]), torch.zeros(tneg.shape[0]))).long()
+    return {"idx": idx, "x": xsel, "y": y, "tx": tsel, "ty": labels, "what": what}
+
+
+def load_or_prepare(name: str, t_max: int, data_root: Path, cache: Path | None, log) -> dict:
+    """With ``--cache DIR`` the prepared tensors are kept in DIR/<class>.safetensors (no pickle)."""
+    from safetensors.torch import load_file, save_file
+
+    f = None if cache is None else cache / f"{name}.safetensors"
+    if f is not None and f.exists():
+        from safetensors import safe_open
+
+        with safe_open(str(f), "pt") as h:
+            meta = h.metadata()
+        if int(meta["t_max"]) >= t_max:
+            log(f"[{name}] using cached features {f}")
+            d = dict(load_file(str(f)))
+            d["what"] = meta["what"]
+            return d
+    d = prepare(name, t_max, data_root, log)
+    if f is not None:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(f) as tmp:
+            tensors = {k: v.contiguous() for k, v in d.items() if k != "what"}
+            save_file(tensors, str(tmp), metadata={"t_max": str(t_max), "what": d["what"]})
+    return d
+
+
+def run_class(
+    name: str, feature_counts: list[int], data_root: Path, cache: Path | None, extra_rounds, log
+) -> list[dict]:
+    d = load_or_prepare(name, max(feature_counts), data_root, cache, log)
+    x, y, tx, ty = d["x"], d["y"], d["tx"], d["ty"]
+    n_pos, n_neg = int(ty.sum()), int((ty == 0).sum())
     rows = []
     for t in feature_counts:
-        sel = idx[:t]
-        xs = x[:, sel].contiguous()
-        for kind in ("AdaBoost", "SVM"):
-            t0 = time.perf_counter()
-            clf = (
-                BoostedStumps(n_estimators=t) if kind == "AdaBoost" else SVMClassifier(kernel="rbf")
+        models = [("AdaBoost", lambda t=t: BoostedStumps(n_estimators=t))]
+        models += [
+            (
+                f"Gentle AdaBoost, {r} rounds",
+                lambda r=r: BoostedStumps(n_estimators=r, variant="gentle"),
             )
-            clf.fit(xs, y)
+            for r in extra_rounds
+        ]
+        models.append(("SVM", lambda: SVMClassifier(kernel="rbf")))
+        for kind, make in models:
+            t0 = time.perf_counter()
+            clf = make().fit(x[:, :t], y)
             fit_s = time.perf_counter() - t0
-            det = Detector(bank, sel, clf)
-            s = torch.cat((crop_scores(det, tpos), crop_scores(det, tneg)))
-            dr, fpr, _ = detection_rate_at_fpr(s, labels, 0.01)
+            s = clf.decision_function(tx[:, :t])
+            dr, fpr, _ = detection_rate_at_fpr(s, ty, 0.01)
             rows.append(
                 {
                     "class": name,
@@ -174,12 +217,12 @@ def run_class(name: str, feature_counts: list[int], data_root: Path, log) -> lis
                     "T": t,
                     "dr": dr,
                     "fpr": fpr,
-                    "auc": roc_auc(s, labels),
-                    "n_pos": tpos.shape[0],
-                    "n_neg": tneg.shape[0],
+                    "auc": roc_auc(s, ty),
+                    "n_pos": n_pos,
+                    "n_neg": n_neg,
                     "n_train": int(y.numel()),
                     "fit_s": fit_s,
-                    "test": what,
+                    "test": d["what"],
                 }
             )
             log(f"[{name}] {kind} T={t}: DR {dr:.3f} at FPR {fpr:.4f}, AUC {rows[-1]['auc']:.4f}")
@@ -196,6 +239,16 @@ def main() -> None:
     ap.add_argument("--features", nargs="+", type=int, default=[30, 40, 80])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks" / "detectors.md")
+    ap.add_argument(
+        "--cache", type=Path, help="keep the prepared features here (DIR/<class>.safetensors)"
+    )
+    ap.add_argument(
+        "--extra-rounds",
+        nargs="*",
+        type=int,
+        default=[],
+        help="also train Gentle AdaBoost with this many rounds on the T features",
+    )
     args = ap.parse_args()
     torch.set_num_threads(max(1, torch.get_num_threads()))
 
@@ -204,7 +257,7 @@ def main() -> None:
 
     rows = []
     for c in args.classes:
-        rows += run_class(c, sorted(args.features), args.data, log)
+        rows += run_class(c, sorted(args.features), args.data, args.cache, args.extra_rounds, log)
     cmd = "python tools/bench_detectors.py " + " ".join(sys.argv[1:])
     lines = [
         "# Detectors: paper Table 1 on our data",
