@@ -49,8 +49,8 @@ class DetectorTrackerConfig:
         dynamics: TOML file of the AR dynamics ``A, B, Sigma`` (eq. 4) as written by
             ``tools/fit_dynamics.py``; empty: the fitted ``dynamics_chateau.toml`` shipped
             with torchtrack.
-        visible_threshold: the target is reported visible while the best particle's calibrated
-            probability is at least this.
+        visible_threshold: the target is reported visible while the mean calibrated
+            probability of the particles (the evidence) is at least this.
         context: height of the detector window over the height of the tracked object box
             (e.g. about 1.33 for INRIA-style pedestrian windows that keep a margin around the
             person). ``0``: chosen on the first frame, among ``context_candidates``, as the
@@ -72,7 +72,7 @@ class DetectorTrackerConfig:
     model: str = "pedestrian"
     n_particles: int = 200
     dynamics: str = ""
-    visible_threshold: float = 0.3
+    visible_threshold: float = 0.25
     context: float = 0.0
     context_candidates: list[float] = field(
         default_factory=lambda: [1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6]

@@ -1,0 +1,95 @@
+"""DetectorObservation: calibrated detector probabilities of particle windows."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchtrack.detect.detector import Detector
+from torchtrack.errors import NotFittedError, ShapeError
+from torchtrack.features.haar import haar_bank
+from torchtrack.io.video import read_image
+from torchtrack.learn import BoostedStumps, PlattCalibrator
+from torchtrack.observe.detector import DetectorObservation, scorable_boxes
+
+
+def tiny_detector(seed: int = 0) -> Detector:
+    """A small fitted detector (32 x 16 window, 6 features): enough for arithmetic checks."""
+    g = torch.Generator().manual_seed(seed)
+    bank = haar_bank((32, 16), n_scales=2, stride=4)
+    index = torch.randperm(len(bank), generator=g)[:6]
+    x = torch.randn(300, 6, generator=g)
+    y = (x[:, 0] + 0.5 * x[:, 1] + 0.3 * torch.randn(300, generator=g) > 0).long()
+    clf = BoostedStumps(n_estimators=8).fit(x, y)
+    cal = PlattCalibrator().fit(clf.decision_function(x), y)
+    return Detector(bank, index, clf, cal, name="tiny")
+
+
+@pytest.fixture(scope="module")
+def frame(data_dir):
+    return read_image(data_dir / "tracking" / "otb" / "Crossing" / "img" / "0001.jpg")
+
+
+def random_boxes(n: int, frame_hw, seed: int = 1) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    h, w = frame_hw
+    wh = 8 + 60 * torch.rand(n, 2, generator=g, dtype=torch.float64)
+    xy = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([w - 8.0, h - 8.0])
+    return torch.cat([xy - wh / 3, wh], 1)  # some stick out of the frame on the left / top
+
+
+def test_probabilities_equal_detector_score_cropped_or_not(frame):
+    det = tiny_detector()
+    boxes = random_boxes(200, frame.shape[-2:])[None]
+    ref = det.score(frame[None].double(), boxes)  # full-frame integral image
+    for crop in (True, False):
+        p = DetectorObservation(det, crop=crop).probabilities(frame[None], boxes)
+        assert p.shape == (1, 200)
+        torch.testing.assert_close(p, ref.float(), atol=1e-5, rtol=0)
+
+
+def test_unscorable_windows_get_zero_and_do_not_disturb_others(frame):
+    det = tiny_detector()
+    h, w = frame.shape[-2:]
+    good = random_boxes(5, (h, w))
+    bad = torch.tensor(
+        [
+            [w + 10.0, 5.0, 20.0, 20.0],  # right of the frame
+            [-50.0, 5.0, 20.0, 20.0],  # left of the frame
+            [5.0, 5.0, 0.5, 20.0],  # under one pixel wide
+            [float("nan"), 5.0, 20.0, 20.0],
+        ],
+        dtype=torch.float64,
+    )
+    boxes = torch.cat([good, bad])[None]
+    obs = DetectorObservation(det)
+    p = obs.probabilities(frame[None], boxes)
+    assert scorable_boxes(boxes, (h, w)).tolist() == [[True] * 5 + [False] * 4]
+    assert p[0, 5:].tolist() == [0.0, 0.0, 0.0, 0.0]
+    torch.testing.assert_close(p[:, :5], obs.probabilities(frame[None], good[None]))
+    ll = obs.log_likelihood(frame[None], boxes)
+    assert torch.isfinite(ll).all() and float(ll[0, 5]) == pytest.approx(
+        torch.log(torch.tensor(1e-6)).item()
+    )
+
+
+def test_batch_of_frames_matches_single_frames(frame):
+    det = tiny_detector()
+    f2 = torch.flip(frame, dims=[-1])
+    b1 = random_boxes(30, frame.shape[-2:], seed=3)
+    b2 = random_boxes(30, frame.shape[-2:], seed=4)
+    obs = DetectorObservation(det)
+    both = obs.probabilities(torch.stack([frame, f2]), torch.stack([b1, b2]))
+    torch.testing.assert_close(both[0], obs.probabilities(frame[None], b1[None])[0])
+    torch.testing.assert_close(both[1], obs.probabilities(f2[None], b2[None])[0])
+
+
+def test_errors(frame):
+    det = tiny_detector()
+    with pytest.raises(NotFittedError, match="no calibration"):
+        DetectorObservation(det.with_calibrator(None))
+    obs = DetectorObservation(det)
+    with pytest.raises(ShapeError, match=r"\(B, N, 4\)"):
+        obs.probabilities(frame[None], torch.zeros(3, 4))
+    with pytest.raises(ShapeError, match="frame"):
+        obs.probabilities(frame[None], torch.zeros(2, 3, 4))

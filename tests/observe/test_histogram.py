@@ -1,0 +1,103 @@
+"""Colour histograms (Pérez et al.): HSV binning, sampled box histograms, Bhattacharyya."""
+
+from __future__ import annotations
+
+import colorsys
+
+import pytest
+import torch
+
+from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.io.video import read_image
+from torchtrack.observe.histogram import (
+    HSVBins,
+    bhattacharyya,
+    box_histograms,
+    hsv_bin_map,
+    region_histograms,
+)
+
+
+@pytest.fixture(scope="module")
+def frame(data_dir):
+    return read_image(data_dir / "tracking" / "bobot_pedestrian" / "frames" / "img0002.jpg")
+
+
+def reference_bin(rgb, bins: HSVBins) -> int:
+    """Pérez et al.'s rule with colorsys' exact HSV (floats)."""
+    h, s, v = colorsys.rgb_to_hsv(*(c / 255.0 for c in rgb))
+    if s > bins.s_min and v > bins.v_min:
+        return min(int(h * bins.n_h), bins.n_h - 1) * bins.n_s + min(
+            int(s * bins.n_s), bins.n_s - 1
+        )
+    return bins.n_h * bins.n_s + min(int(v * bins.n_v), bins.n_v - 1)
+
+
+def test_bin_map_matches_colorsys_reference(frame):
+    bins = HSVBins()
+    patch = frame[:, 40:80, 100:150]
+    m = hsv_bin_map(patch[None], bins)[0]
+    ref = torch.tensor(
+        [[reference_bin(patch[:, y, x].tolist(), bins) for x in range(50)] for y in range(40)]
+    )
+    # OpenCV rounds 8-bit S and H (2-degree steps): pixels on a bin border may move one bin.
+    assert float((m == ref).float().mean()) > 0.95
+    assert int(m.min()) >= 0 and int(m.max()) < bins.n_bins
+
+
+def test_gray_frames_use_value_bins_only(frame):
+    bins = HSVBins()
+    gray = frame[:1]
+    m = hsv_bin_map(gray[None], bins)[0]
+    assert bool((m >= 100).all())
+    assert torch.equal(m, 100 + (gray[0].long() * 10 // 256))
+
+
+def test_grid_histogram_equals_exact_histogram_when_one_sample_per_pixel(frame):
+    bins = HSVBins()
+    m = hsv_bin_map(frame[None], bins)
+    boxes = torch.tensor([[[10.0, 20.0, 16.0, 16.0], [200.0, 100.0, 16.0, 16.0]]])
+    fast = box_histograms(m, boxes, bins.n_bins, grid=16)
+    torch.testing.assert_close(fast, region_histograms(m, boxes, bins.n_bins))
+    assert torch.allclose(fast.sum(-1), torch.ones(1, 2))
+
+
+def test_boxes_outside_the_frame(frame):
+    bins = HSVBins()
+    m = hsv_bin_map(frame[None], bins)
+    h, w = frame.shape[-2:]
+    boxes = torch.tensor([[[w + 5.0, 0.0, 20.0, 20.0], [-8.0, 0.0, 16.0, 16.0]]])
+    hist = box_histograms(m, boxes, bins.n_bins, grid=16)
+    assert float(hist[0, 0].sum()) == 0.0  # no sample inside
+    # Half the box is inside: its histogram is that of the inside half.
+    inside = region_histograms(m, torch.tensor([[[0.0, 0.0, 8.0, 16.0]]]), bins.n_bins)
+    torch.testing.assert_close(hist[0, 1], inside[0, 0])
+
+
+def test_bhattacharyya_against_loop():
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(4, 7, generator=g)
+    p /= p.sum(-1, keepdim=True)
+    q = torch.rand(7, generator=g)
+    q /= q.sum()
+    ref = torch.tensor([sum((p[i, k] * q[k]).sqrt() for k in range(7)) for i in range(4)])
+    torch.testing.assert_close(bhattacharyya(p, q), ref)
+    assert float(bhattacharyya(q, q)) == pytest.approx(1.0)
+    a = torch.tensor([0.5, 0.5, 0.0, 0.0])
+    assert float(bhattacharyya(a, a.flip(0))) == 0.0
+
+
+def test_errors(frame):
+    with pytest.raises(ConfigError, match="n_h"):
+        HSVBins(n_h=0)
+    with pytest.raises(ConfigError, match="s_min"):
+        HSVBins(s_min=1.5)
+    with pytest.raises(ShapeError, match="uint8"):
+        hsv_bin_map(frame[None].float(), HSVBins())
+    m = hsv_bin_map(frame[None], HSVBins())
+    with pytest.raises(ShapeError, match=r"\(B, N, 4\)"):
+        box_histograms(m, torch.zeros(3, 4), 110)
+    with pytest.raises(ConfigError, match="grid"):
+        box_histograms(m, torch.zeros(1, 3, 4), 110, grid=0)
+    with pytest.raises(ShapeError, match="bins"):
+        bhattacharyya(torch.ones(3), torch.ones(4))
