@@ -65,7 +65,7 @@ def test_grid_histogram_equals_exact_histogram_when_one_sample_per_pixel(frame):
 def test_boxes_outside_the_frame(frame):
     bins = HSVBins()
     m = hsv_bin_map(frame[None], bins)
-    h, w = frame.shape[-2:]
+    w = frame.shape[-1]
     boxes = torch.tensor([[[w + 5.0, 0.0, 20.0, 20.0], [-8.0, 0.0, 16.0, 16.0]]])
     hist = box_histograms(m, boxes, bins.n_bins, grid=16)
     assert float(hist[0, 0].sum()) == 0.0  # no sample inside
