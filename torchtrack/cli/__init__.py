@@ -15,7 +15,7 @@ from torchtrack import __version__
 from torchtrack.errors import TorchTrackError
 
 # Subcommand modules, in the order --help lists them.
-COMMANDS: list[str] = ["eval", "train", "calibrate", "track"]
+COMMANDS: list[str] = ["eval", "train", "calibrate", "track", "detect"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -114,6 +114,20 @@ class Detector:
         """
         return self.proba_from_margin(self.decision_function(frames, boxes))
 
+    def scan(self, frames: torch.Tensor, **kwargs: Any):
+        """Multi-scale sliding-window detection with NMS (paper section 4.2).
+
+        ``frames (C, H, W)`` -> ``(boxes (K, 4), probabilities (K,))``;
+        ``frames (B, C, H, W)`` -> a list of B such pairs (one batched integral image).
+        Keyword arguments (threshold, stride, scale_step, min_scale, max_scale, nms_iou, ...)
+        are those of :func:`torchtrack.detect.scan.scan_batch`.
+        """
+        from torchtrack.detect.scan import scan, scan_batch
+
+        if frames.ndim == 3:
+            return scan(self, frames, **kwargs)
+        return scan_batch(self, frames, **kwargs)
+
     def selected_features(self) -> list[dict[str, Any]]:
         """The selected features as ``{"kind", "size", "y", "x"}`` records, in order."""
         return [self.bank.describe(int(i)) for i in self.feature_index]

@@ -10,11 +10,11 @@ import math
 
 import torch
 
-from torchtrack.boxes import box_iou_matrix
+from torchtrack.boxes import xywh_to_xyxy
 from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.features.haar import integrals
 
-__all__ = ["nms", "scan", "sliding_windows"]
+__all__ = ["nms", "scan", "scan_batch", "sliding_windows"]
 
 
 def sliding_windows(
@@ -70,7 +70,7 @@ def sliding_windows(
 
 
 def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float = 0.3) -> torch.Tensor:
-    """Greedy non-maximum suppression.
+    """Greedy non-maximum suppression (kornia's ``nms`` on our x, y, w, h boxes).
 
     Args:
         boxes: ``(N, 4)`` x, y, w, h; scores: ``(N,)``.
@@ -79,20 +79,18 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float = 0.3) -
     Returns:
         ``(K,)`` int64 indices of kept boxes, by decreasing score.
     """
+    from kornia.geometry.bbox import nms as kornia_nms
+
     if boxes.ndim != 2 or boxes.shape[-1] != 4 or scores.shape != boxes.shape[:1]:
         raise ShapeError(
             f"nms needs boxes (N, 4) and scores (N,), got {tuple(boxes.shape)} and "
             f"{tuple(scores.shape)}"
         )
-    order = scores.argsort(descending=True)
-    b = boxes[order]
-    iou = box_iou_matrix(b, b)
-    n = b.shape[0]
-    keep = torch.ones(n, dtype=torch.bool, device=boxes.device)
-    for i in range(n):  # loop over detections, not particles: N is small after thresholding
-        if keep[i]:
-            keep[i + 1 :] &= iou[i, i + 1 :] <= iou_threshold
-    return order[keep]
+    if boxes.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.int64, device=boxes.device)
+    # kornia loops over kept boxes only and never builds the N x N IoU matrix (N can be
+    # tens of thousands of windows when no threshold is applied).
+    return kornia_nms(xywh_to_xyxy(boxes.float()), scores, iou_threshold).to(torch.int64)
 
 
 def scan(
@@ -106,21 +104,26 @@ def scan(
     min_scale: float = 1.0,
     max_scale: float | None = None,
     nms_iou: float | None = 0.3,
-    batch: int = 50_000,
+    batch: int = 16_384,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Detect by scoring every sliding window of one frame.
 
     Args:
         detector: a :class:`~torchtrack.detect.Detector`.
-        frame: ``(C, H, W)`` or ``(1, C, H, W)``, 0..255.
+        frame: ``(C, H, W)`` or ``(1, C, H, W)``, 0..255 (C = 1 or RGB; scored on luma).
         threshold: keep windows scoring at least this (``None``: keep all).
         margin: score with raw classifier margins instead of calibrated probabilities.
-        scale_step, stride, min_scale, max_scale: see :func:`sliding_windows`.
+        scale_step, stride, min_scale, max_scale: see :func:`sliding_windows`; ``min_scale``
+            below 1 scans windows smaller than the training window (objects smaller than the
+            training crops: the filters shrink with the box, no image is resized).
         nms_iou: IoU for non-maximum suppression (``None``: no suppression).
-        batch: windows per scoring call.
+        batch: windows per scoring call (bounds memory).
 
     Returns:
         ``boxes (K, 4)`` and ``scores (K,)``, by decreasing score.
+
+    Raises:
+        ShapeError: not one frame, or a frame smaller than the window at ``min_scale``.
     """
     if frame.ndim == 3:
         frame = frame[None]
@@ -128,7 +131,56 @@ def scan(
         raise ShapeError(
             f"scan takes one frame (C, H, W) or (1, C, H, W), got {tuple(frame.shape)}"
         )
-    fh, fw = frame.shape[-2:]
+    return scan_batch(
+        detector,
+        frame,
+        threshold=threshold,
+        margin=margin,
+        scale_step=scale_step,
+        stride=stride,
+        min_scale=min_scale,
+        max_scale=max_scale,
+        nms_iou=nms_iou,
+        batch=batch,
+    )[0]
+
+
+def scan_batch(
+    detector,
+    frames: torch.Tensor,
+    *,
+    threshold: float | None = 0.5,
+    margin: bool = False,
+    scale_step: float = 1.2,
+    stride: float = 0.1,
+    min_scale: float = 1.0,
+    max_scale: float | None = None,
+    nms_iou: float | None = 0.3,
+    batch: int = 16_384,
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """:func:`scan` over a batch of same-size frames: one batched integral image, the same
+    windows scored on every frame in one call per chunk, then threshold and NMS per frame.
+
+    Args:
+        frames: ``(B, C, H, W)``, 0..255. Other arguments as in :func:`scan`; ``batch`` counts
+            windows per frame and chunk.
+
+    Returns:
+        B pairs ``(boxes (K_b, 4), scores (K_b,))``, by decreasing score.
+
+    Raises:
+        ShapeError: frames not ``(B, C, H, W)``, or smaller than the window at ``min_scale``.
+    """
+    if frames.ndim != 4:
+        raise ShapeError(f"scan_batch takes frames (B, C, H, W), got {tuple(frames.shape)}")
+    fh, fw = frames.shape[-2:]
+    wh, ww = detector.window
+    if fh < wh * min_scale or fw < ww * min_scale:
+        raise ShapeError(
+            f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
+            f"smallest scan scale {min_scale:g} ({wh * min_scale:g}x{ww * min_scale:g}); "
+            f"scan with min_scale <= {min(fh / wh, fw / ww):.3g} or use larger frames"
+        )
     boxes = sliding_windows(
         (fh, fw),
         detector.window,
@@ -136,19 +188,26 @@ def scan(
         stride=stride,
         min_scale=min_scale,
         max_scale=max_scale,
-    ).to(frame.device)
-    ints = integrals(frame)
+    ).to(frames.device)
+    nb = frames.shape[0]
+    ints = integrals(frames)
     parts = []
     for i in range(0, boxes.shape[0], batch):
-        b = boxes[None, i : i + batch]
+        b = boxes[None, i : i + batch].expand(nb, -1, -1)
         s = detector.decision_function(ints, b) if margin else detector.score(ints, b)
-        parts.append(s[0])
-    scores = torch.cat(parts) if parts else torch.zeros(0, device=frame.device)
-    if threshold is not None:
-        keep = scores >= threshold
-        boxes, scores = boxes[keep], scores[keep]
-    if nms_iou is not None and boxes.shape[0]:
-        keep = nms(boxes, scores, nms_iou)
-    else:
-        keep = scores.argsort(descending=True)
-    return boxes[keep], scores[keep]
+        parts.append(s)
+    all_scores = (
+        torch.cat(parts, 1) if parts else torch.zeros((nb, 0), device=frames.device)
+    )  # (B, N)
+    out = []
+    for f in range(nb):
+        bx, sc = boxes, all_scores[f]
+        if threshold is not None:
+            keep = sc >= threshold
+            bx, sc = bx[keep], sc[keep]
+        if nms_iou is not None and bx.shape[0]:
+            keep = nms(bx, sc, nms_iou)
+        else:
+            keep = sc.argsort(descending=True)
+        out.append((bx[keep], sc[keep]))
+    return out
