@@ -56,6 +56,7 @@ BUILTIN_TRACKER_MODULES: list[str] = [
     "torchtrack.track.detector_pf",
     "torchtrack.track.histogram",
     "torchtrack.track.cotrain",
+    "torchtrack.track.adaptive_haar",
 ]
 
 
