@@ -1,0 +1,304 @@
+"""Co-training tracker (Jin et al.): online co-trained pixel classifier + SEIR particle filter.
+
+Per frame:
+
+1. the candidate region is ``search_scale`` times the target box around the previous
+   estimate (the prediction of the random-walk dynamics ``X_k = X_{k-1} + delta_k``, eq. 4),
+   clipped to the frame;
+2. the co-trained classifiers score its pixels and fuse their maps
+   (:class:`~torchtrack.learn.cotrain.CoTrainer`);
+3. a particle filter over the box centre ``(cx, cy)`` weighs particles with eq. (13)
+   (:class:`~torchtrack.observe.cotrain.CoTrainLikelihood`): SEIR (Algorithm 3, the default,
+   300 particles) or plain SIR (``resampler="sir"``);
+4. the most confident blob is searched; none means the target is reported not visible and the
+   classifiers are not updated; otherwise they are retrained (Algorithm 2 steps 4-5).
+
+The box size stays that of the first frame (Jin's state is the location). Parameters are the
+fields of :class:`CoTrainConfig`; ``configs/trackers/cotrain.toml`` lists them with their
+defaults, and ``torchtrack track --tracker cotrain:resampler=sir,particles=500`` overrides them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from torchtrack.errors import ConfigError
+from torchtrack.filter._random import randn
+from torchtrack.filter.particles import uniform_log_weights
+from torchtrack.filter.seir import seir_step
+from torchtrack.filter.sir import StepResult, sir_step
+from torchtrack.learn.cotrain import CoTrainer, region_around
+from torchtrack.observe.cotrain import CoTrainLikelihood
+from torchtrack.track.base import Tracker, TrackState, register_tracker
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10 with the tomli backport
+    import tomli as tomllib  # type: ignore[no-redef]
+
+__all__ = ["CoTrainConfig", "CoTrainTracker", "load_cotrain_config"]
+
+RESAMPLERS = ("seir", "sir")
+
+
+@dataclass
+class CoTrainConfig:
+    """Every parameter of the co-training tracker, with its default.
+
+    Attributes:
+        particles: N (Jin et al. sec. 5.3: 300).
+        resampler: ``"seir"`` (Algorithm 3) or ``"sir"``.
+        mode: ``"cotrain"`` or ``"self"`` (self-trained pixel classifier, the baseline).
+        motion_std: random-walk std of the centre per frame, as a fraction of sqrt(w h).
+        mutation_std: SEIR's lambda (eq. 10), as a fraction of sqrt(w h).
+        ess_target: SEIR evolves while ESS < ess_target N. max_iter: at most this many loops.
+        gate_scale: gate sigma of eq. (13) as a fraction of the box (w, h).
+        sharpness: exponent on the accumulated confidence (1 = eq. 13).
+        search_scale: candidate region = this times the box, around the prediction.
+        n_selectors, n_candidates, eps: online real AdaBoost (Algorithm 1) per classifier.
+        colour_bins, ltp_threshold, texture_blocks: pixel feature coding (sec. 2;
+            ``texture_blocks`` partitions the LTP codes into the weak classifiers' blocks).
+        opening_size, border, accept_ratio, max_samples, init_passes: co-training
+            (:class:`~torchtrack.learn.cotrain.CoTrainer`).
+        estimator: particle-filter estimate, ``"mean"``, ``"best"`` or ``"mode"``.
+    """
+
+    particles: int = 300
+    resampler: str = "seir"
+    mode: str = "cotrain"
+    motion_std: float = 0.15
+    mutation_std: float = 0.05
+    ess_target: float = 0.5
+    max_iter: int = 5
+    gate_scale: float = 1.0
+    sharpness: float = 1.0
+    search_scale: float = 2.0
+    n_selectors: int = 10
+    n_candidates: int = 4
+    eps: float = 1e-3
+    colour_bins: int = 32
+    ltp_threshold: float = 5.0
+    opening_size: int = 1
+    border: int = 3
+    accept_ratio: float = 0.5
+    max_samples: int = 1000
+    init_passes: int = 3
+    texture_blocks: str = "full"
+    estimator: str = "mean"
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            want = {"int": int, "float": (int, float), "str": str}[f.type]
+            if isinstance(v, bool) or not isinstance(v, want):
+                raise ConfigError(f"cotrain: {f.name} must be {f.type}, got {v!r}")
+        if self.resampler not in RESAMPLERS:
+            raise ConfigError(
+                f"cotrain: unknown resampler {self.resampler!r}; valid: {', '.join(RESAMPLERS)}"
+            )
+        if self.particles < 1:
+            raise ConfigError(f"cotrain: particles must be >= 1, got {self.particles}")
+        for name in ("motion_std", "mutation_std", "gate_scale", "search_scale"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"cotrain: {name} must be > 0, got {getattr(self, name)}")
+        if self.search_scale < 1:
+            raise ConfigError(f"cotrain: search_scale must be >= 1, got {self.search_scale}")
+
+
+def load_cotrain_config(path: str | Path, **overrides: Any) -> CoTrainConfig:
+    """Read a TOML file of :class:`CoTrainConfig` fields (a ``[cotrain]`` table or top level),
+    then apply ``overrides``.
+
+    Raises:
+        ConfigError: unreadable file, bad TOML, unknown keys (named) or bad values.
+    """
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except OSError as e:
+        raise ConfigError(f"cannot read tracker config {path}: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"bad TOML in {path}: {e}") from None
+    data = data.get("cotrain", data)
+    return _make_config({**data, **overrides}, str(path))
+
+
+def _make_config(values: dict[str, Any], where: str) -> CoTrainConfig:
+    known = {f.name for f in fields(CoTrainConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown cotrain parameter(s) {', '.join(unknown)}; valid: "
+            f"{', '.join(sorted(known))}"
+        )
+    if isinstance(values.get("motion_std"), int):
+        values["motion_std"] = float(values["motion_std"])
+    return CoTrainConfig(**values)
+
+
+class CoTrainTracker(Tracker):
+    """Jin et al.'s tracker behind the common :class:`Tracker` interface (one target).
+
+    Args:
+        config: a TOML file path (see :func:`load_cotrain_config`) or None for the defaults.
+        generator: random source (particles, feature draws, sample subsets).
+        **params: :class:`CoTrainConfig` fields overriding the config.
+
+    Attributes:
+        history: per frame after the first, a dict with ``ess`` (final ESS), ``iterations``
+            (SEIR loops), ``visible``, ``accepted`` (positives added) and ``blob_score``.
+        last_maps: the :class:`~torchtrack.learn.cotrain.PixelMaps` of the last frame (or None).
+
+    Raises:
+        ConfigError: unknown or invalid parameters.
+    """
+
+    name = "cotrain"
+    max_targets = 1
+
+    def __init__(
+        self,
+        config: str | None = None,
+        generator: torch.Generator | None = None,
+        **params: Any,
+    ) -> None:
+        super().__init__()
+        if config is not None:
+            self.config = load_cotrain_config(config, **params)
+        else:
+            self.config = _make_config(dict(params), "cotrain")
+        self.generator = generator
+        c = self.config
+        self.trainer = CoTrainer(
+            mode=c.mode,
+            n_selectors=c.n_selectors,
+            n_candidates=c.n_candidates,
+            eps=c.eps,
+            colour_bins=c.colour_bins,
+            ltp_threshold=c.ltp_threshold,
+            opening_size=c.opening_size,
+            border=c.border,
+            accept_ratio=c.accept_ratio,
+            max_samples=c.max_samples,
+            init_passes=c.init_passes,
+            texture_blocks=c.texture_blocks,
+        )
+        self.history: list[dict[str, Any]] = []
+        self.last_maps = None
+
+    def _init(self, frame: torch.Tensor, boxes: torch.Tensor | None) -> TrackState:
+        box = boxes[0]
+        x, y, w, h = (float(v) for v in box)
+        self.size = (w, h)
+        self.centre = (x + w / 2, y + h / 2)
+        self.scale = math.sqrt(w * h)
+        region = region_around(self.centre, self.size, self.config.search_scale, self.frame_size)
+        if region is None:  # check_boxes guarantees a box inside the frame; keep it safe
+            raise ConfigError(f"init box {tuple(box.tolist())} leaves no region to learn from")
+        self.last_maps = self.trainer.init(frame, (x, y, w, h), region, self.generator)
+        n = self.config.particles
+        states = torch.tensor(self.centre, dtype=torch.float64).view(1, 1, 2).repeat(1, n, 1)
+        self.states = states
+        self.log_weights = uniform_log_weights(states)
+        self.history = []
+        return TrackState.single(box, 1.0, True, particles=states, log_weights=self.log_weights)
+
+    def _motion(self, states: torch.Tensor, generator) -> torch.Tensor:
+        # Jin et al. eq. (4): X_k = X_{k-1} + delta_k, delta_k ~ N(0, sigma^2 I).
+        e = randn(tuple(states.shape), generator, states.dtype, states.device)
+        return states + e * (self.config.motion_std * self.scale)
+
+    def _state(self, visible: bool, confidence: float) -> TrackState:
+        cx, cy = self.centre
+        w, h = self.size
+        return TrackState.single(
+            [cx - w / 2, cy - h / 2, w, h],
+            confidence,
+            visible,
+            particles=self.states,
+            log_weights=self.log_weights,
+        )
+
+    def _update(self, frame: torch.Tensor) -> TrackState:
+        c = self.config
+        region = region_around(self.centre, self.size, c.search_scale, self.frame_size)
+        if region is None:  # the prediction left the frame: nothing to see, nothing to learn
+            self.last_maps = None
+            self.history.append(
+                {
+                    "ess": float("nan"),
+                    "iterations": 0,
+                    "visible": False,
+                    "accepted": False,
+                    "blob_score": 0.0,
+                }
+            )
+            return self._state(False, 0.0)
+        maps = self.trainer.score(frame, region)
+        self.last_maps = maps
+        lik = CoTrainLikelihood(
+            maps.opened,
+            region[:2],
+            self.size,
+            self.centre,
+            (c.gate_scale * self.size[0], c.gate_scale * self.size[1]),
+            c.sharpness,
+        )
+        if c.resampler == "seir":
+            step: StepResult = seir_step(
+                self.states,
+                self.log_weights,
+                self._motion,
+                lik,
+                ess_target=c.ess_target,
+                max_iter=c.max_iter,
+                mutation_std=c.mutation_std * self.scale,
+                estimator=c.estimator,
+                generator=self.generator,
+            )
+        else:
+            step = sir_step(
+                self.states,
+                self.log_weights,
+                self._motion,
+                lik,
+                estimator=c.estimator,
+                generator=self.generator,
+            )
+        self.states, self.log_weights = step.states, step.log_weights
+        est = step.estimate[0]
+        hh, ww = self.frame_size
+        # Keep the centre inside the frame, so the next candidate region is never empty.
+        self.centre = (float(est[0].clamp(0, ww - 1)), float(est[1].clamp(0, hh - 1)))
+        blob = self.trainer.locate(maps)
+        visible = blob is not None and not bool(step.recovered[0])
+        accepted = self.trainer.update(maps, blob, self.generator) if blob is not None else False
+        ref = self.trainer.reference_ or 1.0
+        score = blob.score / ref if blob is not None else 0.0
+        self.history.append(
+            {
+                "ess": float(step.ess[0]),
+                "iterations": int(step.iterations[0]),
+                "visible": visible,
+                "accepted": accepted,
+                "blob_score": score,
+            }
+        )
+        return self._state(visible, score)
+
+    def get_config(self) -> dict[str, Any]:
+        """The effective parameters as a plain dict."""
+        return asdict(self.config)
+
+
+register_tracker(
+    "cotrain",
+    CoTrainTracker,
+    description="Jin et al. 2011: online co-trained colour/LTP pixel classifiers + SEIR "
+    "particle filter (resampler=seir|sir, mode=cotrain|self)",
+)
