@@ -162,8 +162,8 @@ def scan_batch(
     windows scored on every frame in one call per chunk, then threshold and NMS per frame.
 
     Args:
-        frames: ``(B, C, H, W)``, 0..255. Other arguments as in :func:`scan`; ``batch`` counts
-            windows per frame and chunk.
+        frames: ``(B, C, H, W)``, 0..255. Other arguments as in :func:`scan`; ``batch`` bounds
+            the windows scored per call over all frames (``B x N_chunk``).
 
     Returns:
         B pairs ``(boxes (K_b, 4), scores (K_b,))``, by decreasing score.
@@ -192,8 +192,9 @@ def scan_batch(
     nb = frames.shape[0]
     ints = integrals(frames)
     parts = []
-    for i in range(0, boxes.shape[0], batch):
-        b = boxes[None, i : i + batch].expand(nb, -1, -1)
+    step = max(1, batch // nb)  # bounds memory: B x step windows per scoring call
+    for i in range(0, boxes.shape[0], step):
+        b = boxes[None, i : i + step].expand(nb, -1, -1)
         s = detector.decision_function(ints, b) if margin else detector.score(ints, b)
         parts.append(s)
     all_scores = (
