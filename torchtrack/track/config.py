@@ -72,7 +72,7 @@ class DetectorTrackerConfig:
     model: str = "pedestrian"
     n_particles: int = 200
     dynamics: str = ""
-    visible_threshold: float = 0.25
+    visible_threshold: float = 0.1
     context: float = 0.0
     context_candidates: list[float] = field(
         default_factory=lambda: [1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6]
