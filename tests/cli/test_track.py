@@ -1,0 +1,188 @@
+"""``torchtrack track`` end to end on a few real frames, and its bad-input handling."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import pytest
+import torch
+
+from torchtrack.cli import main
+from torchtrack.errors import TrackerError
+from torchtrack.track import base
+from torchtrack.track.base import Tracker, TrackState, tracker_names
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)  # the command sets --threads (default 1)
+
+
+@pytest.fixture
+def frames(data_dir, tmp_path):
+    """The first 8 frames of Crossing in a folder."""
+    src = data_dir / "tracking" / "otb" / "Crossing" / "img"
+    d = tmp_path / "frames"
+    d.mkdir()
+    for i in range(1, 9):
+        shutil.copy(src / f"{i:04d}.jpg", d / f"{i:04d}.jpg")
+    return d
+
+
+BOX = "204,150,17,50"
+
+
+def read_csv(path):
+    lines = path.read_text().splitlines()
+    return lines[0], [line.split(",") for line in lines[1:]]
+
+
+def test_end_to_end_csv_and_video(frames, tmp_path, capsys):
+    out, video = tmp_path / "boxes.csv", tmp_path / "tracked.mp4"
+    rc = main(
+        ["track", str(frames), "--box", BOX, "--out", str(out), "--video", str(video),
+         "--particles", "--no-progress"]
+    )  # fmt: skip
+    assert rc == 0
+    header, rows = read_csv(out)
+    assert header == "frame,x,y,w,h,confidence,visible"
+    assert [int(r[0]) for r in rows] == list(range(8))
+    assert [float(v) for v in rows[0][1:5]] == [204.0, 150.0, 17.0, 50.0]
+    assert all(r[6] in ("0", "1") for r in rows)
+    assert not (tmp_path / "boxes.csv.part").exists()
+    cap = cv2.VideoCapture(str(video))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 8
+    text = capsys.readouterr().out
+    assert "tracked 8 frames" in text and "fps" in text and "0 unreadable" in text
+
+
+def test_histogram_tracker_and_max_frames(frames, tmp_path):
+    out = tmp_path / "h.csv"
+    args = ["track", str(frames), "--box", BOX, "--tracker", "histogram:n_particles=300"]
+    assert main([*args, "--out", str(out), "--max-frames", "4", "--no-progress"]) == 0
+    assert len(read_csv(out)[1]) == 4
+
+
+def test_unreadable_frames_are_counted_and_keep_a_row(frames, tmp_path, capsys):
+    (frames / "0005.jpg").write_bytes(b"not a jpeg")
+    out = tmp_path / "b.csv"
+    assert main(["track", str(frames), "--box", BOX, "--out", str(out), "--no-progress"]) == 0
+    _, rows = read_csv(out)
+    assert len(rows) == 8
+    assert rows[4][0] == "4" and rows[4][5:] == ["0.0000", "0"]  # previous box, not visible
+    assert rows[4][1:5] == rows[3][1:5]
+    assert "1 unreadable frame(s)" in capsys.readouterr().out
+
+
+def test_video_that_ends_early(frames, tmp_path, capsys):
+    clip = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (360, 240))
+    for p in sorted(frames.iterdir()):
+        w.write(cv2.imread(str(p)))
+    w.release()
+    data = clip.read_bytes()
+    clip.write_bytes(data[: len(data) * 2 // 3])  # truncated: the header still announces 8
+    out = tmp_path / "v.csv"
+    rc = main(["track", str(clip), "--box", BOX, "--out", str(out), "--no-progress"])
+    text = capsys.readouterr().out
+    _, rows = read_csv(out)
+    assert rc == 0 and 1 <= len(rows) < 8
+    assert "ended early" in text
+
+
+class _Crash(Tracker):
+    def _init(self, frame, boxes):
+        self.n = 0
+        return TrackState.single(boxes[0])
+
+    def _update(self, frame):
+        self.n += 1
+        if self.n == 3:
+            raise TrackerError("boom at frame 3")
+        return TrackState.single(torch.tensor([204.0, 150.0, 17.0, 50.0]))
+
+
+def test_results_so_far_are_kept_when_the_tracker_fails(frames, tmp_path, capsys, monkeypatch):
+    tracker_names()  # load the built-in trackers first
+    monkeypatch.setitem(
+        base._REGISTRY, "test-crash-at-3", base.TrackerInfo("test-crash-at-3", _Crash)
+    )
+    out = tmp_path / "c.csv"
+    args = ["track", str(frames), "--box", BOX, "--tracker", "test-crash-at-3"]
+    assert main([*args, "--out", str(out), "--no-progress"]) == 1
+    assert "boom at frame 3" in capsys.readouterr().err
+    _, rows = read_csv(out)
+    assert [r[0] for r in rows] == ["0", "1", "2"]
+
+
+@pytest.mark.parametrize(
+    ("box", "message"),
+    [
+        ("10,10,0,20", "zero or negative size"),
+        ("10,10,20", "four numbers"),
+        ("a,b,c,d", "four numbers"),
+        ("500,10,20,20", "entirely outside"),
+        ("nan,1,2,3", "finite"),
+    ],
+)
+def test_bad_boxes(frames, tmp_path, capsys, box, message):
+    rc = main(
+        ["track", str(frames), f"--box={box}", "--out", str(tmp_path / "x.csv"), "--no-progress"]
+    )
+    assert rc == 1
+    assert message in capsys.readouterr().err
+
+
+def test_box_sticking_out_is_clipped_with_a_warning(frames, tmp_path, capsys):
+    out = tmp_path / "w.csv"
+    assert (
+        main(
+            [
+                "track",
+                str(frames),
+                "--box=350,150,20,50",
+                "--out",
+                str(out),
+                "--max-frames",
+                "2",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert "clipped" in capsys.readouterr().err
+    _, rows = read_csv(out)
+    assert [float(v) for v in rows[0][1:5]] == [350.0, 150.0, 10.0, 50.0]
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--tracker", "nope"], "unknown tracker 'nope'"),
+        (["--tracker", "histogram", "--adapt", "global"], "does not take --adapt"),
+        (["--detect", "zebra"], "unknown model 'zebra'"),
+        (["--particles"], "--video"),
+        (["--max-frames", "0"], "--max-frames"),
+    ],
+)
+def test_bad_options(frames, capsys, extra, message):
+    assert main(["track", str(frames), "--box", BOX, *extra, "--no-progress"]) == 1
+    assert message in capsys.readouterr().err
+
+
+def test_missing_source(tmp_path, capsys):
+    assert main(["track", str(tmp_path / "nothing.mp4"), "--box", BOX]) == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_help_has_examples(capsys):
+    with pytest.raises(SystemExit):
+        main(["track", "--help"])
+    text = capsys.readouterr().out
+    assert "torchtrack track demo --video tracked.mp4" in text and "--box" in text
