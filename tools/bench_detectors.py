@@ -25,6 +25,7 @@ Writes ``docs/benchmarks/detectors.md`` (atomically) and prints it.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 import time
@@ -283,6 +284,9 @@ def main() -> None:
             f"{r['n_train']} | {r['fit_s']:.1f} |"
         )
     lines += [
+        "",
+        f"Load average at the end of the run: {os.getloadavg()[0]:.1f} on {os.cpu_count()} "
+        "cores (the fit column is wall-clock).",
         "",
         "Test negatives: " + "; ".join(sorted({f"{r['class']}: {r['test']}" for r in rows})),
         "",
