@@ -150,3 +150,13 @@ def test_parse_tracker_spec():
         parse_tracker_spec("mil:fast")
     with pytest.raises(ConfigError, match="has no name"):
         parse_tracker_spec(":a=1")
+
+
+def test_a_broken_tracker_module_only_warns(monkeypatch):
+    monkeypatch.setattr(base, "_loaded", False)
+    monkeypatch.setattr(
+        base, "BUILTIN_TRACKER_MODULES", [*base.BUILTIN_TRACKER_MODULES, "torchtrack.no_such_mod"]
+    )
+    with pytest.warns(RuntimeWarning, match=r"tracker module torchtrack\.no_such_mod could not"):
+        names = tracker_names()
+    assert "mil" in names and "camshift" in names

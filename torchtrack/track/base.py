@@ -28,6 +28,7 @@ from __future__ import annotations
 import abc
 import importlib
 import inspect
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -274,7 +275,17 @@ def _load_builtins() -> None:
         return
     _loaded = True
     for mod in BUILTIN_TRACKER_MODULES:
-        importlib.import_module(mod)
+        try:
+            importlib.import_module(mod)
+        except Exception as exc:
+            # One broken tracker module must not take the peers and the other trackers down
+            # with it; say which one failed and why.
+            warnings.warn(
+                f"tracker module {mod} could not be imported ({type(exc).__name__}: {exc}); "
+                "its trackers are unavailable",
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
 
 def tracker_names() -> list[str]:
