@@ -186,3 +186,14 @@ def test_help_has_examples(capsys):
         main(["track", "--help"])
     text = capsys.readouterr().out
     assert "torchtrack track demo --video tracked.mp4" in text and "--box" in text
+
+
+@pytest.mark.parametrize("tracker", ["detector", "histogram:n_particles=200"])
+def test_grayscale_frames_with_a_colour_model(frames, tmp_path, tracker):
+    # Luma-based detector features and the histogram's value bins both work on gray frames;
+    # the target (17 x 50 px) is also smaller than the 64 x 128 detector window.
+    out = tmp_path / "g.csv"
+    args = ["track", str(frames), "--box", BOX, "--color", "gray", "--tracker", tracker]
+    assert main([*args, "--out", str(out), "--max-frames", "3", "--no-progress"]) == 0
+    _, rows = read_csv(out)
+    assert len(rows) == 3 and all(r[6] == "1" for r in rows)

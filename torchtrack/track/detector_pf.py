@@ -39,6 +39,7 @@ the reappearing target.
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from pathlib import Path
@@ -252,9 +253,7 @@ class DetectorTracker(Tracker):
         x0 = torch.cat([c, c, one, one], 1)  # (B, 6): c_t = c_{t-1}, s_t = s_{t-1} = 1
         # Spread by one step of the dynamics around the given state (the prior of Fig. 1).
         self._states = self.dynamics.predict(x0[:, None].repeat(1, n, 1), self.generator)
-        self._log_w = torch.full(
-            (b, n), -torch.log(torch.tensor(float(n))).item(), dtype=torch.float64
-        )
+        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64)
         p = self._probabilities(frame, self._win_boxes_at(boxes, ctx))
         return TrackState(
             box=boxes.clone(),
@@ -318,14 +317,11 @@ class DetectorTracker(Tracker):
         # Jitter with one step of process noise so that duplicated windows differ.
         self._states = self.dynamics.predict(st, self.generator)
         self._states[..., 2:4] = st[..., 0:2]
-        self._log_w = torch.full(
-            (b, n), -torch.log(torch.tensor(float(n))).item(), dtype=torch.float64
-        )
+        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64)
         wb = torch.stack(boxes_out)
         c = wb[:, 0:2] + wb[:, 2:4] / 2
         obj = wb[:, 2:4] / cfg.scan_context
         box = torch.cat([c - obj / 2, obj], 1)
-        self.frame_size = (int(frame.shape[-2]), int(frame.shape[-1]))
         return TrackState(
             box=box,
             confidence=torch.stack(conf),
