@@ -26,7 +26,7 @@ from torchtrack.detect import Detector, load_detector, save_detector
 from torchtrack.detect.config import TrainConfig, load_train_config, read_name_list
 from torchtrack.detect.evaluate import crop_scores, detection_rate_at_fpr, roc_auc
 from torchtrack.detect.model_file import read_model_metadata
-from torchtrack.detect.training import train_detector
+from torchtrack.detect.training import portable_config, train_detector
 from torchtrack.io.atomic import write_text_atomic
 from torchtrack.io.crops import (
     CropSet,
@@ -122,8 +122,11 @@ def _norm(v):
     return os.path.normpath(v) if isinstance(v, str) and "/" in v else v
 
 
-def _rel(p: str) -> str:
-    """A recorded absolute data path shown relative to the shared data folder."""
+def _rel(p: str, root: str | None = None) -> str:
+    """A recorded data path shown relative to the shared data folder. Newer models record paths
+    relative to their data root (``data.root``, e.g. ``detection_crops``); older ones absolute."""
+    if not Path(p).is_absolute():
+        return f"../shared/data/{root}/{p}" if root else p
     s = str(Path(p).resolve()) if "*" not in p else str(Path(p).parent.resolve() / Path(p).name)
     key = "/shared/data/"
     return "../shared/data/" + s.split(key, 1)[1] if key in s else s
@@ -140,7 +143,7 @@ def write_readme(models_dir: Path) -> Path:
         "AdaBoost on them, Platt calibration on a 30% hold-out. This file is written by",
         "`python train/default_models.py` from the models' own metadata.",
         "",
-        "Rebuild both (about 15 minutes on 2 loaded cores; deterministic for a given seed):",
+        "Rebuild both (about 25 minutes on 2 busy cores; the seed fixes every random draw):",
         "",
         "```",
         "python train/default_models.py            # = torchtrack train --config configs/<name>.toml",
@@ -161,17 +164,17 @@ def write_readme(models_dir: Path) -> Path:
             f"({lr['variant']}), {lr['calibration']} calibration on {lr['calibration_fraction']:.0%}"
             f" of the crops, {mi['rounds']} hard-negative mining round(s) of {mi['per_round']}.",
             "* Positives: "
-            + ", ".join(f"`{_rel(p)}`" for p in d["positives"])
+            + ", ".join(f"`{_rel(p, d.get('root'))}`" for p in d["positives"])
             + (" + mirror images" if d["mirror_positives"] else "")
             + (f"; region {d['region']} of {d['crop_size']} crops" if d["region"] else "")
             + ".",
             "* Negatives: "
-            + (", ".join(f"`{_rel(p)}`" for p in d["negatives"]) or "none as crops")
+            + (", ".join(f"`{_rel(p, d.get('root'))}`" for p in d["negatives"]) or "none as crops")
             + (" + mirror images" if d["negatives"] and d["mirror_negatives"] else "")
             + (
                 f"; {d['random_negatives']} random windows and mined windows of "
                 f"{len(d['negative_images'])} negative image entries "
-                f"({', '.join(sorted({Path(_rel(p)).parent.name for p in d['negative_images']}))})"
+                f"({', '.join(sorted({Path(_rel(p, d.get('root'))).parent.name for p in d['negative_images']}))})"
                 if d["negative_images"]
                 else ""
             )
@@ -228,7 +231,8 @@ def main() -> None:
     for f in args.evaluate or []:
         det = load_detector(f)
         cfg = load_train_config(REPO / "configs" / f"{det.name}.toml")
-        if _norm(cfg.to_dict()) != _norm(det.summary.get("config")):
+        recorded = _norm(det.summary.get("config"))
+        if recorded not in (_norm(cfg.to_dict()), _norm(portable_config(cfg))):
             raise SystemExit(f"{f} was not trained with configs/{det.name}.toml as it is now")
         det.summary["test_split"] = test_split_metrics(cfg, det)
         path = save_detector(args.out / f"{det.name}.safetensors", det)
