@@ -58,6 +58,7 @@ BUILTIN_TRACKER_MODULES: list[str] = [
     "torchtrack.track.histogram",
     "torchtrack.track.cotrain",
     "torchtrack.track.adaptive_haar",
+    "torchtrack.track.template",
 ]
 
 
