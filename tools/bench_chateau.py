@@ -1,0 +1,154 @@
+"""Speed of the Chateau calibrated-detector tracker (and the histogram PF) next to TrackerMIL.
+
+    python tools/bench_chateau.py [--frames 60] [--repeats 3] [--eval-dirs runs/ped runs/veh runs/dev]
+
+Frames: the bundled PETS 2009 demo clip resized to 640x480 (Chateau tracker, paper setting:
+200 particles, goal < 4 ms per frame; the paper reports 16 ms on a Pentium IV) and to 320x240
+(histogram PF, Klein et al.'s resolution, J = 2000). Each tracker is initialised on the same
+pedestrian box and timed over ``--frames`` updates, ``--repeats`` times; the table gives the
+median ms per frame and the ratio to OpenCV TrackerMIL measured in the same run, one torch
+thread. Peak memory is the peak resident set of a separate process running only that tracker.
+With ``--eval-dirs`` the results tables of ``torchtrack eval`` runs are appended (their
+commands are recorded in their results.json). Writes docs/benchmarks/trackers_chateau.md
+(atomically) and prints it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+BOX_640 = (376.0, 250.0, 40.0, 100.0)  # the man in the red jacket, first frame at 640x480
+
+
+def load_frames(size: tuple[int, int], n: int) -> list[torch.Tensor]:
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+
+    out = []
+    with open_source(demo_clip_path()) as src:
+        for f in src:
+            img = cv2.resize(f.permute(1, 2, 0).numpy(), size, interpolation=cv2.INTER_LINEAR)
+            out.append(torch.from_numpy(img).permute(2, 0, 1).contiguous())
+            if len(out) == n + 1:
+                break
+    return out
+
+
+def make(name: str):
+    from torchtrack.track.base import create_tracker
+
+    if name == "detector":
+        return create_tracker("detector", generator=torch.Generator().manual_seed(0))
+    if name == "histogram":
+        return create_tracker("histogram", generator=torch.Generator().manual_seed(0))
+    return create_tracker(name)
+
+
+def time_tracker(name: str, frames, box) -> float:
+    tr = make(name)
+    tr.init(frames[0], torch.tensor(box, dtype=torch.float64))
+    t0 = time.perf_counter()
+    for f in frames[1:]:
+        tr.update(f)
+    return 1000.0 * (time.perf_counter() - t0) / (len(frames) - 1)
+
+
+def peak_rss_mb(name: str, size: tuple[int, int], n: int) -> float:
+    code = (
+        "import sys, torch, resource; torch.set_num_threads(1);"
+        f"sys.path.insert(0, {str(REPO / 'tools')!r}); import bench_chateau as b;"
+        f"fr = b.load_frames({size!r}, {n}); box = b.scaled_box({size!r});"
+        f"b.time_tracker({name!r}, fr, box);"
+        "print(open('/proc/self/status').read().split('VmHWM:')[1].split()[0])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().splitlines()[-1]) / 1024.0
+
+
+def scaled_box(size: tuple[int, int]) -> tuple[float, ...]:
+    s = size[0] / 640.0
+    return tuple(v * s for v in BOX_640)
+
+
+def eval_section(d: Path) -> str:
+    res = json.loads((d / "results.json").read_text())
+    md = (d / "results.md").read_text()
+    cmd = res.get("command") or res.get("settings", {}).get("command", "")
+    return f"### `{d.name}`\n\nCommand: `{cmd}`\n\n{md}\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--eval-dirs", nargs="*", type=Path, default=[])
+    ap.add_argument(
+        "--out", type=Path, default=REPO / "docs" / "benchmarks" / "trackers_chateau.md"
+    )
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    rows = []
+    for size, names in (((640, 480), ["detector", "mil"]), ((320, 240), ["histogram", "mil"])):
+        frames = load_frames(size, args.frames)
+        box = scaled_box(size)
+        times = {n: [] for n in names}
+        for _ in range(args.repeats):  # interleaved: both trackers see the same machine load
+            for n in names:
+                times[n].append(time_tracker(n, frames, box))
+        med = {n: statistics.median(v) for n, v in times.items()}
+        for n in names:
+            rows.append(
+                (n, f"{size[0]}x{size[1]}", med[n], med[n] / med["mil"], peak_rss_mb(n, size, 10))
+            )
+    load = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"
+    cmd = "python tools/bench_chateau.py " + " ".join(sys.argv[1:])
+    lines = [
+        "# Chateau calibrated-detector tracker and colour-histogram PF: speed and accuracy",
+        "",
+        f"Command: `{cmd.strip()}`  ",
+        f"Machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} torch thread, "
+        f"load average {load} at the end (shared machine: compare the ratios in one run).",
+        "",
+        "## Speed (median ms per frame over "
+        f"{args.frames} updates x {args.repeats} repeats; bundled demo clip resized)",
+        "",
+        "| tracker | frame | ms / frame | x TrackerMIL | peak RSS (MB) |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for n, fs, ms, ratio, rss in rows:
+        label = {
+            "detector": "detector (Chateau, 200 particles)",
+            "histogram": "histogram (Pérez, J = 2000)",
+            "mil": "OpenCV TrackerMIL",
+        }[n]
+        lines.append(f"| {label} | {fs} | {ms:.2f} | {ratio:.2f} | {rss:.0f} |")
+    lines.append("")
+    if args.eval_dirs:
+        lines += ["## Accuracy (`torchtrack eval`, peers in the same run)", ""]
+        for d in args.eval_dirs:
+            if (d / "results.json").is_file():
+                lines.append(eval_section(d))
+    text = "\n".join(lines) + "\n"
+    from torchtrack.io.atomic import write_text_atomic
+
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(args.out, text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
