@@ -6,7 +6,7 @@ import torch
 from torchtrack.detect import load_detector, save_detector
 from torchtrack.detect.config import TrainConfig
 from torchtrack.detect.evaluate import crop_scores
-from torchtrack.detect.training import group_split, train_detector
+from torchtrack.detect.training import group_split, portable_config, train_detector
 from torchtrack.errors import DataError
 from torchtrack.io.crops import load_crops
 
@@ -51,6 +51,11 @@ def test_train_small_real_detector(car_folders, tmp_path):
     assert det.feature_index.numel() == 6
     # cars vs non-cars are separable enough that even 6 features rank well on held-out crops
     assert s["held_out"]["auc"] > 0.8
+    # the recorded config names data relative to the data root, no absolute path of this machine
+    data = s["config"]["data"]
+    assert data["positives"] == ["pos"] and data["negatives"] == ["neg"]
+    assert data["root"] == car_folders.name
+    assert str(car_folders) not in repr(s)
     # the model file reproduces the scores exactly
     path = save_detector(tmp_path / "car.safetensors", det)
     again = load_detector(path)
@@ -69,3 +74,20 @@ def test_empty_positive_folder(tmp_path, car_folders):
     cfg.data.positives = [str(tmp_path / "empty")]
     with pytest.raises(DataError, match="no usable image"):
         train_detector(cfg)
+
+
+def test_portable_config_paths_relative_to_the_data_root(tmp_path):
+    cfg = TrainConfig(name="p", window=[128, 64])
+    root = tmp_path / "data" / "detection_crops"
+    cfg.data.positives = [str(root / "inria" / "pos")]
+    cfg.data.negatives = [str(root / "uiuc" / "TrainImages" / "neg-*.pgm")]
+    cfg.data.negative_images = [str(root / "scenes"), str(root / "scenes" / "a.jpg")]
+    cfg.data.exclude = [str(tmp_path / "configs" / "splits" / "test.txt")]
+    d = portable_config(cfg)["data"]
+    assert d["root"] == "detection_crops"
+    assert d["positives"] == ["inria/pos"]
+    assert d["negatives"] == ["uiuc/TrainImages/neg-*.pgm"]
+    assert d["negative_images"] == ["scenes", "scenes/a.jpg"]
+    assert d["exclude"] == ["test.txt"]
+    assert str(tmp_path) not in repr(d)
+    assert cfg.data.positives == [str(root / "inria" / "pos")]  # the config itself is unchanged

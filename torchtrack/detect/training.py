@@ -19,6 +19,7 @@ Steps of :func:`train_detector`:
 from __future__ import annotations
 
 import gc
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -49,6 +50,7 @@ __all__ = [
     "group_split",
     "load_training_data",
     "mine_hard_negatives",
+    "portable_config",
     "train_detector",
 ]
 
@@ -184,6 +186,40 @@ def group_split(
     out = torch.tensor([k in held for k in keys], dtype=torch.bool)
     idx = torch.arange(len(keys))
     return idx[~out], idx[out]
+
+
+def _data_root(cfg: TrainConfig) -> str | None:
+    """The deepest folder holding every data entry of ``cfg.data`` (None without entries)."""
+    d = cfg.data
+    entries = [str(p) for p in (*d.positives, *d.negatives, *d.negative_images)]
+    if not entries:
+        return None
+    return os.path.commonpath([os.path.dirname(os.path.abspath(p)) for p in entries])
+
+
+def _relative_to(path: str, root: str | None) -> str:
+    if root is None or not os.path.isabs(path):
+        return path
+    return Path(os.path.relpath(path, root)).as_posix()
+
+
+def portable_config(cfg: TrainConfig) -> dict[str, Any]:
+    """``cfg.to_dict()`` without this machine's absolute paths (for the model's summary).
+
+    The data entries (``positives``, ``negatives``, ``negative_images``) become relative to the
+    data root, the deepest folder that holds all of them (for the shipped configs
+    ``detection_crops``), recorded by name as ``data.root``; the ``exclude`` lists are recorded
+    by file name (they live in ``configs/splits``).
+    """
+    out = cfg.to_dict()
+    d = out["data"]
+    root = _data_root(cfg)
+    if root is not None:
+        for k in ("positives", "negatives", "negative_images"):
+            d[k] = [_relative_to(os.path.abspath(p), root) for p in d[k]]
+        d["root"] = Path(root).name
+    d["exclude"] = [Path(p).name for p in d["exclude"]]
+    return out
 
 
 def _whole_boxes(n: int, window: tuple[int, int]) -> torch.Tensor:
@@ -347,7 +383,7 @@ def train_detector(
     p_ca_prob = calibrator.predict_proba(m_ca.double())
     cal_metrics = calibration_metrics(p_ca_prob, y_ca.long())
     summary: dict[str, Any] = {
-        "config": cfg.to_dict(),
+        "config": portable_config(cfg),
         "counts": {
             "positives_train": int(pos_tr.shape[0]),
             "negatives_train": int(neg_tr.shape[0]),
@@ -358,7 +394,8 @@ def train_detector(
             "resized_crops": data.positives.resized + data.negatives.resized,
         },
         "calibration_sources": sorted(
-            {_group_key(data.positives.sources[i]) for i in p_ca.tolist()}
+            _relative_to(k, _data_root(cfg))
+            for k in {_group_key(data.positives.sources[i]) for i in p_ca.tolist()}
             | {_group_key(data.negatives.sources[i]) for i in n_ca.tolist()}
         ),
         "excluded_lists": [Path(p).name for p in cfg.data.exclude],
