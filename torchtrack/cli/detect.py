@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 results = scan_batch(det, frames, **scan_kw)
             except ShapeError as exc:
-                if src.kind == "files" and len(files or []) > 1 and not args.strict:
+                if files is not None and len(files) > 1 and not args.strict:
                     # one small image in a folder: skip it like an unreadable one
                     for i, _ in pending:
                         skipped.append((i, str(exc)))
