@@ -59,6 +59,7 @@ BUILTIN_TRACKER_MODULES: list[str] = [
     "torchtrack.track.cotrain",
     "torchtrack.track.adaptive_haar",
     "torchtrack.track.template",
+    "torchtrack.track.fused",
 ]
 
 

@@ -1,0 +1,348 @@
+"""The design card's combination, registered as ``fused``: one particle filter whose weight is
+the product of an offline class detector's calibrated probability and the online co-trained
+pixel likelihood.
+
+    log w(X) = a log max(P_det(X), det_floor) + b log L_cot(X)
+
+* ``P_det``: the detector's Platt-calibrated probability of the particle's detector window
+  (Chateau et al.; :class:`~torchtrack.observe.detector.DetectorObservation`), the window being
+  ``c + s W`` as in the ``detector`` tracker (same state, AR dynamics, context choice; this
+  class extends :class:`~torchtrack.track.detector_pf.DetectorTracker`).
+* ``L_cot``: Jin et al.'s eq. (13) on the co-trained colour/texture pixel classifiers
+  (:class:`~torchtrack.learn.cotrain.CoTrainer`): the mean positive fused confidence in the
+  particle's object box (the window sum of
+  :class:`~torchtrack.observe.cotrain.CoTrainLikelihood` over the box area, floored at
+  ``cot_floor``) times the Gaussian gate around the previous estimate (sigma ``gate_scale``
+  times the box). The classifiers are updated on the blob they find, as in the ``cotrain``
+  tracker.
+* ``a = det_weight``, ``b = cotrain_weight`` set each term's strength (``b = 0``: the detector
+  filter alone; ``a = 0``: the co-training likelihood alone on the same filter).
+
+Why calibration matters. A product of likelihoods is only meaningful if each factor is a
+likelihood on a fixed scale: the calibrated ``P_det`` is a probability that is ~0 for
+background windows and near 1 on the object in every frame, so its log adds a fixed-scale
+evidence term to the co-training term. ``calibration = "raw"`` replaces it with the
+uncalibrated margin rescaled to [0, 1] over the frame's particles (min-max): the best particle
+of every frame gets 1 and the worst 0 whatever the detector sees, so the factor no longer says
+whether the object is there and its weight against the co-training term changes from frame to
+frame (see ``tools/bench_fused.py``).
+
+Visibility: visible when (``a > 0``) the mean calibrated probability of the particles is at
+least ``visible_threshold`` and (``b > 0``) the co-trained classifiers find a blob.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from torchtrack.errors import ConfigError
+from torchtrack.features.haar import haar_features_at, integrals
+from torchtrack.filter.sir import sir_step
+from torchtrack.learn.cotrain import CoTrainer, region_around
+from torchtrack.observe.cotrain import CoTrainLikelihood
+from torchtrack.observe.detector import scorable_boxes
+from torchtrack.track.base import TrackState, register_tracker
+from torchtrack.track.config import apply_overrides, load_tracker_config
+from torchtrack.track.detector_pf import DetectorTracker
+
+__all__ = ["FusedTracker", "FusedTrackerConfig", "fused_log_weights", "minmax_rescale"]
+
+CALIBRATIONS = ("platt", "raw")
+
+
+@dataclass
+class FusedTrackerConfig:
+    """Every parameter of the fused tracker.
+
+    Attributes:
+        model: detector: bundled name (``pedestrian``, ``vehicle``) or a model file.
+        det_weight: a, strength of the detector term.
+        cotrain_weight: b, strength of the co-training term.
+        calibration: ``platt`` (the detector's calibrated probability) or ``raw`` (the
+            uncalibrated margin min-max rescaled over the frame's particles; for the ablation).
+        n_particles: particles.
+        det_floor: smallest detector likelihood (keeps logs finite).
+        cot_floor: smallest mean positive co-training confidence of a box.
+        gate_scale: gate sigma of eq. (13) as a fraction of the box (w, h).
+        search_scale: co-training candidate region = this times the box.
+        visible_threshold: smallest mean detector probability of the particles for a visible
+            target (as the ``detector`` tracker).
+        context, context_candidates: detector window over object box height (0: chosen on the
+            first frame), as the ``detector`` tracker.
+        dynamics: AR dynamics TOML (empty: the shipped fit).
+        estimator, resample: particle-filter estimate and resampling scheme.
+        cotrain_mode: ``cotrain`` or ``self`` (pixel classifier).
+        n_selectors, n_candidates: online boosting sizes of each pixel classifier.
+    """
+
+    model: str = "pedestrian"
+    det_weight: float = 1.0
+    cotrain_weight: float = 1.0
+    calibration: str = "platt"
+    n_particles: int = 300
+    det_floor: float = 1e-6
+    cot_floor: float = 1e-4
+    gate_scale: float = 1.0
+    search_scale: float = 2.0
+    visible_threshold: float = 0.25
+    context: float = 0.0
+    context_candidates: list[float] = field(
+        default_factory=lambda: [1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6]
+    )
+    dynamics: str = ""
+    estimator: str = "mean"
+    resample: str = "systematic"
+    cotrain_mode: str = "cotrain"
+    n_selectors: int = 10
+    n_candidates: int = 4
+
+    def validate(self) -> None:
+        from torchtrack.filter.resample import RESAMPLERS
+        from torchtrack.filter.sir import ESTIMATORS
+
+        for k in ("det_weight", "cotrain_weight"):
+            if not getattr(self, k) >= 0:
+                raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
+        if self.det_weight == 0 and self.cotrain_weight == 0:
+            raise ConfigError("det_weight and cotrain_weight are both 0: no likelihood left")
+        if self.calibration not in CALIBRATIONS:
+            raise ConfigError(
+                f"calibration must be one of {', '.join(CALIBRATIONS)}, got {self.calibration!r}"
+            )
+        for k in ("n_particles", "n_selectors", "n_candidates"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+        for k in ("det_floor", "cot_floor", "gate_scale"):
+            if not getattr(self, k) > 0:
+                raise ConfigError(f"{k} must be > 0, got {getattr(self, k)}")
+        if not self.search_scale >= 1:
+            raise ConfigError(f"search_scale must be >= 1, got {self.search_scale}")
+        if not 0 <= self.visible_threshold <= 1:
+            raise ConfigError(f"visible_threshold must be in [0, 1], got {self.visible_threshold}")
+        if self.context != 0 and not self.context > 0:
+            raise ConfigError(f"context must be > 0 (or 0 to choose it), got {self.context}")
+        if self.estimator not in ESTIMATORS:
+            raise ConfigError(f"unknown estimator {self.estimator!r}")
+        if self.resample not in RESAMPLERS:
+            raise ConfigError(f"unknown resampling scheme {self.resample!r}")
+        if self.cotrain_mode not in ("cotrain", "self"):
+            raise ConfigError(f"cotrain_mode must be cotrain or self, got {self.cotrain_mode!r}")
+
+
+def minmax_rescale(x: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` -> ``(B, N)`` rescaled to [0, 1] per row over its finite entries (non-finite
+    entries become 0; a constant row becomes all ones)."""
+    fin = torch.isfinite(x)
+    lo = torch.where(fin, x, torch.full_like(x, math.inf)).min(1, keepdim=True).values
+    hi = torch.where(fin, x, torch.full_like(x, -math.inf)).max(1, keepdim=True).values
+    span = hi - lo
+    y = torch.where(span > 0, (x - lo) / span.clamp_min(1e-300), torch.ones_like(x))
+    return torch.where(fin, y, torch.zeros_like(x))
+
+
+def fused_log_weights(
+    p_det: torch.Tensor,
+    log_cot: torch.Tensor,
+    det_weight: float,
+    cotrain_weight: float,
+    det_floor: float = 1e-6,
+) -> torch.Tensor:
+    """``a log max(p_det, floor) + b log_cot``: ``(B, N)`` float64. A zero weight drops its term
+    entirely (also its -inf entries)."""
+    out = torch.zeros(p_det.shape, dtype=torch.float64)
+    if det_weight > 0:
+        out = out + det_weight * p_det.to(torch.float64).clamp_min(det_floor).log()
+    if cotrain_weight > 0:
+        out = out + cotrain_weight * log_cot.to(torch.float64)
+    return out
+
+
+@register_tracker(
+    "fused",
+    description="design card: calibrated class detector x online co-trained pixel likelihood "
+    "in one particle filter (det_weight, cotrain_weight, calibration=platt|raw)",
+)
+class FusedTracker(DetectorTracker):
+    """Calibrated detector x co-trained pixel likelihood particle filter (see module doc).
+
+    Args:
+        model: a Detector, a bundled model name or a model file (overrides ``config.model``).
+        config: a :class:`FusedTrackerConfig` or a TOML file of one.
+        generator: the source of randomness.
+        **overrides: any :class:`FusedTrackerConfig` field.
+
+    Attributes:
+        history: per frame after the first: ``p_mean`` (mean detector probability),
+            ``blob`` (the co-trained classifiers found the object), ``accepted``.
+
+    Example::
+
+        tracker = FusedTracker("pedestrian", det_weight=1.0, cotrain_weight=0.5)
+        state = tracker.init(frame, (x, y, w, h))
+        state = tracker.update(next_frame)
+    """
+
+    name = "fused"
+    max_targets = 1
+    auto_init = False
+
+    def __init__(
+        self,
+        model: Any = None,
+        config: FusedTrackerConfig | str | os.PathLike | None = None,
+        generator: torch.Generator | None = None,
+        **overrides: Any,
+    ) -> None:
+        if config is None:
+            cfg = FusedTrackerConfig()
+        elif isinstance(config, FusedTrackerConfig):
+            cfg = config
+        else:
+            cfg = load_tracker_config(config, FusedTrackerConfig)
+        if overrides:
+            cfg = apply_overrides(cfg, overrides, where="fused tracker")
+        else:
+            cfg.validate()
+        if model is not None and isinstance(model, (str, os.PathLike)):
+            cfg = apply_overrides(cfg, {"model": os.fspath(model)}, where="fused tracker")
+            model = None
+        super().__init__(
+            model=model if model is not None else cfg.model,
+            generator=generator,
+            n_particles=cfg.n_particles,
+            likelihood_floor=cfg.det_floor,
+            visible_threshold=cfg.visible_threshold,
+            context=cfg.context,
+            context_candidates=list(cfg.context_candidates),
+            dynamics=cfg.dynamics,
+            estimator=cfg.estimator,
+            resample=cfg.resample,
+        )
+        self.fused_config = cfg
+        self.trainer = CoTrainer(
+            mode=cfg.cotrain_mode, n_selectors=cfg.n_selectors, n_candidates=cfg.n_candidates
+        )
+        self.history: list[dict[str, Any]] = []
+        self._size: tuple[float, float] | None = None
+        self._centre: tuple[float, float] | None = None
+
+    # -- terms ---------------------------------------------------------------------------------
+    def margins(self, frame: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
+        """Uncalibrated detector margins ``(B, N)`` of ``windows (B, N, 4)`` (``-inf`` for
+        windows that cannot be scored)."""
+        b, n = windows.shape[:2]
+        fh, fw = int(frame.shape[-2]), int(frame.shape[-1])
+        w = windows.reshape(1, b * n, 4).to(torch.float64)
+        ok = scorable_boxes(w, (fh, fw))
+        safe = torch.where(ok.unsqueeze(-1), w, w.new_tensor([0.0, 0.0, 1.0, 1.0]))
+        det = self.detector
+        feats = haar_features_at(
+            integrals(frame[None]), safe, det.bank, det.feature_index, check=False
+        )
+        m = det.margin_from_features(feats).to(torch.float64)
+        m = torch.where(ok, m, torch.full_like(m, -math.inf))
+        return m.reshape(b, n)
+
+    def detector_term(self, frame: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
+        """``P_det (B, N)``: calibrated probabilities, or min-max rescaled raw margins."""
+        wins = self.window_boxes(states)
+        if self.fused_config.calibration == "platt":
+            return self._probabilities(frame, wins)
+        return minmax_rescale(self.margins(frame, wins))
+
+    def cotrain_term(self, maps, states: torch.Tensor) -> torch.Tensor:
+        """``log L_cot (B, N)``: log mean positive confidence in the object box (floored) minus
+        the gate's squared distance / 2."""
+        cfg = self.fused_config
+        size = self._size
+        if maps is None:  # the region left the frame: no co-training evidence
+            return torch.zeros(states.shape[:2], dtype=torch.float64)
+        gate = (cfg.gate_scale * size[0], cfg.gate_scale * size[1])
+        lik = CoTrainLikelihood(maps.opened, maps.region[:2], size, self._centre, gate)
+        acc = lik.accumulated(states) / max(size[0] * size[1], 1.0)
+        dx = (states[..., 0].to(torch.float64) - self._centre[0]) / gate[0]
+        dy = (states[..., 1].to(torch.float64) - self._centre[1]) / gate[1]
+        return acc.clamp_min(cfg.cot_floor).log() - 0.5 * (dx * dx + dy * dy)
+
+    # -- Tracker API ---------------------------------------------------------------------------
+    def _init(self, frame: torch.Tensor, boxes: torch.Tensor | None) -> TrackState:
+        st = super()._init(frame, boxes)
+        x, y, w, h = (float(v) for v in st.box[0])
+        self._size = (w, h)
+        self._centre = (x + w / 2, y + h / 2)
+        self.history = []
+        if self.fused_config.cotrain_weight > 0:
+            region = region_around(
+                self._centre, self._size, self.fused_config.search_scale, self.frame_size
+            )
+            if region is None:
+                raise ConfigError(f"init box {st.box[0].tolist()} leaves no region to learn from")
+            self.trainer.init(frame, (x, y, w, h), region, self.generator)
+        return st
+
+    def _update(self, frame: torch.Tensor) -> TrackState:
+        cfg = self.fused_config
+        maps = None
+        if cfg.cotrain_weight > 0:
+            region = region_around(self._centre, self._size, cfg.search_scale, self.frame_size)
+            maps = self.trainer.score(frame, region) if region is not None else None
+        hold: dict[str, torch.Tensor] = {}
+
+        def log_likelihood(states: torch.Tensor) -> torch.Tensor:
+            p = self.detector_term(frame, states) if cfg.det_weight > 0 else None
+            if cfg.det_weight > 0 and cfg.calibration == "raw":
+                hold["p"] = self._probabilities(frame, self.window_boxes(states))
+            elif p is not None:
+                hold["p"] = p
+            lc = self.cotrain_term(maps, states) if cfg.cotrain_weight > 0 else None
+            zeros = torch.zeros(states.shape[:2], dtype=torch.float64)
+            return fused_log_weights(
+                p if p is not None else zeros,
+                lc if lc is not None else zeros,
+                cfg.det_weight,
+                cfg.cotrain_weight,
+                cfg.det_floor,
+            ).to(states.dtype)
+
+        res = sir_step(
+            self._states,
+            self._log_w,
+            self.dynamics.predict,
+            log_likelihood,
+            scheme=cfg.resample,
+            estimator=cfg.estimator,
+            generator=self.generator,
+        )
+        self._states, self._log_w = res.states, res.log_weights
+        box = self.object_boxes(res.estimate[:, None])[:, 0]
+        x, y, w, h = (float(v) for v in box[0])
+        hh, ww = self.frame_size
+        self._size = (max(w, 1.0), max(h, 1.0))
+        self._centre = (min(max(x + w / 2, 0.0), ww - 1.0), min(max(y + h / 2, 0.0), hh - 1.0))
+        evidence = hold["p"].mean(1).to(torch.float64) if "p" in hold else torch.ones(1)
+        blob = None
+        accepted = False
+        if maps is not None:
+            blob = self.trainer.locate(maps)
+            if blob is not None:
+                accepted = self.trainer.update(maps, blob, self.generator)
+        visible = True
+        if cfg.det_weight > 0:
+            visible = visible and bool(evidence[0] >= cfg.visible_threshold)
+        if cfg.cotrain_weight > 0:
+            visible = visible and blob is not None
+        self.history.append(
+            {"p_mean": float(evidence[0]), "blob": blob is not None, "accepted": accepted}
+        )
+        return TrackState(
+            box=box.to(torch.float64),
+            confidence=evidence.to(torch.float64),
+            visible=torch.tensor([visible]),
+            particles=self._states,
+            log_weights=self._log_w,
+        )
