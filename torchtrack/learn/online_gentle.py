@@ -61,6 +61,12 @@ __all__ = [
 ]
 
 _EPS = 1e-12
+# Ties in the weighted error (common: with one positive, every feature on which it is the most
+# extreme sample separates it perfectly) go to the split in the widest gap: score + TIE * gap,
+# gap in units of the feature's standard deviation, capped at _MAX_GAP. TIE * _MAX_GAP is far
+# below any real difference of weighted error, so it only orders (near-)ties.
+_TIE = 1e-6
+_MAX_GAP = 10.0
 
 
 @dataclass
@@ -353,7 +359,16 @@ def _sorted_splits(x: torch.Tensor, valid: torch.Tensor):
     mid = (a.double() + b.double()).mul_(0.5).to(x.dtype)
     # Float rounding can put the midpoint on `a`; then `b` itself splits the two.
     thr = torch.where(mid > a, mid, b)
-    return order, thr, ok
+    # Margin of each split: the gap it sits in, in units of the feature's spread over the
+    # valid samples (used to break ties between splits of equal weighted error).
+    v = valid.unsqueeze(1).to(x.dtype)  # (M, 1, S)
+    xt = torch.where(v > 0, x.transpose(1, 2), torch.zeros((), dtype=x.dtype))
+    cnt = v.sum(2).clamp_min(1)
+    mean = xt.sum(2) / cnt
+    var = ((xt - mean.unsqueeze(2)) ** 2 * v).sum(2) / cnt
+    spread = var.sqrt().clamp_min(1e-6).unsqueeze(2)
+    gap = torch.where(ok, (b - a) / spread, torch.zeros((), dtype=x.dtype))
+    return order, thr, ok, gap.clamp_(max=_MAX_GAP)
 
 
 def fit_gentle(
@@ -416,7 +431,7 @@ def fit_gentle(
     n_rounds = n_stumps - int(slot.min()) if m else 0
     if n_rounds <= 0:
         return ens, w
-    order, thr, ok = _sorted_splits(x, valid)
+    order, thr, ok, gap = _sorted_splits(x, valid)
     quota = n_stumps // 4
     rows = torch.arange(m, device=dev)
     neg_inf = torch.tensor(-math.inf, dtype=x.dtype, device=dev)
@@ -436,7 +451,7 @@ def fit_gentle(
         a_l = sl / wl.clamp_min(_EPS)
         a_r = sr / wr.clamp_min(_EPS)
         cand = ok & allowed.unsqueeze(2) & (a_l * a_r < 0) & (wl > _EPS) & (wr > _EPS)
-        score = torch.where(cand, sl * a_l + sr * a_r, neg_inf).view(m, -1)
+        score = torch.where(cand, sl * a_l + sr * a_r + _TIE * gap, neg_inf).view(m, -1)
         best = score.argmax(1)
         found = cand.view(m, -1)[rows, best] & todo
         if not bool(found.any()):

@@ -104,7 +104,7 @@ class AdaptiveHaarConfig:
     neg_max: int = 100
     first_weight: float = 5.0
     n_best: int = 10
-    neg_candidates: int = 50
+    neg_candidates: int = 200
     neg_iou: float = 0.3
     visible_threshold: float = 0.6
     grids: list[int] | None = None
