@@ -132,8 +132,8 @@ class DetectorObservation:
         y0 = torch.where(ok, y.clamp(0, fh), big).min()
         x1 = torch.where(ok, (x + w).clamp(0, fw), -big).max()
         y1 = torch.where(ok, (y + h).clamp(0, fh), -big).max()
-        ix0, iy0 = int(math.floor(float(x0))), int(math.floor(float(y0)))
-        ix1, iy1 = int(math.ceil(float(x1))), int(math.ceil(float(y1)))
+        ix0, iy0 = math.floor(float(x0)), math.floor(float(y0))
+        ix1, iy1 = math.ceil(float(x1)), math.ceil(float(y1))
         ix1, iy1 = max(ix1, ix0 + 1), max(iy1, iy0 + 1)
         sub = frames[:, :, iy0:iy1, ix0:ix1]
         shift = boxes.new_tensor([float(ix0), float(iy0), 0.0, 0.0])

@@ -159,7 +159,7 @@ def region_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int) -
     out = torch.zeros((b, n, n_bins), dtype=torch.float32)
     for i in range(b):
         for j in range(n):
-            x, y, w, h = (int(round(float(v))) for v in boxes[i, j])
+            x, y, w, h = (round(float(v)) for v in boxes[i, j])
             x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + w, fw), min(y + h, fh)
             if x1 <= x0 or y1 <= y0:
                 continue
