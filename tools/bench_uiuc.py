@@ -122,30 +122,51 @@ def recall_at_eer(labels: np.ndarray, n_objects: int) -> tuple[float, int, int]:
     return tp / n_objects, tp, k - tp
 
 
+def _scan_image(job: tuple) -> tuple[list[tuple[float, int, tuple[float, ...]]], float]:
+    """Scan one test image (runs in a worker process with one torch thread)."""
+    model, folder, i, multi, kw = job
+    torch.set_num_threads(1)
+    det = _DETS.get(model) or _DETS.setdefault(model, load_model(model))
+    img = read_gray(Path(folder) / f"test-{i}.pgm")
+    if img is None:
+        raise SystemExit(f"cannot read {Path(folder) / f'test-{i}.pgm'}")
+    t0 = time.perf_counter()
+    boxes, scores = scan(det, torch.from_numpy(img)[None], **kw)
+    dt = time.perf_counter() - t0
+    out = []
+    for b, sc in zip(boxes.tolist(), scores.tolist(), strict=True):
+        x, y, w, _ = b
+        out.append((sc, i, (y, x, w) if multi else (y, x)))
+    return out, dt
+
+
+_DETS: dict = {}
+
+
 def run_set(det, car_data: Path, multi: bool, args) -> dict:
+    from multiprocessing import get_context
+
     folder = car_data / ("TestImages_Scale" if multi else "TestImages")
     truth = parse_truth(car_data / ("trueLocations_Scale.txt" if multi else "trueLocations.txt"))
     wh, ww = det.window
-    dets: list[tuple[float, int, tuple[float, ...]]] = []
-    times = []
-    for i in range(len(truth)):
-        img = read_gray(folder / f"test-{i}.pgm")
-        if img is None:
-            raise SystemExit(f"cannot read {folder / f'test-{i}.pgm'}")
-        frame = torch.from_numpy(img)[None]
-        kw = (
+    kw = {
+        "threshold": args.min_prob,
+        "stride": args.stride,
+        "nms_iou": args.nms_iou,
+        **(
             {"min_scale": args.min_width / ww, "scale_step": args.scale_step}
             if multi
             else {"min_scale": 1.0, "max_scale": 1.0}
-        )
-        t0 = time.perf_counter()
-        boxes, scores = scan(
-            det, frame, threshold=args.min_prob, stride=args.stride, nms_iou=args.nms_iou, **kw
-        )
-        times.append(time.perf_counter() - t0)
-        for b, s in zip(boxes.tolist(), scores.tolist(), strict=True):
-            x, y, w, _ = b
-            dets.append((s, i, (y, x, w) if multi else (y, x)))
+        ),
+    }
+    jobs = [(args.model, str(folder), i, multi, kw) for i in range(len(truth))]
+    if args.jobs > 1:
+        with get_context("spawn").Pool(args.jobs) as pool:
+            res = pool.map(_scan_image, jobs, chunksize=1)
+    else:
+        res = [_scan_image(j) for j in jobs]
+    dets = [d for r in res for d in r[0]]
+    times = [r[1] for r in res]
     n_obj = sum(len(t) for t in truth)
     labels = match_detections(dets, truth, (wh, ww))
     rec, tp, fp = recall_at_eer(labels, n_obj)
@@ -184,9 +205,9 @@ def main() -> None:
     ap.add_argument("--min-width", type=float, default=80.0, help="smallest car width scanned")
     ap.add_argument("--nms-iou", type=float, default=0.3)
     ap.add_argument("--min-prob", type=float, default=1e-3, help="drop windows below this")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (1 thread each)")
     ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/uiuc.md")
     args = ap.parse_args()
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     det = load_model(args.model)
     rows = [run_set(det, args.data, s == "multi", args) for s in args.sets]
     cmd = "python tools/bench_uiuc.py " + " ".join(sys.argv[1:])
