@@ -39,7 +39,7 @@ def register(subparsers) -> None:
         description=(
             "Train a detector (Chateau et al. 2006): Haar wavelets from integral images, "
             "AdaBoost feature selection, an AdaBoost or SVM classifier, and Platt (or isotonic) "
-            "calibration on a held-out 30%% of the crops. Writes one model file "
+            "calibration on a held-out 30% of the crops. Writes one model file "
             "(safetensors tensors + JSON metadata, no pickle)."
         ),
         epilog=_EPILOG,
