@@ -139,8 +139,9 @@ def write_readme(models_dir: Path) -> Path:
         "",
         "Usable by name wherever a model path is accepted (`torchtrack detect pedestrian ...`,",
         '`torchtrack.detect.bundled.load_model("vehicle")`). Both are Chateau et al. (2006)',
-        "detectors: Haar wavelets from integral images, 40 AdaBoost-selected features, discrete",
-        "AdaBoost on them, Platt calibration on a 30% hold-out. This file is written by",
+        "detectors: Haar wavelets from integral images, 40 AdaBoost-selected features, boosted",
+        "stumps on them (variant and rounds per model below), Platt calibration on a 30% hold-out.",
+        "This file is written by",
         "`python train/default_models.py` from the models' own metadata.",
         "",
         "Rebuild both (about 25 minutes on 2 busy cores; the seed fixes every random draw):",
@@ -161,7 +162,8 @@ def write_readme(models_dir: Path) -> Path:
             f"* Recipe: `torchtrack train --config configs/{meta['name']}.toml -o {f.name}` "
             f"(via `train/default_models.py`), seed {c['seed']}, window {c['window'][0]}x"
             f"{c['window'][1]} (HxW), {lr['n_features']} features, {lr['classifier']} "
-            f"({lr['variant']}), {lr['calibration']} calibration on {lr['calibration_fraction']:.0%}"
+            f"({lr['variant']}, {lr.get('n_estimators') or lr['n_features']} rounds), "
+            f"{lr['calibration']} calibration on {lr['calibration_fraction']:.0%}"
             f" of the crops, {mi['rounds']} hard-negative mining round(s) of {mi['per_round']}.",
             "* Positives: "
             + ", ".join(f"`{_rel(p, d.get('root'))}`" for p in d["positives"])
