@@ -35,6 +35,25 @@ PAPER = {"adaptive-haar:adapt=none": 48.97, "adaptive-haar:adapt=global": 75.02,
          "adaptive-haar:adapt=per-particle": 56.33}  # fmt: skip
 
 
+NOTES = """## Notes
+
+* Implementation: `torchtrack/features/centre_surround.py` (539 features: 7 RGB channel
+  subsets x (6x6 + 5x5 + 4x4) centre grids, centre sides 0.12 / 0.2 / 0.3 of the box,
+  surround twice the centre side; bilinear integral-image reads), `torchtrack/learn/online_gentle.py`
+  (Gentle AdaBoost, quarter constraint, no repeats, sec. III-B adaptation),
+  `torchtrack/observe/adaptive_haar.py` (eq. 3), `torchtrack/track/adaptive_haar.py`.
+* Where the paper is silent we chose: the pool layout above; confidence
+  `C = (F - F_min) / (F_max - F_min)` (margin over its attainable range); first positive
+  weighted 5x; negatives = random boxes of the target's size with IoU < 0.3; strong negatives =
+  the 2 best-scored of 200 random boxes; ties in weighted error broken by the widest margin;
+  "meaningful" threshold = the two stump outputs have opposite signs.
+* Visibility: `confidence` = confidence of the best particle (the paper's Fig. 4 curve);
+  `visible = confidence >= 0.6` (theta, the same rule that stops adaptation). The
+  "visible on absent frames" column is the share of BoBoT's 23 no-ground-truth (fully
+  occluded) frames on which the tracker still said visible.
+"""
+
+
 def _peak_rss_mb() -> float:
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
@@ -169,6 +188,7 @@ def render(args, spd: dict[str, dict], cmd: str) -> str:
                 f"| {spec} | {d['ms']:.1f} | {1000 / d['ms']:.1f} | {ratios} | {d['rss']:.0f} |"
             )
         lines.append("")
+    lines.append(NOTES)
     return "\n".join(lines)
 
 

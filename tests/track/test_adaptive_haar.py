@@ -1,0 +1,139 @@
+import math
+
+import pytest
+import torch
+
+from torchtrack.boxes import box_iou
+from torchtrack.errors import ConfigError
+from torchtrack.io.sequences import load_sequence
+from torchtrack.track.adaptive_haar import AdaptiveHaarConfig, AdaptiveHaarTracker
+from torchtrack.track.base import create_tracker
+
+
+def _bobot(data_dir, start, stop):
+    seq = load_sequence(data_dir / "tracking" / "bobot_pedestrian")[0]
+    src = seq.open("rgb")
+    frames = []
+    for i, fr in src.items():
+        if i >= stop:
+            break
+        if i >= start:
+            frames.append(fr)
+    src.close()
+    return frames, seq.boxes[start:stop]
+
+
+def _toy_frames(n=4):
+    g = torch.Generator().manual_seed(0)
+    bg = torch.randint(0, 256, (3, 60, 80), dtype=torch.uint8, generator=g)
+    frames = []
+    for t in range(n):
+        f = bg.clone()
+        f[0, 20:40, 20 + t : 35 + t] = 250  # a red block moving right
+        f[1:, 20:40, 20 + t : 35 + t] = 10
+        frames.append(f)
+    return frames
+
+
+def test_registry_config_and_errors(tmp_path):
+    t = create_tracker("adaptive-haar", adapt="none", n_particles=50)
+    assert isinstance(t, AdaptiveHaarTracker) and t.config.adapt == "none"
+    assert len(t.pool) == 539 and AdaptiveHaarConfig().n_particles == 2000
+    with pytest.raises(ConfigError, match="adapt must be one of"):
+        AdaptiveHaarTracker(adapt="sometimes")
+    with pytest.raises(ConfigError, match="unknown key"):
+        AdaptiveHaarTracker(particles=10)
+    with pytest.raises(ConfigError, match="multiple of 4"):
+        AdaptiveHaarTracker(n_weak=30)
+    cfg = tmp_path / "k.toml"
+    cfg.write_text('adapt = "per-particle"\nn_particles = 64\n')
+    assert AdaptiveHaarTracker(config=cfg).config.adapt == "per-particle"
+    cfg.write_text("lambda = 3\n")
+    with pytest.raises(ConfigError, match="unknown key"):
+        AdaptiveHaarTracker(config=cfg)
+
+
+@pytest.mark.parametrize("adapt", ["none", "global", "per-particle"])
+def test_modes_on_a_toy_sequence_batched_targets(adapt):
+    frames = _toy_frames()
+    tr = AdaptiveHaarTracker(
+        adapt=adapt, n_particles=200, generator=torch.Generator().manual_seed(1)
+    )
+    boxes = torch.tensor([[20.0, 20.0, 15.0, 20.0], [50.0, 30.0, 12.0, 12.0]])
+    st = tr.init(frames[0], boxes)
+    assert st.box.shape == (2, 4) and bool(st.visible.all())
+    feats0 = tr.ensemble.feature.clone()
+    for f in frames[1:]:
+        st = tr.update(f)
+    assert st.box.shape == (2, 4) and st.confidence.shape == (2,)
+    assert bool(((st.confidence >= 0) & (st.confidence <= 1)).all())
+    assert float(box_iou(st.box[0], torch.tensor([23.0, 20.0, 15.0, 20.0]))) > 0.5
+    assert tr.model.shape == (2, 200) and int(tr.model.max()) < tr.ensemble.n_models
+    if adapt == "none":
+        assert torch.equal(tr.ensemble.feature, feats0)  # never adapted
+        assert tr.training is None
+    if adapt == "per-particle":
+        # each target's particles carry only that target's classifiers
+        assert not set(tr.model[0].tolist()) & set(tr.model[1].tolist())
+
+
+def test_no_adaptation_below_theta():
+    frames = _toy_frames()
+    tr = AdaptiveHaarTracker(n_particles=100, theta=1.0, generator=torch.Generator().manual_seed(2))
+    tr.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
+    before = (tr.ensemble.right.clone(), tr.training.x.clone())
+    for f in frames[1:]:
+        tr.update(f)
+        # a confidence of exactly 1 is the only one allowed to adapt with theta = 1
+        if not bool(tr.adapted.any()):
+            assert torch.equal(tr.training.x, before[1])
+    tr2 = AdaptiveHaarTracker(
+        n_particles=100, theta=0.0, generator=torch.Generator().manual_seed(2)
+    )
+    tr2.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
+    tr2.update(frames[1])
+    assert bool(tr2.adapted.all())
+    assert int(tr2.training.valid[0, : tr2.config.pos_max].sum()) == 2
+    assert int((tr2.training.age[0, tr2.config.pos_max :] == 1).sum()) == math.ceil(100 / 50)
+
+
+def test_same_seed_same_track():
+    frames = _toy_frames(3)
+    runs = []
+    for _ in range(2):
+        tr = AdaptiveHaarTracker(n_particles=100, generator=torch.Generator().manual_seed(5))
+        tr.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
+        runs.append([tr.update(f).box for f in frames[1:]])
+    for a, b in zip(*runs, strict=True):
+        torch.testing.assert_close(a, b)
+
+
+def test_gray_frames():
+    frames = [f[:1].contiguous() for f in _toy_frames(3)]
+    tr = AdaptiveHaarTracker(n_particles=100, generator=torch.Generator().manual_seed(3))
+    tr.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
+    for f in frames[1:]:
+        st = tr.update(f)
+    assert bool(torch.isfinite(st.box).all())
+
+
+def test_bobot_first_frames_global(data_dir):
+    """Real data: 30 frames of BoBoT (Klein et al.'s sequence I): mean IoU above 0.7."""
+    frames, gt = _bobot(data_dir, 0, 30)
+    tr = AdaptiveHaarTracker(generator=torch.Generator().manual_seed(0))
+    tr.init(frames[0], gt[0])
+    ious = [float(box_iou(tr.update(f).box[0], g)) for f, g in zip(frames[1:], gt[1:], strict=True)]
+    assert sum(ious) / len(ious) > 0.7
+    assert bool(tr.adapted.all())
+
+
+def test_bobot_full_occlusion_is_reported_not_visible(data_dir):
+    """BoBoT frames 673-687 (0-based) have no ground truth: the target is fully occluded. The
+    best particle's confidence drops below theta there and the track says not visible."""
+    frames, gt = _bobot(data_dir, 640, 690)
+    tr = AdaptiveHaarTracker(n_particles=1000, generator=torch.Generator().manual_seed(0))
+    tr.init(frames[0], gt[0])
+    vis = [bool(tr.update(f).visible[0]) for f in frames[1:]]
+    absent = [v for v, g in zip(vis, gt[1:], strict=True) if not bool(torch.isfinite(g).all())]
+    assert len(absent) == 15
+    assert sum(absent) <= 2
