@@ -131,7 +131,15 @@ def render(runs: list[tuple[str, Path, list[str]]], data: Path, command: str) ->
     ]
     for row in lost_rows:
         lines.append("| " + " | ".join(str(x) for x in row) + " |")
-    lines.append("")
+    lines += [
+        "",
+        "One seed per run; with `--max-frames` only the first frames of each sequence are "
+        "tracked, so the counts above are indicative (short runs, single seed), not a "
+        "significance test. The raw-margin variant keeps the same ranking of windows within a "
+        "frame as the calibrated one (Platt is monotone), so differences come from the scale: "
+        "min-max rescaling always gives the frame's best window 1 whatever the detector sees.",
+        "",
+    ]
     return "\n".join(lines)
 
 
