@@ -482,7 +482,7 @@ def summarise(
 
     summary: dict = {
         "command": command,
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "versions": {"torchtrack": __version__, "torch": torch.__version__, "cv2": cv2.__version__},
         "settings": {"invisible": invisible, "seed": seed, "break_px": BREAK_PX},
         "sequences": [

@@ -186,10 +186,8 @@ def load_chateau_toml(
     Raises:
         ConfigError: unreadable TOML, unknown or missing keys, or bad matrix shapes.
     """
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
+    import tomllib
+
     try:
         with open(path, "rb") as f:
             data = tomllib.load(f)

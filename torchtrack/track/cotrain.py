@@ -21,6 +21,7 @@ defaults, and ``torchtrack track --tracker cotrain:resampler=sir,particles=500``
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -35,11 +36,6 @@ from torchtrack.filter.sir import StepResult, sir_step
 from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
 from torchtrack.track.base import Tracker, TrackState, register_tracker
-
-try:  # Python 3.11+
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10 with the tomli backport
-    import tomli as tomllib  # type: ignore[no-redef]
 
 __all__ = ["CoTrainConfig", "CoTrainTracker", "load_cotrain_config"]
 
