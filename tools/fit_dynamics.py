@@ -1,7 +1,7 @@
 """Fit Chateau et al.'s AR dynamics (eq. 4) on the annotated tracks in shared/data.
 
 Usage:
-    python tools/fit_dynamics.py [--data ../shared/data/tracking] [--out configs/dynamics_chateau.toml]
+    python tools/fit_dynamics.py [--data ../shared/data/tracking] [--out torchtrack/data/dynamics_chateau.toml]
 
 Reads every OTB / BoBoT ground truth under ``--data`` (with ``torchtrack.io.sequences`` when it
 is available, else a small built-in parser), fits A, B, Sigma by least squares
@@ -75,7 +75,9 @@ def one_step_rms(a: torch.Tensor, track: torch.Tensor) -> torch.Tensor:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "tracking")
-    ap.add_argument("--out", type=Path, default=REPO / "configs" / "dynamics_chateau.toml")
+    ap.add_argument(
+        "--out", type=Path, default=REPO / "torchtrack" / "data" / "dynamics_chateau.toml"
+    )
     args = ap.parse_args(argv)
     tracks = load_tracks(args.data)
     fit = fit_chateau_dynamics(list(tracks.values()))

@@ -110,7 +110,7 @@ def test_toml_round_trip(tmp_path):
 def test_shipped_config_loads():
     from pathlib import Path
 
-    cfg = Path(__file__).resolve().parents[2] / "configs" / "dynamics_chateau.toml"
+    cfg = Path(__file__).resolve().parents[2] / "torchtrack" / "data" / "dynamics_chateau.toml"
     m = load_chateau_toml(cfg)
     # Real pedestrian / face / vehicle tracks: close to constant velocity or constant position.
     row = m.A[0]

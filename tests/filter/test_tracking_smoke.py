@@ -35,7 +35,7 @@ def test_models_follow_moving_targets(kind, step):
     elif kind == "chateau_fitted":
         from pathlib import Path
 
-        cfg = Path(__file__).resolve().parents[2] / "configs" / "dynamics_chateau.toml"
+        cfg = Path(__file__).resolve().parents[2] / "torchtrack" / "data" / "dynamics_chateau.toml"
         model = load_chateau_toml(cfg, window=(20.0, 40.0))
     else:
         model = BachooMotion(min_sigma=2.0)

@@ -1,4 +1,5 @@
-"""Small data files shipped with the package: the demo clip.
+"""Small data files shipped with the package: the demo clip and the fitted Chateau dynamics
+(``dynamics_chateau.toml``, made by ``tools/fit_dynamics.py``).
 
 Example::
 

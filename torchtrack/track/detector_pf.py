@@ -65,15 +65,10 @@ _PACKAGE = Path(__file__).resolve().parents[1]
 
 
 def default_dynamics_path() -> Path | None:
-    """The fitted Chateau dynamics shipped with torchtrack: ``torchtrack/data/`` in an
-    installed package, ``configs/`` in a source checkout; ``None`` if neither exists."""
-    for cand in (
-        _PACKAGE / "data" / "dynamics_chateau.toml",
-        _PACKAGE.parent / "configs" / "dynamics_chateau.toml",
-    ):
-        if cand.is_file():
-            return cand
-    return None
+    """The fitted Chateau dynamics shipped with torchtrack (``torchtrack/data/``, package
+    data, refitted by ``tools/fit_dynamics.py``); ``None`` if the file is missing."""
+    cand = _PACKAGE / "data" / "dynamics_chateau.toml"
+    return cand if cand.is_file() else None
 
 
 def load_dynamics(path: str | os.PathLike | None = None) -> ChateauAR:
