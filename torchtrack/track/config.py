@@ -29,6 +29,7 @@ __all__ = [
     "apply_overrides",
     "config_from_dict",
     "load_tracker_config",
+    "resolve_tracker_config",
 ]
 
 C = TypeVar("C")
@@ -259,3 +260,24 @@ def load_tracker_config(path: str | os.PathLike, cls: type[C]) -> C:
             if os.path.exists(cand):
                 data[key] = cand
     return config_from_dict(cls, data, where=p)
+
+
+def resolve_tracker_config(
+    cls: type[C],
+    config: C | str | os.PathLike | None,
+    overrides: dict[str, Any] | None = None,
+    where: str = "parameters",
+) -> C:
+    """The config a tracker runs with: ``cls()`` defaults, a given ``cls`` instance, or a TOML
+    file loaded with :func:`load_tracker_config`; then keyword ``overrides`` applied and checked.
+    """
+    if config is None:
+        cfg = cls()
+    elif isinstance(config, cls):
+        cfg = config
+    else:
+        cfg = load_tracker_config(config, cls)
+    if overrides:
+        return apply_overrides(cfg, overrides, where=where)
+    cfg.validate()
+    return cfg

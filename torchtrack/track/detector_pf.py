@@ -56,7 +56,7 @@ from torchtrack.track.base import Tracker, TrackState, register_tracker
 from torchtrack.track.config import (
     DetectorTrackerConfig,
     apply_overrides,
-    load_tracker_config,
+    resolve_tracker_config,
 )
 
 __all__ = ["DetectorTracker", "default_dynamics_path", "load_dynamics", "resolve_detector"]
@@ -159,16 +159,9 @@ class DetectorTracker(Tracker):
         **overrides: Any,
     ) -> None:
         super().__init__()
-        if config is None:
-            cfg = DetectorTrackerConfig()
-        elif isinstance(config, DetectorTrackerConfig):
-            cfg = config
-        else:
-            cfg = load_tracker_config(config, DetectorTrackerConfig)
-        if overrides:
-            cfg = apply_overrides(cfg, overrides, where="detector tracker")
-        else:
-            cfg.validate()
+        cfg = resolve_tracker_config(
+            DetectorTrackerConfig, config, overrides, where="detector tracker"
+        )
         if model is not None and not isinstance(model, (str, os.PathLike)):
             self.detector = resolve_detector(model)
         else:

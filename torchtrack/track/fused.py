@@ -47,7 +47,7 @@ from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
 from torchtrack.observe.detector import scorable_boxes
 from torchtrack.track.base import TrackState, register_tracker
-from torchtrack.track.config import apply_overrides, load_tracker_config
+from torchtrack.track.config import apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import DetectorTracker
 
 __all__ = ["FusedTracker", "FusedTrackerConfig", "fused_log_weights", "minmax_rescale"]
@@ -198,16 +198,7 @@ class FusedTracker(DetectorTracker):
         generator: torch.Generator | None = None,
         **overrides: Any,
     ) -> None:
-        if config is None:
-            cfg = FusedTrackerConfig()
-        elif isinstance(config, FusedTrackerConfig):
-            cfg = config
-        else:
-            cfg = load_tracker_config(config, FusedTrackerConfig)
-        if overrides:
-            cfg = apply_overrides(cfg, overrides, where="fused tracker")
-        else:
-            cfg.validate()
+        cfg = resolve_tracker_config(FusedTrackerConfig, config, overrides, where="fused tracker")
         if model is not None and isinstance(model, (str, os.PathLike)):
             cfg = apply_overrides(cfg, {"model": os.fspath(model)}, where="fused tracker")
             model = None

@@ -26,7 +26,10 @@ from torchtrack.filter.motion import KleinAR
 from torchtrack.filter.sir import sir_step
 from torchtrack.observe.histogram import HSVBins, bhattacharyya, box_histograms, hsv_bin_map
 from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import HistogramTrackerConfig, apply_overrides, load_tracker_config
+from torchtrack.track.config import (
+    HistogramTrackerConfig,
+    resolve_tracker_config,
+)
 
 __all__ = ["HistogramTracker"]
 
@@ -57,16 +60,9 @@ class HistogramTracker(Tracker):
         **overrides: Any,
     ) -> None:
         super().__init__()
-        if config is None:
-            cfg = HistogramTrackerConfig()
-        elif isinstance(config, HistogramTrackerConfig):
-            cfg = config
-        else:
-            cfg = load_tracker_config(config, HistogramTrackerConfig)
-        if overrides:
-            cfg = apply_overrides(cfg, overrides, where="histogram tracker")
-        else:
-            cfg.validate()
+        cfg = resolve_tracker_config(
+            HistogramTrackerConfig, config, overrides, where="histogram tracker"
+        )
         self.config = cfg
         self.generator = generator
         self.bins = HSVBins(cfg.n_h, cfg.n_s, cfg.n_v, cfg.s_min, cfg.v_min)

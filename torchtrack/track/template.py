@@ -52,7 +52,7 @@ from torchtrack.observe.template import (
     to_luma,
 )
 from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import apply_overrides, load_tracker_config
+from torchtrack.track.config import resolve_tracker_config
 
 __all__ = ["TemplateTracker", "TemplateTrackerConfig"]
 
@@ -177,16 +177,9 @@ class TemplateTracker(Tracker):
         **overrides: Any,
     ) -> None:
         super().__init__()
-        if config is None:
-            cfg = TemplateTrackerConfig()
-        elif isinstance(config, TemplateTrackerConfig):
-            cfg = config
-        else:
-            cfg = load_tracker_config(config, TemplateTrackerConfig)
-        if overrides:
-            cfg = apply_overrides(cfg, overrides, where="template tracker")
-        else:
-            cfg.validate()
+        cfg = resolve_tracker_config(
+            TemplateTrackerConfig, config, overrides, where="template tracker"
+        )
         self.config = cfg
         self.generator = generator
         self.motion = BachooMotion(
