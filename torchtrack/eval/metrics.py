@@ -306,7 +306,8 @@ def evaluate_sequence(
     )
 
 
-_SCALARS = (
+#: Per-sequence scalar metrics that aggregate as means over sequences.
+SCALAR_METRICS = (
     "auc",
     "precision_20",
     "norm_precision",
@@ -332,13 +333,13 @@ def aggregate_metrics(per_sequence: list[dict]) -> dict:
     seqs = [m for m in per_sequence if m.get("n_present")]
     out: dict = {"n_sequences": len(seqs)}
     if not seqs:
-        for k in _SCALARS:
+        for k in SCALAR_METRICS:
             out[k] = None
         return out
     for key in ("success", "precision", "norm_precision_curve"):
         curves = torch.tensor([[math.nan if v is None else v for v in m[key]] for m in seqs])
         out[key] = curves.mean(0).tolist()
-    for k in _SCALARS:
+    for k in SCALAR_METRICS:
         vals = [m[k] for m in seqs if m.get(k) is not None]
         out[k] = sum(vals) / len(vals) if vals else None
     out["auc"] = sum(out["success"]) / len(out["success"])

@@ -54,7 +54,12 @@ from pathlib import Path
 import torch
 
 from torchtrack.errors import ConfigError
-from torchtrack.eval.metrics import BREAK_PX, aggregate_metrics, evaluate_sequence
+from torchtrack.eval.metrics import (
+    BREAK_PX,
+    SCALAR_METRICS,
+    aggregate_metrics,
+    evaluate_sequence,
+)
 from torchtrack.io.atomic import write_text_atomic
 from torchtrack.io.sequences import Sequence
 from torchtrack.track.base import create_tracker, parse_tracker_spec, tracker_info
@@ -447,23 +452,7 @@ def _failed_record(spec: str, seq: Sequence, reinit: bool, exc: BaseException) -
     }
 
 
-_SCALAR_KEYS = (
-    "auc",
-    "precision_20",
-    "norm_precision",
-    "mean_iou",
-    "miss_rate",
-    "track_length",
-    "track_ratio",
-    "reinit_per_100",
-    "present_visible_rate",
-    "absent_rejection_rate",
-    "x_error",
-    "y_error",
-    "n_present",
-    "n_absent",
-    "n_evaluated",
-)
+_SCALAR_KEYS = (*SCALAR_METRICS, "x_error", "y_error", "n_present", "n_absent", "n_evaluated")
 
 
 def summarise(
