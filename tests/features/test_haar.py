@@ -217,3 +217,75 @@ def test_box_partly_outside_frame_is_handled():
     frame = torch.randint(0, 256, (1, 1, 20, 20), dtype=torch.uint8, generator=g)
     out = haar_features(frame, torch.tensor([[[-4.0, 15.0, 10.0, 10.0]]]), bank)
     assert torch.isfinite(out).all()
+
+
+def gather_reference(frames, boxes, bank, index):
+    """The previous implementation (explicit gathers, padded 9-point tables), a slow reference
+    of the grid_sample path: every corner point read with ``haar._bilinear``."""
+    from torchtrack.features import haar as hm
+
+    ints = integrals(frames)
+    b, n = boxes.shape[:2]
+    fh, fw = ints.frame_size
+    table = bank.table[index]
+    bx = boxes.to(torch.float64)
+    x, y, w, h = bx.unbind(-1)
+    sy, sx = h / bank.window[0], w / bank.window[1]
+    out = torch.zeros((b, n, index.numel()), dtype=torch.float64)
+    x0, x1 = x.clamp(0, fw), (x + w).clamp(0, fw)
+    y0, y1 = y.clamp(0, fh), (y + h).clamp(0, fh)
+
+    def rect(ii, ya, xa, yb, xb):
+        ys = torch.stack((yb, ya, yb, ya), -1).reshape(b, -1)
+        xs = torch.stack((xb, xb, xa, xa), -1).reshape(b, -1)
+        v = hm._bilinear(ii, ys, xs).reshape(b, n, 4)
+        return v[..., 0] - v[..., 1] - v[..., 2] + v[..., 3]
+
+    vis = (x1 - x0) * (y1 - y0)
+    mean = rect(ints.ii, y0, x0, y1, x1) / vis
+    std = (rect(ints.ii2, y0, x0, y1, x1) / vis - mean**2).clamp(min=0).sqrt()
+    std = std.clamp(min=bank.min_std)
+    for j, (k, t, fy, fx) in enumerate(table.tolist()):
+        raw = torch.zeros((b, n), dtype=torch.float64)
+        for py, px, c in hm._POINTS[KINDS[k]]:
+            ys = (y + (fy + py * t) * sy).reshape(b, -1)
+            xs = (x + (fx + px * t) * sx).reshape(b, -1)
+            raw += c * hm._bilinear(ints.ii, ys, xs).reshape(b, n)
+        out[..., j] = raw / (t * t * sx * sy * std)
+    return out.to(torch.float32)
+
+
+@pytest.mark.parametrize("dense_max", [0, 1 << 20])
+def test_grid_sample_path_matches_gather_reference(monkeypatch, dense_max):
+    # Both ways of combining corner values (one dense matrix product; per-group sums) agree
+    # with the explicit-gather reference, for boxes inside, across and partly outside the frame.
+    from torchtrack.features import haar as hm
+
+    monkeypatch.setattr(hm, "_DENSE_MAX", dense_max)
+    g = torch.Generator().manual_seed(6)
+    bank = haar_bank((16, 8), sizes=(8, 4))
+    frames = torch.randint(0, 256, (2, 3, 37, 51), dtype=torch.uint8, generator=g)
+    boxes = torch.rand((2, 7, 4), generator=g, dtype=torch.float64) * torch.tensor(
+        [50.0, 30.0, 30.0, 40.0], dtype=torch.float64
+    ) + torch.tensor([-8.0, -8.0, 9.0, 9.0], dtype=torch.float64)
+    idx = torch.randperm(len(bank), generator=g)[:25]
+    got = haar_features_at(integrals(frames), boxes, bank, idx)
+    torch.testing.assert_close(got, gather_reference(frames, boxes, bank, idx))
+    # The cached point table is reused (same object) and gives the same values again.
+    assert hm._point_table(bank, idx, torch.device("cpu")) is hm._point_table(
+        bank, idx.clone(), torch.device("cpu")
+    )
+    torch.testing.assert_close(haar_features_at(integrals(frames), boxes, bank, idx), got)
+
+
+def test_integrals_equal_integral_images_of_luma():
+    from torchtrack.features.integral import integral_image, rgb_to_gray
+
+    g = torch.Generator().manual_seed(7)
+    for c in (1, 3):
+        frames = torch.randint(0, 256, (2, c, 13, 17), dtype=torch.uint8, generator=g)
+        ints = integrals(frames)
+        gray = rgb_to_gray(frames)
+        assert torch.equal(ints.ii, integral_image(gray)[:, 0])
+        assert torch.equal(ints.ii2, integral_image(gray, squared=True)[:, 0])
+        assert ints.frame_size == (13, 17)

@@ -50,6 +50,7 @@ from typing import Any, NamedTuple
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from torchtrack.boxes import check_boxes
 from torchtrack.errors import ConfigError, ShapeError
@@ -332,13 +333,29 @@ class Integrals(NamedTuple):
 
 
 def integrals(frames: torch.Tensor) -> Integrals:
-    """``frames (B, C, H, W)`` (C = 1 or 3, 0..255) -> :class:`Integrals` of their luma."""
-    gray = rgb_to_gray(frames)
-    return Integrals(integral_image(gray)[:, 0], integral_image(gray, squared=True)[:, 0])
+    """``frames (B, C, H, W)`` (C = 1 or 3, 0..255) -> :class:`Integrals` of their luma.
+
+    Both tables are accumulated together in float64 (one two-channel cumulative sum), which
+    gives the same values as :func:`~torchtrack.features.integral.integral_image` of the luma
+    and of its square: exact for integer (gray uint8) frames, and the same summation order
+    for float luma.
+    """
+    gray = rgb_to_gray(frames)[:, 0].to(torch.float64)  # (B, H, W)
+    b, h, w = gray.shape
+    both = torch.empty((b, 2, h + 1, w + 1), dtype=torch.float64, device=gray.device)
+    both[:, :, 0, :] = 0
+    both[:, :, :, 0] = 0
+    inner = both[:, :, 1:, 1:]
+    inner[:, 0] = gray
+    torch.mul(gray, gray, out=inner[:, 1])
+    inner.copy_(inner.cumsum(2).cumsum(3))
+    return Integrals(both[:, 0], both[:, 1])
 
 
 def _bilinear(ii: torch.Tensor, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Sample ``ii (B, H+1, W+1)`` at float coordinates ``y, x (B, M)`` (clamped to the table)."""
+    """Slow, obviously right reference of the bilinear reads :func:`haar_features_at` does with
+    :func:`torch.nn.functional.grid_sample`: ``ii (B, H+1, W+1)`` at float coordinates
+    ``y, x (B, M)``, clamped to the table (kept for the tests)."""
     b, hp, wp = ii.shape
     y = y.clamp(0, hp - 1)
     x = x.clamp(0, wp - 1)
@@ -357,26 +374,91 @@ def _bilinear(ii: torch.Tensor, y: torch.Tensor, x: torch.Tensor) -> torch.Tenso
     return (1 - fy) * ((1 - fx) * v00 + fx * v01) + fy * ((1 - fx) * v10 + fx * v11)
 
 
-def _point_tables(bank: HaarBank, index: torch.Tensor, device: torch.device):
-    """Corner points of the selected features: ``py, px, coef (K, P)`` float64 in window pixels,
-    and the filter areas ``(K,)``."""
+# Largest (points x features) coefficient matrix applied as one dense matrix product; larger
+# selections (e.g. a whole bank) sum their corner values per group of features instead.
+_DENSE_MAX = 1 << 20
+
+
+class _PointTable(NamedTuple):
+    """Corner points of selected features and how to combine them.
+
+    ``basis``: ``(4, 2 (M + 4))`` float64; a box's ``(x0, sx, y0, sy)`` times it gives the
+    interleaved ``(x0 + px sx, y0 + py sy)`` of the M corner points of its features followed by
+    the box's own 4 corners (window points ``(H, W), (0, W), (H, 0), (0, 0)``).
+    ``dense``: ``(M, K)`` float64 coefficients (point values @ dense = raw responses in index
+    order) when ``M K <= _DENSE_MAX``, else ``None`` and ``groups`` are used:
+    ``(n_features, n_points, coef (n_features, n_points))`` per group of features with the
+    same number of points (6, 8, 9), contiguous in point order, and ``order`` ``(K,)`` puts
+    the grouped responses back in index order. ``area``: ``(K,)`` float64 filter areas.
+    """
+
+    basis: torch.Tensor
+    dense: torch.Tensor | None
+    groups: tuple[tuple[int, int, torch.Tensor], ...]
+    order: torch.Tensor
+    area: torch.Tensor
+
+
+_TABLE_CACHE: dict[tuple[Any, ...], _PointTable] = {}
+_TABLE_CACHE_SIZE = 32
+
+
+def _point_table(bank: HaarBank, index: torch.Tensor, device: torch.device) -> _PointTable:
+    """The :class:`_PointTable` of ``bank`` rows ``index`` (int64, CPU), cached per bank, index,
+    device and dense limit (a tracker scores the same few features on every frame)."""
+    key = (bank, index.numpy().tobytes(), str(device), _DENSE_MAX)
+    hit = _TABLE_CACHE.get(key)
+    if hit is not None:
+        return hit
     table = bank.table[index]  # (K, 4)
     k = table.shape[0]
-    py = torch.zeros((k, _MAX_POINTS), dtype=torch.float64)
-    px = torch.zeros((k, _MAX_POINTS), dtype=torch.float64)
-    coef = torch.zeros((k, _MAX_POINTS), dtype=torch.float64)
-    for kind_i, kind in enumerate(KINDS):
-        sel = table[:, 0] == kind_i
-        if not bool(sel.any()):
-            continue
-        t = table[sel, 1].to(torch.float64)[:, None]
-        pts = torch.tensor(_POINTS[kind], dtype=torch.float64)  # (P_k, 3)
-        p = pts.shape[0]
-        py[sel, :p] = table[sel, 2].to(torch.float64)[:, None] + pts[None, :, 0] * t
-        px[sel, :p] = table[sel, 3].to(torch.float64)[:, None] + pts[None, :, 1] * t
-        coef[sel, :p] = pts[None, :, 2].expand(int(sel.sum()), p)
-    area = table[:, 1].to(torch.float64) ** 2
-    return py.to(device), px.to(device), coef.to(device), area.to(device)
+    n_pts = torch.tensor([len(_POINTS[kind]) for kind in KINDS])[table[:, 0]]  # (K,)
+    pts, groups, perm = [], [], []
+    for p in sorted(set(n_pts.tolist())):
+        sel = torch.nonzero(n_pts == p).flatten()
+        rows = table[sel]
+        ref = torch.stack(
+            [torch.tensor(_POINTS[KINDS[i]], dtype=torch.float64) for i in rows[:, 0].tolist()]
+        )  # (K_p, p, 3): fy, fx, coefficient
+        t = rows[:, 1].to(torch.float64)[:, None]
+        py = rows[:, 2].to(torch.float64)[:, None] + ref[..., 0] * t
+        px = rows[:, 3].to(torch.float64)[:, None] + ref[..., 1] * t
+        pts.append(torch.stack((py, px), -1).reshape(-1, 2))
+        groups.append((int(sel.numel()), p, ref[..., 2].contiguous()))
+        perm.append(sel)
+    perm_t = torch.cat(perm)
+    order = torch.empty(k, dtype=torch.int64)
+    order[perm_t] = torch.arange(k)
+    pts_t = torch.cat(pts)  # (M, 2) py, px
+    m = pts_t.shape[0]
+    wh, ww = (float(v) for v in bank.window)
+    box = torch.tensor([[wh, ww], [0.0, ww], [wh, 0.0], [0.0, 0.0]], dtype=torch.float64)
+    allp = torch.cat((pts_t, box))
+    basis = torch.zeros((4, m + 4, 2), dtype=torch.float64)
+    basis[0, :, 0] = 1.0
+    basis[1, :, 0] = allp[:, 1]
+    basis[2, :, 1] = 1.0
+    basis[3, :, 1] = allp[:, 0]
+    dense = None
+    if m * k <= _DENSE_MAX:
+        dense = torch.zeros((m, k), dtype=torch.float64)
+        row = 0
+        for (nf, p, coef), sel in zip(groups, perm, strict=True):
+            cols = sel.repeat_interleave(p)
+            dense[torch.arange(row, row + nf * p), cols] = coef.reshape(-1)
+            row += nf * p
+        dense = dense.to(device)
+    out = _PointTable(
+        basis.reshape(4, -1).to(device),
+        dense,
+        tuple((nf, p, coef.to(device)) for nf, p, coef in groups),
+        order.to(device),
+        (table[:, 1].to(torch.float64) ** 2).to(device),
+    )
+    if len(_TABLE_CACHE) >= _TABLE_CACHE_SIZE:
+        _TABLE_CACHE.pop(next(iter(_TABLE_CACHE)))
+    _TABLE_CACHE[key] = out
+    return out
 
 
 def _check_index(index: torch.Tensor | None, bank: HaarBank) -> torch.Tensor:
@@ -443,25 +525,41 @@ def haar_features_at(
     x, y, w, h = bx.unbind(-1)  # (B, N)
     sy = h / bank.window[0]
     sx = w / bank.window[1]
-    py, px, coef, area = _point_tables(bank, idx, dev)  # (K, P)
-    ys = y[:, :, None, None] + py[None, None] * sy[:, :, None, None]  # (B, N, K, P)
-    xs = x[:, :, None, None] + px[None, None] * sx[:, :, None, None]
-    vals = _bilinear(ints.ii, ys.reshape(b, -1), xs.reshape(b, -1)).reshape(ys.shape)
-    raw = (vals * coef).sum(-1)  # (B, N, K)
-    # Window statistics over the visible part of the box.
-    x0 = x.clamp(0, fw)
-    x1 = (x + w).clamp(0, fw)
-    y0 = y.clamp(0, fh)
-    y1 = (y + h).clamp(0, fh)
-    cy = torch.stack((y1, y0, y1, y0), -1)  # (B, N, 4)
-    cx = torch.stack((x1, x1, x0, x0), -1)
+    tab = _point_table(bank, idx, dev)
+    # Every corner point of every box (and the box's own corners) in grid_sample's normalised
+    # coordinates, g = (origin + p * scale) * 2 / (size - 1) - 1, as one (B N, 4) @ (4, 2 M')
+    # product whose rows come out in grid_sample's interleaved (x, y) layout.
+    nx, ny = 2.0 / fw, 2.0 / fh  # the tables are (fh + 1) x (fw + 1)
+    coeffs = torch.stack((x * nx - 1.0, sx * nx, y * ny - 1.0, sy * ny), -1)
+    grid = (coeffs.reshape(b * n, 4) @ tab.basis).reshape(b, n, -1, 2)
+    # Bilinear reads with coordinates clamped to the table ("border"): exactly the integral of
+    # the zero-padded image over the fractional rectangles, and for the box corners the sums
+    # over the box's visible part.
+    ii = ints.ii.to(torch.float64)[:, None]
+    vals = F.grid_sample(ii, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    vals = vals[:, 0]  # (B, N, M + 4)
+    m = vals.shape[-1] - 4
+    if tab.dense is not None:
+        raw = vals[..., :m] @ tab.dense  # (B, N, K)
+    else:
+        parts, col = [], 0
+        for n_feat, n_pts, coef in tab.groups:
+            block = vals[..., col : col + n_feat * n_pts].reshape(b, n, n_feat, n_pts)
+            parts.append((block * coef).sum(-1))
+            col += n_feat * n_pts
+        raw = torch.cat(parts, -1).index_select(-1, tab.order)
+    ii2 = ints.ii2.to(torch.float64)[:, None]
+    sq = F.grid_sample(
+        ii2, grid[:, :, m:], mode="bilinear", padding_mode="border", align_corners=True
+    )[:, 0]  # (B, N, 4)
     sgn = torch.tensor((1.0, -1.0, -1.0, 1.0), dtype=torch.float64, device=dev)
-    s1 = (_bilinear(ints.ii, cy.reshape(b, -1), cx.reshape(b, -1)).reshape(cy.shape) * sgn).sum(-1)
-    s2 = (_bilinear(ints.ii2, cy.reshape(b, -1), cx.reshape(b, -1)).reshape(cy.shape) * sgn).sum(-1)
-    vis = ((x1 - x0) * (y1 - y0)).clamp(min=1e-12)
-    mean = s1 / vis
-    std = (s2 / vis - mean * mean).clamp(min=0).sqrt().clamp(min=bank.min_std)  # (B, N)
-    feat = raw / (std[:, :, None] * area[None, None, :] * (sx * sy)[:, :, None])
+    s12 = torch.stack((vals[..., m:], sq), -2) @ sgn  # (B, N, 2): sums of luma and its square
+    vis = (((x + w).clamp(0, fw) - x.clamp(0, fw)) * ((y + h).clamp(0, fh) - y.clamp(0, fh))).clamp(
+        min=1e-12
+    )
+    mean = s12[..., 0] / vis
+    std = (s12[..., 1] / vis - mean * mean).clamp(min=0).sqrt().clamp(min=bank.min_std)  # (B, N)
+    feat = raw / (std * (sx * sy))[:, :, None] / tab.area
     return feat.to(torch.float32)
 
 
