@@ -108,10 +108,28 @@ def test_region_features_see_true_neighbours(image):
     colour, texture = pixel_features(image)
     cc, tc = region_features(frame, (3, 2, 12, 10), colour_bins=16)
     assert cc.shape == (8 * 9, 4) and tc.shape == (8 * 9, 18)
+    assert cc.dtype == torch.uint8 and tc.dtype == torch.uint8
     want_t = texture[0, :, 2:10, 3:12].flatten(1).T
-    torch.testing.assert_close(tc, want_t)
-    torch.testing.assert_close(cc, quantize_colour(colour[0, :, 2:10, 3:12], 16).flatten(1).T)
+    torch.testing.assert_close(tc.long(), want_t)
+    want_c = quantize_colour(colour[0, :, 2:10, 3:12], 16).flatten(1).T
+    torch.testing.assert_close(cc.long(), want_c)
+    # the float path (same values as floats) and the riu2 blocks agree with the reference
+    cf, tf = region_features(frame.float(), (3, 2, 12, 10), colour_bins=16)
+    torch.testing.assert_close(tf, tc)
+    torch.testing.assert_close(cf, cc)
+    _, tr = region_features(frame, (3, 2, 12, 10), blocks="riu2")
+    torch.testing.assert_close(tr.long(), texture_blocks(want_t, "riu2"))
     assert int(cc.max()) < 16
+
+
+@pytest.mark.parametrize("t", [0.0, 4.5, 5.0, 300.0])
+def test_integer_path_equals_float_path(image, t):
+    c, n = image[:, :2], image[:, 1:]
+    up_i, lo_i = ltp_codes(c, n, t)
+    up_f, lo_f = ltp_codes(c.float(), n.float(), t)
+    torch.testing.assert_close(up_i, up_f)
+    torch.testing.assert_close(lo_i, lo_f)
+    assert up_i.dtype == torch.int64
 
 
 def test_errors():
@@ -127,5 +145,14 @@ def test_errors():
         region_features(torch.zeros(3, 10, 10, dtype=torch.uint8), (5, 5, 12, 8))
     with pytest.raises(ConfigError, match="colour bins"):
         quantize_colour(torch.zeros(3), 0)
+    frame = torch.zeros(3, 10, 10, dtype=torch.uint8)
+    with pytest.raises(ConfigError, match="colour bins"):
+        region_features(frame, (0, 0, 5, 5), colour_bins=300)
+    with pytest.raises(ConfigError, match="texture blocks"):
+        region_features(frame, (0, 0, 5, 5), blocks="lbp")
+    with pytest.raises(ConfigError, match="threshold must be >= 0"):
+        region_features(frame, (0, 0, 5, 5), threshold=-1.0)
+    with pytest.raises(ShapeError, match="1 \\(gray\\) or 3"):
+        region_features(torch.zeros(2, 10, 10, dtype=torch.uint8), (0, 0, 5, 5))
     with pytest.raises(ConfigError, match="texture blocks"):
         texture_blocks(torch.zeros(3, dtype=torch.long), "lbp")

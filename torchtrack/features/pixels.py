@@ -139,6 +139,9 @@ def ltp_codes(
         )
     if not threshold >= 0:
         raise ConfigError(f"LTP threshold must be >= 0, got {threshold}")
+    if not circular and not centre.is_floating_point() and not neighbour.is_floating_point():
+        upper, lower = _ltp_integer(centre, neighbour, threshold)
+        return upper.long(), lower.long()
     # float32 is exact for differences of 8-bit values; circular sampling needs float64 to
     # reproduce scikit-image's interpolation bit for bit.
     dt = torch.float64 if circular or centre.dtype == torch.float64 else torch.float32
@@ -152,6 +155,39 @@ def ltp_codes(
         upper |= (d >= threshold).to(torch.int32) << u
         lower |= (d <= -threshold).to(torch.int32) << u
     upper, lower = upper.long(), lower.long()
+    return upper, lower
+
+
+def _replicate_pad1(x: torch.Tensor) -> torch.Tensor:
+    """One-pixel replicate padding of the last two axes, for any dtype."""
+    x = torch.cat([x[..., :1, :], x, x[..., -1:, :]], -2)
+    return torch.cat([x[..., :1], x, x[..., -1:]], -1)
+
+
+def _ltp_integer(
+    centre: torch.Tensor, neighbour: torch.Tensor, threshold: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Square-mask LTP of integer images as uint8 codes (the fast path of :func:`ltp_codes`).
+
+    For integer differences d and a real t >= 0, ``d >= t`` is ``g_u >= g_c + ceil(t)`` and
+    ``d <= -t`` is ``g_u <= g_c - ceil(t)``: the centre is offset once, the eight neighbours
+    are compared to it (int16 for uint8 images, int64 otherwise) and the bits are added into
+    uint8 codes.
+    """
+    small = centre.dtype == torch.uint8 and neighbour.dtype == torch.uint8
+    wide = torch.int16 if small else torch.int64
+    # 256 already clears every bit of 8-bit images; the cap keeps int16 from overflowing.
+    t = min(math.ceil(threshold), 256) if small else math.ceil(threshold)
+    gc = centre.to(wide)
+    hi, lo = gc + t, gc - t
+    h, w = gc.shape[-2:]
+    p = _replicate_pad1(neighbour.to(wide))
+    upper = torch.zeros(gc.shape, dtype=torch.uint8, device=gc.device)
+    lower = torch.zeros_like(upper)
+    for u in range(8):
+        g = _shift(p, *_OFFSETS[u], h, w)
+        upper.add_(torch.ge(g, hi).view(torch.uint8), alpha=1 << u)
+        lower.add_(torch.le(g, lo).view(torch.uint8), alpha=1 << u)
     return upper, lower
 
 
@@ -237,7 +273,9 @@ def region_features(
     """Quantised colour codes and texture codes of one frame region, as classifier inputs.
 
     The region is cut with a one-pixel margin where the frame has one, so its border pixels see
-    their true neighbours.
+    their true neighbours. Codes come out pixel-major and as uint8 (every code is below 256), the
+    layout the classifiers gather from; integer frames take the integer LTP path (no float
+    conversion of the nine channel pairs).
 
     Args:
         frame: ``(C, H, W)`` uint8, C in {1, 3}.
@@ -246,29 +284,51 @@ def region_features(
         blocks: texture code blocks (:func:`texture_blocks`).
 
     Returns:
-        ``colour_codes (h*w, Fc)`` and ``texture_codes (h*w, Ft)`` int64, pixels in row-major
+        ``colour_codes (h*w, Fc)`` and ``texture_codes (h*w, Ft)`` uint8, pixels in row-major
         order of the region (Fc = 4, Ft = 18 for RGB; 1 and 2 for gray).
 
     Raises:
-        ShapeError: bad frame. ConfigError: empty region or one outside the frame.
+        ShapeError: bad frame. ConfigError: empty region or one outside the frame, bad
+        ``colour_bins`` or ``blocks``.
     """
     if not isinstance(frame, torch.Tensor) or frame.ndim != 3:
         raise ShapeError("frame must be a (C, H, W) tensor")
+    _check(frame.unsqueeze(0))
+    if not 1 <= int(colour_bins) <= 256:
+        raise ConfigError(f"colour bins must be in 1..256, got {colour_bins}")
+    if blocks not in ("full", "riu2"):
+        raise ConfigError(f"unknown texture blocks {blocks!r}; valid: full, riu2")
+    if not threshold >= 0:
+        raise ConfigError(f"LTP threshold must be >= 0, got {threshold}")
     _, hh, ww = frame.shape
     x0, y0, x1, y1 = (int(v) for v in region)
     if not (0 <= x0 < x1 <= ww and 0 <= y0 < y1 <= hh):
         raise ConfigError(f"region {region} is empty or outside the {ww}x{hh} frame")
     mx0, my0 = max(x0 - 1, 0), max(y0 - 1, 0)
     mx1, my1 = min(x1 + 1, ww), min(y1 + 1, hh)
-    crop = frame[:, my0:my1, mx0:mx1].unsqueeze(0)
-    colour, texture = pixel_features(crop, threshold)
+    crop = frame[:, my0:my1, mx0:mx1]
     sy, sx = y0 - my0, x0 - mx0
     h, w = y1 - y0, x1 - x0
-    colour = colour[0, :, sy : sy + h, sx : sx + w]
-    texture = texture[0, :, sy : sy + h, sx : sx + w]
-    cc = quantize_colour(colour, colour_bins).flatten(1).T
-    tc = texture_blocks(texture.flatten(1).T, blocks)
-    return cc.contiguous(), tc.contiguous()
+    if crop.shape[0] == 1:
+        c = n = crop
+    else:
+        ci = torch.tensor([a for a, _ in CHANNEL_PAIRS], device=crop.device)
+        ni = torch.tensor([b for _, b in CHANNEL_PAIRS], device=crop.device)
+        c, n = crop.index_select(0, ci), crop.index_select(0, ni)
+    if crop.is_floating_point():
+        up, lo = ltp_codes(c[None], n[None], threshold)
+        up, lo = up[0].to(torch.uint8), lo[0].to(torch.uint8)
+    else:
+        up, lo = _ltp_integer(c[None], n[None], threshold)
+        up, lo = up[0], lo[0]
+    tex = torch.stack([up, lo], 3)[:, sy : sy + h, sx : sx + w]  # (K, h, w, 2)
+    tc = tex.permute(1, 2, 0, 3).reshape(h * w, -1)  # pair-major: RR+, RR-, GG+, ...
+    if blocks == "riu2":
+        tc = RIU2_TABLE.to(device=tc.device, dtype=torch.uint8)[tc.long()]
+    colour = colour_features(crop[None, :, sy : sy + h, sx : sx + w])[0]  # (Fc, h, w)
+    cc = (colour.clamp(0, 255) * (colour_bins / 256.0)).to(torch.uint8)
+    cc = cc.clamp_(max=colour_bins - 1).permute(1, 2, 0).reshape(h * w, -1)
+    return cc, tc
 
 
 class PixelFeatures(nn.Module):

@@ -24,12 +24,16 @@ Order within a selector: a sample is scored by the histograms *before* it is add
 train), so the cumulated error is an out-of-sample estimate. Algorithm 1 adds the sample first;
 with mini-batches of thousands of pixels from one frame that order lets a freshly replaced
 candidate fit the batch it is scored on, look error-free and take over the selector (seen on the
-dev sequences: every pixel turned negative after a border-negatives-only update). Vectorisation: one :meth:`OnlineRealBoost.partial_fit` call
-treats its P samples as one mini-batch: every sample's importance is added to the histograms
-first, then all samples are scored at once, accumulate their errors and update their
-importances; the worst candidate is replaced once per call. With P = 1 this is Algorithm 1
-exactly; the thousands of pixels of a frame then cost one pass of tensor operations per
-selector (the loop over selectors is the algorithm's own sequential dependency, through lambda).
+dev sequences: every pixel turned negative after a border-negatives-only update).
+
+Vectorisation: one :meth:`OnlineRealBoost.partial_fit` call treats its P samples as one
+mini-batch. Because scoring uses the histograms from before the batch, the weak outputs of all
+N x M candidates for all P samples come from one gather; the loop over selectors (the
+algorithm's own sequential dependency, through lambda) is then a few (P,)-vector operations per
+selector (cumulated errors as ``lambda @ |h|`` products, selection, importance update); finally
+every sample adds the importance it had on reaching each selector to the histograms in one
+``index_add_``, and the worst candidate of every selector is replaced (once per call). With
+P = 1 this is Algorithm 1 with the test-then-train order above.
 """
 
 from __future__ import annotations
@@ -168,24 +172,29 @@ class OnlineRealBoost:
         if lam.shape != (p,):
             raise ShapeError(f"sample_weight must be ({p},), got {tuple(lam.shape)}")
         n_sel, m, k = self.n_selectors, self.n_candidates, self.n_bins
+        dev = codes.device
         # Replacement features are drawn up front (one per selector), so the random stream does
         # not depend on the data.
-        fresh = torch.randint(self.n_features_in_, (n_sel,), generator=generator).to(codes.device)
-        cand = torch.arange(m, device=codes.device)
+        fresh = torch.randint(self.n_features_in_, (n_sel,), generator=generator).to(dev)
+        # Test, then train: every selector scores the batch with its histograms from before the
+        # batch, so all N x M weak outputs come from one gather, independent of lambda.
+        flat = torch.arange(n_sel * m, device=dev).view(1, n_sel, m) * k + codes[
+            :, self.features_.flatten()
+        ].view(p, n_sel, m)  # (P, N, M) cell index into the (N*M*K) histogram table
+        hist = self.hist_.view(n_sel * m * k, 2)
+        table = 0.5 * torch.log((hist[:, 1] + self.eps) / (hist[:, 0] + self.eps))
+        h = table[flat]  # (P, N, M)
+        right = h * ys.view(p, 1, 1) >= 0
+        habs = h.abs()
+        mass_right = torch.where(right, habs, 0.0)  # (P, N, M)
+        mass_wrong = habs - mass_right
+        lams = torch.empty((n_sel, p), dtype=self.dtype, device=dev)
+        # The sequential part of Algorithm 1 (lambda passes the selectors in turn) is now
+        # a few (P,)-vector operations per selector.
         for n in range(n_sel):
-            c = codes[:, self.features_[n]]  # (P, M) block of each sample for each candidate
-            flat = (cand * k).unsqueeze(0) + c  # (P, M) cell index in the (M*K) table
-            hist = self.hist_[n].view(m * k, 2)
-            # Test, then train: score with the histograms before this batch is added.
-            table = 0.5 * torch.log((hist[:, 1] + self.eps) / (hist[:, 0] + self.eps))
-            h = table[flat]  # (P, M)
-            right = h * ys.unsqueeze(1) >= 0
-            mass = lam.unsqueeze(1) * h.abs()
-            self.correct_[n] += torch.where(right, mass, 0.0).sum(0)
-            self.wrong_[n] += torch.where(right, 0.0, mass).sum(0)
-            pos = lab == 1
-            hist[:, 1].index_add_(0, flat[pos].flatten(), lam[pos, None].expand(-1, m).flatten())
-            hist[:, 0].index_add_(0, flat[~pos].flatten(), lam[~pos, None].expand(-1, m).flatten())
+            lams[n] = lam
+            self.correct_[n] += lam @ mass_right[:, n]
+            self.wrong_[n] += lam @ mass_wrong[:, n]
             e = self.wrong_[n] / (self.wrong_[n] + self.correct_[n])
             best = torch.argmin(e)
             eb = e[best]
@@ -193,15 +202,22 @@ class OnlineRealBoost:
             ebc = eb.clamp(1e-12, 1 - 1e-12)
             self.selected_[n] = best
             self.alpha_[n] = torch.where(ok, torch.log((1 - ebc) / ebc), 0.0)
-            right_b = right[:, best]
+            right_b = right[:, n, best]
             new_lam = torch.where(right_b, lam / (2 * (1 - ebc)), lam / (2 * ebc))
             lam = torch.where(ok, new_lam, lam)
-            if m > 1:  # replace the worst candidate (never the selected one) by a fresh one
-                worst = torch.argmax(e.index_fill(0, best.view(1), -math.inf))
-                self.features_[n, worst] = fresh[n]
-                self.hist_[n, worst] = 0.0
-                self.correct_[n, worst] = 1.0
-                self.wrong_[n, worst] = 1.0
+        # Train: every sample adds the importance it had on reaching each selector.
+        cell = flat * 2 + lab.view(p, 1, 1)  # (P, N, M) index into hist_ flattened
+        wts = lams.T.unsqueeze(2).expand(p, n_sel, m)
+        self.hist_.view(-1).index_add_(0, cell.flatten(), wts.flatten())
+        if m > 1:  # replace the worst candidate (never the selected one) by a fresh one
+            e = self.wrong_ / (self.wrong_ + self.correct_)  # (N, M)
+            e = e.scatter(1, self.selected_.view(n_sel, 1), -math.inf)
+            worst = torch.argmax(e, 1)
+            rows = torch.arange(n_sel, device=dev)
+            self.features_[rows, worst] = fresh
+            self.hist_[rows, worst] = 0.0
+            self.correct_[rows, worst] = 1.0
+            self.wrong_[rows, worst] = 1.0
         self.n_samples_seen_ += p
         return self
 
@@ -219,8 +235,15 @@ class OnlineRealBoost:
         feats = self.features_[rows, self.selected_]  # (N,)
         sel_hist = self.hist_[rows, self.selected_]  # (N, K, 2)
         table = 0.5 * torch.log((sel_hist[..., 1] + self.eps) / (sel_hist[..., 0] + self.eps))
-        h = table[rows.unsqueeze(0), codes[:, feats]]  # (P, N)
-        return h @ self.alpha_
+        # Selectors that chose the same feature share one lookup: fold alpha_n h_n into one
+        # (K,) table per distinct feature, then gather once per feature used.
+        used, slot = torch.unique(feats, return_inverse=True)
+        folded = torch.zeros((used.numel(), self.n_bins), dtype=table.dtype, device=table.device)
+        folded.index_add_(0, slot, self.alpha_.unsqueeze(1) * table)
+        out = torch.zeros(codes.shape[0], dtype=table.dtype, device=codes.device)
+        for u in range(used.numel()):
+            out += folded[u][codes[:, used[u]]]
+        return out
 
     def predict(self, codes: torch.Tensor) -> torch.Tensor:
         """``(P,)`` labels in {-1, +1} (``conf >= 0`` is +1)."""
