@@ -73,3 +73,33 @@ def test_real_sequence_short(data_dir):
             ious.append(float(box_iou(st.box, seq.boxes[i : i + 1])[0]))
     assert sum(ious) / len(ious) > 0.45
     assert len(tr.history) == 5
+
+
+def test_naive_calibration_is_the_papers_fixed_range_rescale():
+    # Chateau et al. 2.4: m_r = (m - a_min) / (a_max - a_min), a fixed map (not per frame).
+    tr = FusedTracker("pedestrian", n_particles=20, calibration="naive")
+    clf = tr.detector.classifier
+    lo, hi = tr.margin_range()
+    assert lo == pytest.approx(float(torch.minimum(clf.left_, clf.right_).double().sum()))
+    assert hi == pytest.approx(float(torch.maximum(clf.left_, clf.right_).double().sum()))
+    g = torch.Generator().manual_seed(1)
+    frame = (torch.rand(3, 96, 64, generator=g) * 255).to(torch.uint8)
+    tr.init(frame, (16.0, 16.0, 32.0, 64.0))
+    states = tr._states[:, :5]
+    m = tr.margins(frame, tr.window_boxes(states))
+    got = tr.detector_term(frame, states)
+    ref = torch.where(torch.isfinite(m), (m - lo) / (hi - lo), torch.zeros_like(m))
+    torch.testing.assert_close(got, ref)
+    assert bool(((got >= 0) & (got <= 1)).all())
+
+
+def test_naive_calibration_needs_a_bounded_margin():
+    tr = FusedTracker("pedestrian", n_particles=20, calibration="naive")
+    tr.detector = type(tr.detector)(
+        bank=tr.detector.bank,
+        feature_index=tr.detector.feature_index,
+        classifier=type("Unbounded", (), {"n_features_in_": tr.detector.feature_index.numel()})(),
+        calibrator=tr.detector.calibrator,
+    )
+    with pytest.raises(ConfigError, match="bounded margin"):
+        tr.margin_range()

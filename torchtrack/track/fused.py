@@ -25,7 +25,11 @@ evidence term to the co-training term. ``calibration = "raw"`` replaces it with 
 uncalibrated margin rescaled to [0, 1] over the frame's particles (min-max): the best particle
 of every frame gets 1 and the worst 0 whatever the detector sees, so the factor no longer says
 whether the object is there and its weight against the co-training term changes from frame to
-frame (see ``tools/bench_fused.py``).
+frame. ``calibration = "naive"`` is the paper's own uncalibrated baseline (section 2.4): the
+margin rescaled by the classifier's fixed range ``[a_min, a_max]`` (for boosted stumps the sums
+of each stump's smaller and larger output), a fixed monotone map like Platt's but not fitted
+to probabilities: its values crowd in the middle of [0, 1], so the detector factor barely
+separates object from background next to the co-training term (see ``tools/bench_fused.py``).
 
 Visibility: visible when (``a > 0``) the mean calibrated probability of the particles is at
 least ``visible_threshold`` and (``b > 0``) the co-trained classifiers find a blob.
@@ -52,7 +56,7 @@ from torchtrack.track.detector_pf import DetectorTracker
 
 __all__ = ["FusedTracker", "FusedTrackerConfig", "fused_log_weights", "minmax_rescale"]
 
-CALIBRATIONS = ("platt", "raw")
+CALIBRATIONS = ("platt", "raw", "naive")
 
 
 @dataclass
@@ -63,8 +67,11 @@ class FusedTrackerConfig:
         model: detector: bundled name (``pedestrian``, ``vehicle``) or a model file.
         det_weight: a, strength of the detector term.
         cotrain_weight: b, strength of the co-training term.
-        calibration: ``platt`` (the detector's calibrated probability) or ``raw`` (the
-            uncalibrated margin min-max rescaled over the frame's particles; for the ablation).
+        calibration: ``platt`` (the detector's calibrated probability), ``raw`` (the
+            uncalibrated margin min-max rescaled over the frame's particles) or ``naive``
+            (Chateau et al.'s "naive way", section 2.4: the margin rescaled by the classifier's
+            fixed range, ``(m - a_min) / (a_max - a_min)``; boosted-stump detectors only);
+            the last two are ablations.
         n_particles: particles.
         det_floor: smallest detector likelihood (keeps logs finite).
         cot_floor: smallest mean positive co-training confidence of a box.
@@ -165,7 +172,7 @@ def fused_log_weights(
 @register_tracker(
     "fused",
     description="design card: calibrated class detector x online co-trained pixel likelihood "
-    "in one particle filter (det_weight, cotrain_weight, calibration=platt|raw)",
+    "in one particle filter (det_weight, cotrain_weight, calibration=platt|raw|naive)",
 )
 class FusedTracker(DetectorTracker):
     """Calibrated detector x co-trained pixel likelihood particle filter (see module doc).
@@ -239,12 +246,36 @@ class FusedTracker(DetectorTracker):
         m = torch.where(ok, m, torch.full_like(m, -math.inf))
         return m.reshape(b, n)
 
+    def margin_range(self) -> tuple[float, float]:
+        """``(a_min, a_max)``: the smallest and largest margin the detector's classifier can
+        give (boosted stumps: the sums of each stump's smaller and larger output).
+
+        Raises:
+            ConfigError: the classifier has no bounded margin (e.g. an SVM).
+        """
+        clf = self.detector.classifier
+        left, right = getattr(clf, "left_", None), getattr(clf, "right_", None)
+        if left is None or right is None:
+            raise ConfigError(
+                f"calibration='naive' needs a boosted-stump detector (a bounded margin); "
+                f"{type(clf).__name__} has none"
+            )
+        lo = float(torch.minimum(left, right).to(torch.float64).sum())
+        hi = float(torch.maximum(left, right).to(torch.float64).sum())
+        return lo, hi
+
     def detector_term(self, frame: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
-        """``P_det (B, N)``: calibrated probabilities, or min-max rescaled raw margins."""
+        """``P_det (B, N)``: calibrated probabilities, or (ablations) min-max rescaled raw
+        margins (``raw``) or margins rescaled by the classifier's range (``naive``)."""
         wins = self.window_boxes(states)
-        if self.fused_config.calibration == "platt":
+        cal = self.fused_config.calibration
+        if cal == "platt":
             return self._probabilities(frame, wins)
-        return minmax_rescale(self.margins(frame, wins))
+        m = self.margins(frame, wins)
+        if cal == "raw":
+            return minmax_rescale(m)
+        lo, hi = self.margin_range()
+        return ((m - lo) / max(hi - lo, 1e-12)).clamp(0.0, 1.0)  # -inf (unscorable) -> 0
 
     def cotrain_term(self, maps, states: torch.Tensor) -> torch.Tensor:
         """``log L_cot (B, N)``: log mean positive confidence in the object box (floored) minus
@@ -286,7 +317,7 @@ class FusedTracker(DetectorTracker):
 
         def log_likelihood(states: torch.Tensor) -> torch.Tensor:
             p = self.detector_term(frame, states) if cfg.det_weight > 0 else None
-            if cfg.det_weight > 0 and cfg.calibration == "raw":
+            if cfg.det_weight > 0 and cfg.calibration != "platt":
                 hold["p"] = self._probabilities(frame, self.window_boxes(states))
             elif p is not None:
                 hold["p"] = p
