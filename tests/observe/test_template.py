@@ -12,7 +12,9 @@ from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.observe.template import (
     TemplateModel,
     align_ic,
+    antialias_sigma,
     gamma,
+    gaussian_blur,
     matrix_to_pose,
     pose_matrices,
     rho,
@@ -141,3 +143,58 @@ def test_template_model_and_errors():
         sample_patches(img, torch.zeros(2, 3))
     with pytest.raises(ShapeError, match=r"\(S, S\)"):
         align_ic(img, torch.zeros(3, 4), torch.zeros(2, 3))
+
+
+@pytest.mark.parametrize(("sx", "sy"), [(1.5, 0.7), (0.0, 2.2), (0.05, 0.05), (3.0, 3.0)])
+def test_gaussian_blur_equals_cv2(sx, sy):
+    img = torch.rand(37, 53, generator=torch.Generator().manual_seed(2))
+    ours = gaussian_blur(img, sx, sy).numpy()
+    rx = max(1, int(np.ceil(3 * sx))) if sx >= 0.1 else 0
+    ry = max(1, int(np.ceil(3 * sy))) if sy >= 0.1 else 0
+    kx = cv2.getGaussianKernel(2 * rx + 1, sx) if rx else np.ones((1, 1))
+    ky = cv2.getGaussianKernel(2 * ry + 1, sy) if ry else np.ones((1, 1))
+    ref = cv2.sepFilter2D(
+        img.numpy(), cv2.CV_64F, kx, ky, borderType=cv2.BORDER_REFLECT_101
+    )
+    np.testing.assert_allclose(ours, ref, atol=1e-5)
+    if rx == ry == 0:
+        assert np.array_equal(ours, img.numpy())
+
+
+def test_antialias_sigma_rule():
+    # skimage.transform.resize's anti-aliasing rule: (factor - 1) / 2, none when upsampling.
+    assert antialias_sigma(31.0 * 3, 31.0 * 5) == (1.0, 2.0)
+    assert antialias_sigma(20.0, 31.0) == (0.0, 0.0)
+    with pytest.raises(ShapeError, match=r"\(H, W\)"):
+        gaussian_blur(torch.zeros(1, 4, 4), 1.0, 1.0)
+
+
+def test_batched_sampling_equals_one_by_one():
+    # The fast path (patches wholly inside skip the per-pixel test) against single-pose calls.
+    img = _smooth_image(seed=5)
+    g = torch.Generator().manual_seed(0)
+    n = 64
+    poses = torch.stack(
+        [
+            torch.rand(n, generator=g) * 120 - 10,  # some centres off the 100 x 80 frame
+            torch.rand(n, generator=g) * 100 - 10,
+            torch.rand(n, generator=g) * 40 + 5,
+            torch.rand(n, generator=g) * 40 + 5,
+            torch.rand(n, generator=g) - 0.5,
+        ],
+        1,
+    )
+    p, inside = sample_patches(img, pose_matrices(poses))
+    partial = (~inside.flatten(1).all(1)).sum()
+    assert 0 < int(partial) < n
+    # Slow reference of the inside mask: every sample point through the float64 matrix.
+    m = pose_matrices(poses).numpy()
+    v, u = np.meshgrid(np.arange(31.0), np.arange(31.0), indexing="ij")
+    x = m[:, 0, 0, None, None] * u + m[:, 0, 1, None, None] * v + m[:, 0, 2, None, None]
+    y = m[:, 1, 0, None, None] * u + m[:, 1, 1, None, None] * v + m[:, 1, 2, None, None]
+    ref = (x >= -0.5) & (x <= 100 - 0.5) & (y >= -0.5) & (y <= 80 - 0.5)
+    assert (ref == inside.numpy()).mean() > 0.9999
+    for k in range(n):
+        pk, ik = sample_patches(img, pose_matrices(poses[k : k + 1]))
+        assert torch.equal(ik[0], inside[k])
+        np.testing.assert_allclose(pk[0].numpy(), p[k].numpy(), atol=1e-6)

@@ -3,11 +3,15 @@
 A target is an image patch: the pose ``(cx, cy, w, h, r)`` (centre, size, rotation about the
 centre, radians) maps a unit square onto the frame, and the patch is resampled to a fixed
 ``S x S`` template (paper: 31 x 31). All particles' patches are sampled at once with one
-``grid_sample`` call (bilinear, batched over particles).
+``grid_sample`` call (bilinear, batched over particles); only patches that cross the frame
+border get the per-pixel inside test. :func:`gaussian_blur` with :func:`antialias_sigma`
+prefilters a frame before a large box is resampled to S x S (not in the paper, see
+:mod:`torchtrack.track.template`).
 
 Likelihood (eq. 5-6): for each template pixel ``eps_i = |x_i - y_i| / d`` (candidate x, template
 y, intensities in [0, 1]); ``rho_i = 1`` if ``eps_i < T`` else 0; ``gamma = mean_i rho_i``.
-Paper defaults: ``d = 0.05``, ``T = 1.0``. ``gamma`` is averaged over the template pixels that
+Paper defaults: ``d = 0.05``, ``T = 1.0`` (:class:`TemplateModel` holds ``d``; the tracker
+may adapt it). ``gamma`` is averaged over the template pixels that
 fall inside the frame ("the total number of pixels processed"); a patch with less than
 ``min_inside`` of its pixels in the frame gets ``gamma = 0`` (a region leaving the frame is
 not an error).
@@ -28,6 +32,8 @@ the paper's footage is 8-bit grey.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -37,7 +43,9 @@ __all__ = [
     "TemplateModel",
     "affine_from_params",
     "align_ic",
+    "antialias_sigma",
     "gamma",
+    "gaussian_blur",
     "matrix_to_pose",
     "pose_matrices",
     "rho",
@@ -59,6 +67,39 @@ def to_luma(frame: torch.Tensor) -> torch.Tensor:
     else:
         g = _LUMA[0] * f[0] + _LUMA[1] * f[1] + _LUMA[2] * f[2]
     return g / 255.0
+
+
+def antialias_sigma(w: float, h: float, size: int = 31) -> tuple[float, float]:
+    """Gaussian prefilter std ``(sigma_x, sigma_y)`` (frame pixels) for resampling a ``w x h``
+    box to ``size x size``: ``max(0, (f - 1) / 2)`` with ``f`` the downsampling factor per axis
+    (the rule of ``skimage.transform.resize(anti_aliasing=True)``); 0 when upsampling."""
+    return max(0.0, (w / size - 1.0) / 2.0), max(0.0, (h / size - 1.0) / 2.0)
+
+
+def _kernel(sigma: float, device) -> torch.Tensor:
+    r = max(1, math.ceil(3.0 * sigma))
+    x = torch.arange(-r, r + 1, dtype=torch.float32, device=device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def gaussian_blur(image: torch.Tensor, sigma_x: float, sigma_y: float) -> torch.Tensor:
+    """Separable Gaussian blur of ``(H, W)`` (reflected borders) -> ``(H, W)`` float32; an
+    axis with ``sigma < 0.1`` is left alone."""
+    if image.ndim != 2:
+        raise ShapeError(f"image must be (H, W), got {tuple(image.shape)}")
+    out = image.to(torch.float32)[None, None]
+    if sigma_x >= 0.1:
+        k = _kernel(sigma_x, image.device)
+        r = (k.numel() - 1) // 2
+        pad = F.pad(out, (r, r, 0, 0), mode="reflect" if r < out.shape[-1] else "replicate")
+        out = F.conv2d(pad, k.reshape(1, 1, 1, -1))
+    if sigma_y >= 0.1:
+        k = _kernel(sigma_y, image.device)
+        r = (k.numel() - 1) // 2
+        pad = F.pad(out, (0, 0, r, r), mode="reflect" if r < out.shape[-2] else "replicate")
+        out = F.conv2d(pad, k.reshape(1, 1, -1, 1))
+    return out[0, 0]
 
 
 def pose_matrices(poses: torch.Tensor, size: int = 31) -> torch.Tensor:
@@ -111,25 +152,39 @@ def sample_patches(
         raise ShapeError(f"matrices must be (N, 2, 3), got {tuple(matrices.shape)}")
     h, w = image.shape
     n = matrices.shape[0]
-    idx = torch.arange(size, dtype=torch.float64, device=image.device)
-    v, u = torch.meshgrid(idx, idx, indexing="ij")
-    uv1 = torch.stack([u, v, torch.ones_like(u)], -1).reshape(1, size * size, 3)
-    xy = uv1 @ matrices.to(torch.float64).transpose(1, 2)  # (N, S*S, 2) frame indices
-    inside = (
-        (xy[..., 0] >= -0.5)
-        & (xy[..., 0] <= w - 0.5)
-        & (xy[..., 1] >= -0.5)
-        & (xy[..., 1] <= h - 0.5)
-    )
-    # align_corners=True: -1 and 1 are the centres of the first and last pixels.
-    gx = xy[..., 0] * (2.0 / max(w - 1, 1)) - 1.0
-    gy = xy[..., 1] * (2.0 / max(h - 1, 1)) - 1.0
-    # One input image, the N patches stacked along the grid's rows (no per-patch image copy).
-    grid = torch.stack([gx, gy], -1).reshape(1, n * size, size, 2).to(torch.float32)
+    dev = image.device
+    # The maps in grid_sample's normalised coordinates (align_corners=True: -1 and 1 are the
+    # centres of the first and last pixels), composed in float64 on the (N, 2, 3) matrices; the
+    # per-pixel work is then two broadcast multiply-adds in float32 (x = a u + b v + c).
+    fx, fy = 2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)
+    m = matrices.to(device=dev, dtype=torch.float64)
+    scale = torch.tensor([[fx], [fy]], dtype=torch.float64, device=dev)
+    mn = m * scale
+    mn[:, :, 2] -= 1.0
+    mn = mn.to(torch.float32)
+    idx = torch.arange(size, dtype=torch.float32, device=dev)
+    grid = torch.empty(n, size, size, 2, dtype=torch.float32, device=dev)
+    for k in range(2):  # columns are u (x in the template), rows are v
+        a, b, c = mn[:, k, 0, None, None], mn[:, k, 1, None, None], mn[:, k, 2, None, None]
+        torch.add(a * idx.reshape(1, 1, size), b * idx.reshape(1, size, 1) + c, out=grid[..., k])
     img = image.to(torch.float32).reshape(1, 1, h, w)
-    out = F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    inside = inside.reshape(n, size, size)
-    return out.reshape(n, size, size) * inside, inside
+    # One input image, the N patches stacked along the grid's rows (no per-patch image copy).
+    out = F.grid_sample(
+        img, grid.reshape(1, n * size, size, 2), "bilinear", "border", align_corners=True
+    ).reshape(n, size, size)
+    # Inside the frame: pixel centres 0..W-1 with half a pixel of slack, i.e. |g| <= 1 + f/2.
+    # A patch whose four corners are inside is inside everywhere (the map is affine), so the
+    # per-pixel test runs only on patches that cross the border.
+    lim = torch.tensor([1.0 + fx / 2, 1.0 + fy / 2], dtype=torch.float32, device=dev)
+    corners = grid[:, [0, 0, -1, -1], [0, -1, 0, -1]]  # (N, 4, 2)
+    partial = ~(corners.abs() <= lim).all(2).all(1)
+    inside = torch.ones(n, size, size, dtype=torch.bool, device=dev)
+    if bool(partial.any()):
+        sel = partial.nonzero().squeeze(1)
+        ins = (grid[sel].abs() <= lim).all(-1)
+        inside[sel] = ins
+        out[sel] = out[sel] * ins
+    return out, inside
 
 
 def rho(candidates: torch.Tensor, template: torch.Tensor, d: float = 0.05, t: float = 1.0):
@@ -232,18 +287,24 @@ def align_ic(
     corners = torch.tensor(
         [[-c, -c, 1.0], [c, -c, 1.0], [-c, c, 1.0], [c, c, 1.0]], dtype=torch.float64
     )
+    eye6 = 1e-9 * torch.eye(6, dtype=torch.float64)
+    full_hess = sd.T @ sd + eye6  # the Hessian when every template pixel is inside the frame
+    n_px = s * s
     for _ in range(max(int(iterations), 0)):
         cur = m3 @ shift @ warp @ shift_inv
         patch, inside = sample_patches(image, cur[None, :2], s)
-        mask = inside[0].reshape(-1).to(torch.float64)
-        if mask.sum() < 6:
+        err = (patch[0].to(torch.float64) - t).reshape(-1)
+        n_in = int(inside.sum())
+        if n_in < 6:
             break
-        err = (patch[0].to(torch.float64) - t).reshape(-1) * mask
-        sdm = sd * mask[:, None]
-        hess = sdm.T @ sdm
-        rhs = sdm.T @ err
+        if n_in == n_px:
+            hess, rhs = full_hess, sd.T @ err
+        else:
+            mask = inside[0].reshape(-1, 1).to(torch.float64)
+            sdm = sd * mask
+            hess, rhs = sdm.T @ sdm + eye6, sdm.T @ err
         try:
-            dp = torch.linalg.solve(hess + 1e-9 * torch.eye(6, dtype=torch.float64), rhs)
+            dp = torch.linalg.solve(hess, rhs)
         except RuntimeError:  # singular (flat reference): nothing to align
             break
         if not bool(torch.isfinite(dp).all()):
