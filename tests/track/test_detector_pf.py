@@ -145,3 +145,22 @@ def test_bundled_vehicle_model_by_name_and_a_model_file_by_path(data_dir):
         # cars: the model scores it low (measured p = 0.04 on the first box), so the tracker
         # says it does not see a car.
         assert float(states[0].confidence[0]) < 0.5
+
+
+def test_likelihood_power_scales_the_log_weights(crossing):
+    # Same seed: the predicted particles are the same, only the weighting differs; the new
+    # log-weights are the normalised power * log max(p, floor).
+    seq, frames = crossing
+    out = {}
+    for k in (1.0, 2.5):
+        tr = DetectorTracker(
+            generator=torch.Generator().manual_seed(3), n_particles=64, likelihood_power=k
+        )
+        tr.init(frames[0], seq.boxes[0])
+        st = tr.update(frames[1])
+        logp = tr._last_p.clamp_min(tr.config.likelihood_floor).log()
+        torch.testing.assert_close(st.log_weights, torch.log_softmax(k * logp, 1))
+        out[k] = st.particles
+    assert torch.equal(out[1.0], out[2.5])
+    with pytest.raises(ConfigError, match="likelihood_power must be > 0"):
+        DetectorTracker(likelihood_power=0.0)

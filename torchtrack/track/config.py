@@ -14,6 +14,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import tomllib
 import types
@@ -56,6 +57,8 @@ class DetectorTrackerConfig:
         scan_context: for auto-initialisation (no box): the object box reported is the
             detection window divided by this.
         likelihood_floor: smallest likelihood (keeps weights finite when every window is ~0).
+        likelihood_power: particle weights are ``max(p, floor) ** likelihood_power``; 1 is the
+            paper's eq. (11) (the calibrated probability itself); > 1 sharpens it.
         estimator: ``mean`` (paper Fig. 1 d), ``best`` or ``mode``.
         resample: resampling scheme (``torchtrack.filter.RESAMPLERS``).
         scan_threshold: auto-initialisation: smallest probability of a detection.
@@ -76,6 +79,7 @@ class DetectorTrackerConfig:
     )
     scan_context: float = 1.0
     likelihood_floor: float = 1e-6
+    likelihood_power: float = 1.0
     estimator: str = "mean"
     resample: str = "systematic"
     scan_threshold: float = 0.5
@@ -90,6 +94,8 @@ class DetectorTrackerConfig:
         _in_unit(self, "visible_threshold", "scan_threshold")
         if not 0.0 <= self.likelihood_floor < 1.0:
             raise ConfigError(f"likelihood_floor must be in [0, 1), got {self.likelihood_floor}")
+        if not (math.isfinite(self.likelihood_power) and self.likelihood_power > 0):
+            raise ConfigError(f"likelihood_power must be > 0, got {self.likelihood_power}")
         if self.context != 0 and not self.context > 0:
             raise ConfigError(f"context must be > 0 (or 0 to choose it), got {self.context}")
         if not self.context_candidates or any(not c > 0 for c in self.context_candidates):

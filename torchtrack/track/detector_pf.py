@@ -325,7 +325,8 @@ class DetectorTracker(Tracker):
         def log_likelihood(states: torch.Tensor) -> torch.Tensor:
             p = self._probabilities(frame, self.window_boxes(states))
             holder["p"] = p
-            return p.clamp_min(cfg.likelihood_floor).log() if cfg.likelihood_floor > 0 else p.log()
+            logp = p.clamp_min(cfg.likelihood_floor).log() if cfg.likelihood_floor > 0 else p.log()
+            return logp if cfg.likelihood_power == 1.0 else cfg.likelihood_power * logp
 
         res = sir_step(
             self._states,
