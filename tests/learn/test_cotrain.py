@@ -91,7 +91,39 @@ def test_weak_blob_adds_negatives_only():
     assert [float(c.hist_[..., 1].sum()) for c in ct.classifiers] == pos_before
 
 
+def test_labelled_pool_keeps_first_frame_and_accepted_positives_only():
+    ct = CoTrainer(n_selectors=6, max_samples=400, replay=100, pool_size=600)
+    region = region_around((40, 40), (20, 20), 2.0, (80, 100))
+    ct.init(scene(40, 40), (30, 30, 20, 20), region, torch.Generator().manual_seed(0))
+    (anchor, recent), _ = ct.pool_
+    # the ellipse inscribed in the 20x20 box holds more than 300 pixels: capped at pool_size / 2
+    assert anchor.shape == (300, 4) and recent.shape == (0, 4)
+    g = torch.Generator().manual_seed(1)
+    maps = ct.score(scene(40, 40, seed=1), region)
+    blob = ct.locate(maps)
+    assert ct.update(maps, blob, g)
+    n_recent = ct.pool_[0][1].shape[0]
+    assert 0 < n_recent <= 300
+    # every pooled colour code is one the texture classifier called object in that frame
+    ell_codes = maps.codes[0][(blob.ellipse.flatten() & (maps.conf[1].flatten() > 0))]
+    assert {tuple(r) for r in ct.pool_[0][1].tolist()} <= {tuple(r) for r in ell_codes.tolist()}
+    # a weak blob adds nothing to the pool, but its update still replays pooled positives
+    maps = ct.score(scene(40, 40, seed=2), region)
+    blob = ct.locate(maps)
+    ct.reference_ = blob.score * 10
+    pos_before = [float(c.hist_[..., 1].sum()) for c in ct.classifiers]
+    assert ct.update(maps, blob, g) is False
+    assert ct.pool_[0][1].shape[0] == n_recent
+    assert all(
+        float(c.hist_[..., 1].sum()) > b for c, b in zip(ct.classifiers, pos_before, strict=True)
+    )
+
+
 def test_errors():
+    with pytest.raises(ConfigError, match="replay"):
+        CoTrainer(replay=-1)
+    with pytest.raises(ConfigError, match="pool_size"):
+        CoTrainer(pool_size=1)
     with pytest.raises(ConfigError, match="unknown co-training mode"):
         CoTrainer(mode="tri")
     with pytest.raises(ConfigError, match="opening_size"):

@@ -111,3 +111,21 @@ def test_real_pedestrian_sequence(data_dir):
             continue
         ious.append(float(box_iou(t.update(fr).box[0], seq.boxes[i].double())))
     assert sum(ious) / len(ious) > 0.5
+
+
+@pytest.mark.slow
+def test_replayed_positives_stop_the_classifier_collapse(data_dir):
+    """Couple, first 12 frames: the frame-2 blob is too weak for new positives; trained on the
+    border negatives alone, the classifiers call every pixel background from frame 4 on and the
+    track is lost for good. Replaying positives of the labelled set keeps the target."""
+    from torchtrack.io.sequences import load_sequence
+
+    seq = load_sequence(data_dir / "tracking" / "otb" / "Couple")[0].head(12)
+    frames = list(seq.open())
+    seen = {}
+    for replay in (0, 500):
+        t = CoTrainTracker(generator=torch.Generator().manual_seed(0), replay=replay)
+        t.init(frames[0], seq.boxes[0])
+        seen[replay] = [bool(t.update(f).visible[0]) for f in frames[1:]]
+    assert not any(seen[0][4:])
+    assert all(seen[500])

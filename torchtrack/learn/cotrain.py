@@ -171,6 +171,8 @@ class CoTrainer:
         max_samples: int = 1000,
         init_passes: int = 3,
         texture_blocks: str = "full",
+        replay: int = 0,
+        pool_size: int = 4000,
     ) -> None:
         if mode not in MODES:
             raise ConfigError(f"unknown co-training mode {mode!r}; valid: {', '.join(MODES)}")
@@ -184,6 +186,10 @@ class CoTrainer:
             raise ConfigError(f"max_samples must be an integer >= 1, got {max_samples!r}")
         if not (isinstance(init_passes, int) and init_passes >= 1):
             raise ConfigError(f"init_passes must be an integer >= 1, got {init_passes!r}")
+        if not (isinstance(replay, int) and not isinstance(replay, bool) and replay >= 0):
+            raise ConfigError(f"replay must be an integer >= 0, got {replay!r}")
+        if not (isinstance(pool_size, int) and not isinstance(pool_size, bool) and pool_size >= 2):
+            raise ConfigError(f"pool_size must be an integer >= 2, got {pool_size!r}")
         self.mode = mode
         self.colour_bins = colour_bins
         self.ltp_threshold = ltp_threshold
@@ -192,6 +198,8 @@ class CoTrainer:
         self.accept_ratio = float(accept_ratio)
         self.max_samples = max_samples
         self.init_passes = init_passes
+        self.replay = replay
+        self.pool_size = pool_size
         if texture_blocks not in ("full", "riu2"):
             raise ConfigError(f"unknown texture_blocks {texture_blocks!r}; valid: full, riu2")
         self.texture_blocks = texture_blocks
@@ -205,6 +213,9 @@ class CoTrainer:
         for c in self.classifiers:
             c._check_params()
         self.reference_: float | None = None
+        #: per classifier, the labelled positives kept for replay: ``(anchor, recent)`` code
+        #: tensors (first frame's positives, then a ring of accepted ones)
+        self.pool_: list[list[torch.Tensor]] | None = None
 
     # -- features ------------------------------------------------------------------------------
     def codes(self, frame: torch.Tensor, region: tuple[int, int, int, int]) -> tuple:
@@ -229,27 +240,47 @@ class CoTrainer:
         neg: torch.Tensor,
         generator: torch.Generator | None,
     ) -> None:
-        """Train classifier i on positives ``pos[i]`` and the shared negatives (pixel indices)."""
-        for clf, c, p in zip(self.classifiers, codes, pos, strict=True):
+        """Train classifier i on positives ``pos[i]`` and the shared negatives (pixel indices),
+        plus ``replay`` positives drawn from its labelled pool."""
+        for i, (clf, c, p) in enumerate(zip(self.classifiers, codes, pos, strict=True)):
             p = self._sample(p, generator)
             n = self._sample(neg, generator)
-            idx = torch.cat([p, n])
-            y = torch.cat([torch.ones(p.numel()), -torch.ones(n.numel())]).to(c.device)
-            # Equal total importance per label (each label's mean weight balances the other's
-            # count), so a frame's class ratio does not tilt the histograms.
-            half = 0.5 * idx.numel()
-            wt = torch.cat(
-                [
-                    torch.full((p.numel(),), half / max(p.numel(), 1)),
-                    torch.full((n.numel(),), half / max(n.numel(), 1)),
-                ]
-            ).to(c.device)
-            clf.partial_fit(
-                c[idx],
-                y,
-                sample_weight=wt if p.numel() and n.numel() else None,
-                generator=generator,
-            )
+            pc = torch.cat([c[p], self._replayed(i, generator, c)])
+            nc = c[n]
+            self._fit(clf, pc, nc, generator)
+
+    def _fit(self, clf, pc: torch.Tensor, nc: torch.Tensor, generator) -> None:
+        """One :meth:`OnlineRealBoost.partial_fit` on positive codes ``pc`` and negative codes
+        ``nc``, each label carrying half the batch's total importance (so a frame's class ratio
+        does not tilt the histograms)."""
+        n_p, n_n = pc.shape[0], nc.shape[0]
+        y = torch.cat([torch.ones(n_p), -torch.ones(n_n)]).to(pc.device)
+        half = 0.5 * (n_p + n_n)
+        wt = torch.cat(
+            [torch.full((n_p,), half / max(n_p, 1)), torch.full((n_n,), half / max(n_n, 1))]
+        ).to(pc.device)
+        clf.partial_fit(
+            torch.cat([pc, nc]), y, sample_weight=wt if n_p and n_n else None, generator=generator
+        )
+
+    def _replayed(self, i: int, generator, like: torch.Tensor) -> torch.Tensor:
+        """``replay`` positives of classifier i drawn uniformly from its labelled pool."""
+        if self.replay == 0 or self.pool_ is None:
+            return like[:0]
+        pool = torch.cat(self.pool_[i])
+        if pool.shape[0] == 0:
+            return pool
+        pick = torch.randint(pool.shape[0], (min(self.replay, pool.shape[0]),), generator=generator)
+        return pool[pick.to(pool.device)]
+
+    def _remember(self, i: int, new: torch.Tensor, generator) -> None:
+        """Add accepted positives to classifier i's pool (a ring of ``pool_size / 2`` rows after
+        the first frame's anchor of at most ``pool_size / 2`` rows)."""
+        half = self.pool_size // 2
+        if new.shape[0] > half:
+            new = new[torch.randperm(new.shape[0], generator=generator)[:half].to(new.device)]
+        anchor, recent = self.pool_[i]
+        self.pool_[i] = [anchor, torch.cat([recent, new])[-half:]]
 
     # -- Algorithm 2 ---------------------------------------------------------------------------
     def init(
@@ -286,8 +317,14 @@ class CoTrainer:
             raise ConfigError(f"box {box} holds no pixel of region {region}")
         if neg.numel() == 0:  # the box fills the region: use its edge band
             neg = torch.nonzero(self._border_mask(h, w).flatten()).flatten()
+        self.pool_ = None
         for _ in range(self.init_passes):
             self._train(codes, [pos] * len(self.classifiers), neg, generator)
+        half = self.pool_size // 2
+        anchor = pos
+        if anchor.numel() > half:
+            anchor = anchor[torch.randperm(anchor.numel(), generator=generator)[:half]]
+        self.pool_ = [[c[anchor], c[:0]] for c in codes]
         maps = self._maps(codes, region)
         blob = self.locate(maps)
         self.reference_ = blob.score if blob is not None else float(maps.opened.clamp_min(0).sum())
@@ -384,6 +421,9 @@ class CoTrainer:
             else:
                 pos = [torch.nonzero(ell & (conf[0] > 0)).flatten().cpu()]
             self.reference_ = 0.9 * ref + 0.1 * blob.score
+            if self.pool_ is not None:
+                for i, (c, p) in enumerate(zip(maps.codes, pos, strict=True)):
+                    self._remember(i, c[p.to(c.device)], generator)
         else:
             pos = [empty] * len(self.classifiers)
         self._train(maps.codes, pos, neg, generator)

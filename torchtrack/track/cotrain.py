@@ -90,6 +90,8 @@ class CoTrainConfig:
     max_samples: int = 1000
     init_passes: int = 3
     texture_blocks: str = "full"
+    replay: int = 0
+    pool_size: int = 4000
     estimator: str = "mean"
 
     def __post_init__(self) -> None:
@@ -188,6 +190,8 @@ class CoTrainTracker(Tracker):
             max_samples=c.max_samples,
             init_passes=c.init_passes,
             texture_blocks=c.texture_blocks,
+            replay=c.replay,
+            pool_size=c.pool_size,
         )
         self.history: list[dict[str, Any]] = []
         self.last_maps = None
