@@ -119,6 +119,23 @@ def test_labelled_pool_keeps_first_frame_and_accepted_positives_only():
     )
 
 
+def test_positives_can_be_restricted_to_a_box():
+    ct = CoTrainer(n_selectors=6, max_samples=10_000, replay=0)
+    region = region_around((40, 40), (20, 20), 2.0, (80, 100))
+    ct.init(scene(40, 40), (30, 30, 20, 20), region, torch.Generator().manual_seed(0))
+    ct.pool_ = [[a[:0], r[:0]] for a, r in ct.pool_]  # empty pool: only this frame's positives
+    maps = ct.score(scene(40, 40, seed=1), region)
+    blob = ct.locate(maps)
+    # keep only the target's left half (frame x in 30..40)
+    assert ct.update(maps, blob, torch.Generator().manual_seed(1), within=(30, 30, 10, 20))
+    x0 = region[0]
+    xs = torch.arange(region[0], region[2]).repeat(region[3] - region[1]) + 0.5
+    codes_left = maps.codes[0][(xs < 40) & (xs >= 30)]
+    pooled = {tuple(r) for r in ct.pool_[0][1].tolist()}
+    assert pooled and pooled <= {tuple(r) for r in codes_left.tolist()}
+    assert x0 < 30
+
+
 def test_errors():
     with pytest.raises(ConfigError, match="replay"):
         CoTrainer(replay=-1)

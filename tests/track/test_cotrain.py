@@ -94,6 +94,8 @@ def test_registry_config_and_errors(tmp_path):
         CoTrainTracker(particles=0)
     with pytest.raises(ConfigError, match="must be int"):
         CoTrainTracker(particles=1.5)
+    with pytest.raises(ConfigError, match="unknown positives"):
+        CoTrainTracker(positives="box")
     with pytest.raises(ConfigError, match="cannot read"):
         CoTrainTracker(config=str(tmp_path / "missing.toml"))
 
