@@ -50,14 +50,24 @@ def load_frames(size: tuple[int, int], n: int) -> list[torch.Tensor]:
     return out
 
 
+TUNED = "detector:likelihood_power=2,estimator=mode,context=1.3"
+
+
 def make(name: str):
+    """``name`` or ``name:key=value,...`` (numbers parsed) -> a seeded tracker."""
     from torchtrack.track.base import create_tracker
 
-    if name == "detector":
-        return create_tracker("detector", generator=torch.Generator().manual_seed(0))
-    if name == "histogram":
-        return create_tracker("histogram", generator=torch.Generator().manual_seed(0))
-    return create_tracker(name)
+    base, _, params = name.partition(":")
+    kw = {}
+    for item in filter(None, params.split(",")):
+        k, v = item.split("=")
+        try:
+            kw[k] = float(v) if "." in v or "e" in v else int(v)
+        except ValueError:
+            kw[k] = v
+    if base in ("detector", "histogram"):
+        return create_tracker(base, generator=torch.Generator().manual_seed(0), **kw)
+    return create_tracker(base, **kw)
 
 
 def time_tracker(name: str, frames, box) -> tuple[float, float]:
@@ -96,6 +106,29 @@ def eval_section(d: Path) -> str:
     return f"### `{d.name}`\n\nCommand: `{cmd}`\n\n{md}\n"
 
 
+def time_batched(b: int, n: int, frames, box, reps: int) -> tuple[float, float]:
+    """One SIR step of the ``detector`` tracker batched over ``b`` targets x ``n`` particles
+    (all windows of a frame scored from one integral image): median wall and CPU ms."""
+    from torchtrack.track.base import create_tracker
+
+    tr = create_tracker("detector", n_particles=n, generator=torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(1)
+    base = torch.tensor(box, dtype=torch.float64)
+    jitter = (torch.rand((b, 2), generator=g, dtype=torch.float64) - 0.5) * 40.0
+    boxes = base.repeat(b, 1)
+    boxes[:, :2] += jitter
+    tr.init(frames[0], boxes)
+    tr.update(frames[1])
+    walls, cpus = [], []
+    for i in range(reps):
+        f = frames[2 + i % (len(frames) - 2)]
+        t0, c0 = time.perf_counter(), time.process_time()
+        tr.update(f)
+        walls.append(1000.0 * (time.perf_counter() - t0))
+        cpus.append(1000.0 * (time.process_time() - c0))
+    return statistics.median(walls), statistics.median(cpus)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -105,13 +138,27 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--eval-dirs", nargs="*", type=Path, default=[])
     ap.add_argument(
+        "--no-tuned", action="store_true", help=f"skip the {TUNED} row (older versions)"
+    )
+    ap.add_argument(
+        "--batched",
+        nargs=2,
+        type=int,
+        metavar=("B", "N"),
+        default=(100, 1000),
+        help="also time one batched SIR step of the detector tracker (B targets x N particles)",
+    )
+    ap.add_argument(
         "--out", type=Path, default=REPO / "docs" / "benchmarks" / "trackers_chateau.md"
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     rows = []
-    for size, names in (((640, 480), ["detector", "mil"]), ((320, 240), ["histogram", "mil"])):
+    for size, names in (
+        ((640, 480), ["detector", *([] if args.no_tuned else [TUNED]), "mil"]),
+        ((320, 240), ["histogram", "mil"]),
+    ):
         frames = load_frames(size, args.frames)
         box = scaled_box(size)
         times = {n: [] for n in names}
@@ -126,6 +173,9 @@ def main() -> None:
         for n in names:
             rss = peak_rss_mb(n, size, 10, args.threads)
             rows.append((n, f"{size[0]}x{size[1]}", med[n], cmed[n], med[n] / med["mil"], rss))
+    bb, bn = args.batched
+    frames = load_frames((640, 480), 8)
+    batched = time_batched(bb, bn, frames, scaled_box((640, 480)), max(3, args.repeats))
     load = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"
     goal = next(r for r in rows if r[0] == "detector")
     cmd = "python tools/bench_chateau.py " + " ".join(sys.argv[1:])
@@ -155,11 +205,19 @@ def main() -> None:
     for n, fs, ms, cms, ratio, rss in rows:
         label = {
             "detector": "detector (Chateau, 200 particles)",
+            TUNED: f"`{TUNED}`",
             "histogram": "histogram (Pérez, J = 2000)",
             "mil": "OpenCV TrackerMIL",
         }[n]
         lines.append(f"| {label} | {fs} | {ms:.2f} | {cms:.2f} | {ratio:.2f} | {rss:.0f} |")
-    lines.append("")
+    lines += [
+        "",
+        f"Batched SIR step of the `detector` tracker, (B, N) = ({bb}, {bn}) at 640x480 (B "
+        f"targets near the same pedestrian, {bb * bn:,} windows scored from one integral image "
+        f"per frame, the pedestrian model's 40 features): {batched[0]:.1f} ms wall-clock, "
+        f"{batched[1]:.1f} ms CPU per step (median of {max(3, args.repeats)}).",
+        "",
+    ]
     if args.eval_dirs:
         lines += ["## Accuracy (`torchtrack eval`, peers in the same run)", ""]
         for d in args.eval_dirs:
