@@ -93,3 +93,24 @@ def test_errors(frame):
         obs.probabilities(frame[None], torch.zeros(3, 4))
     with pytest.raises(ShapeError, match="frame"):
         obs.probabilities(frame[None], torch.zeros(2, 3, 4))
+
+
+def test_margins_are_the_detector_margins_and_map_to_the_probabilities(frame):
+    det = tiny_detector(1)
+    h, w = frame.shape[-2:]
+    boxes = torch.cat(
+        [random_boxes(30, (h, w)), torch.tensor([[w + 5.0, 0.0, 10.0, 10.0]], dtype=torch.float64)]
+    )[None]
+    obs = DetectorObservation(det)
+    m = obs.margins(frame[None], boxes)
+    assert m.dtype == torch.float64 and m.shape == (1, 31) and m[0, 30] == -float("inf")
+    ref = det.decision_function(frame[None].double(), boxes[:, :30])
+    torch.testing.assert_close(m[:, :30], ref.double(), atol=1e-5, rtol=0)
+    p = obs.probabilities_from_margins(m)
+    assert p[0, 30] == 0.0
+    torch.testing.assert_close(p, obs.probabilities(frame[None], boxes))
+    torch.testing.assert_close(
+        p[:, :30], det.proba_from_margin(m[:, :30]).float(), atol=1e-6, rtol=0
+    )
+    with pytest.raises(ShapeError, match=r"\(B, N, 4\)"):
+        obs.margins(frame[None], boxes[0])

@@ -87,7 +87,8 @@ def test_naive_calibration_is_the_papers_fixed_range_rescale():
     tr.init(frame, (16.0, 16.0, 32.0, 64.0))
     states = tr._states[:, :5]
     m = tr.margins(frame, tr.window_boxes(states))
-    got = tr.detector_term(frame, states)
+    got, p = tr.detector_term(frame, states)
+    torch.testing.assert_close(p, tr._probabilities(frame, tr.window_boxes(states)))
     ref = torch.where(torch.isfinite(m), (m - lo) / (hi - lo), torch.zeros_like(m))
     torch.testing.assert_close(got, ref)
     assert bool(((got >= 0) & (got <= 1)).all())

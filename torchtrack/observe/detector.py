@@ -70,15 +70,15 @@ class DetectorObservation:
         self.floor = float(floor)
         self.crop = bool(crop)
 
-    def probabilities(self, frames: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
-        """Calibrated probabilities (eq. 8) of windows on frames.
+    def margins(self, frames: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        """Uncalibrated classifier margins ``m(f)`` of windows on frames.
 
         Args:
             frames: ``(B, C, H, W)`` uint8 or float 0..255 (C = 1 or 3).
             boxes: ``(B, N, 4)`` windows x, y, w, h in pixels (one set per frame).
 
         Returns:
-            ``(B, N)`` float32 in [0, 1]; 0 for windows that cannot be scored (see module doc).
+            ``(B, N)`` float64; ``-inf`` for windows that cannot be scored (see module doc).
 
         Raises:
             ShapeError: wrong shapes.
@@ -94,14 +94,14 @@ class DetectorObservation:
             )
         b, n = boxes.shape[:2]
         fh, fw = int(frames.shape[-2]), int(frames.shape[-1])
-        out = torch.zeros((b, n), dtype=torch.float32, device=frames.device)
+        out = torch.full((b, n), -math.inf, dtype=torch.float64, device=frames.device)
         if n == 0:
             return out
         boxes = boxes.to(device=frames.device, dtype=torch.float64)
         ok = scorable_boxes(boxes, (fh, fw))
         if not bool(ok.any()):
             return out
-        # Unscorable windows are replaced by a harmless in-frame one and zeroed afterwards.
+        # Unscorable windows are replaced by a harmless in-frame one and masked afterwards.
         safe = torch.where(ok.unsqueeze(-1), boxes, boxes.new_tensor([0.0, 0.0, 1.0, 1.0]))
         if self.crop:
             ints, safe = self._cropped_integrals(frames, safe, ok)
@@ -109,8 +109,31 @@ class DetectorObservation:
             ints = integrals(frames)
         det = self.detector
         feats = haar_features_at(ints, safe, det.bank, det.feature_index, check=False)
-        p = det.proba_from_margin(det.margin_from_features(feats)).to(torch.float32)
-        return torch.where(ok, p, out)
+        m = det.margin_from_features(feats).to(torch.float64)
+        return torch.where(ok, m, out)
+
+    def probabilities_from_margins(self, margins: torch.Tensor) -> torch.Tensor:
+        """Calibrated probabilities (eq. 8) of :meth:`margins` output: ``(B, N)`` float32, 0
+        where the margin is ``-inf`` (unscorable window)."""
+        ok = torch.isfinite(margins)
+        safe = torch.where(ok, margins, torch.zeros_like(margins))
+        p = self.detector.proba_from_margin(safe).to(torch.float32)
+        return torch.where(ok, p, torch.zeros_like(p))
+
+    def probabilities(self, frames: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        """Calibrated probabilities (eq. 8) of windows on frames.
+
+        Args:
+            frames: ``(B, C, H, W)`` uint8 or float 0..255 (C = 1 or 3).
+            boxes: ``(B, N, 4)`` windows x, y, w, h in pixels (one set per frame).
+
+        Returns:
+            ``(B, N)`` float32 in [0, 1]; 0 for windows that cannot be scored (see module doc).
+
+        Raises:
+            ShapeError: wrong shapes.
+        """
+        return self.probabilities_from_margins(self.margins(frames, boxes))
 
     def log_likelihood(self, frames: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
         """``log(max(p, floor))`` of :meth:`probabilities`: ``(B, N)`` float64."""

@@ -45,11 +45,9 @@ from typing import Any
 import torch
 
 from torchtrack.errors import ConfigError
-from torchtrack.features.haar import haar_features_at, integrals
 from torchtrack.filter.sir import sir_step
 from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
-from torchtrack.observe.detector import scorable_boxes
 from torchtrack.track.base import TrackState, register_tracker
 from torchtrack.track.config import apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import DetectorTracker
@@ -231,19 +229,10 @@ class FusedTracker(DetectorTracker):
 
     # -- terms ---------------------------------------------------------------------------------
     def margins(self, frame: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
-        """Uncalibrated detector margins ``(B, N)`` of ``windows (B, N, 4)`` (``-inf`` for
-        windows that cannot be scored)."""
+        """Uncalibrated detector margins ``(B, N)`` of ``windows (B, N, 4)`` on one
+        ``frame (C, H, W)`` (``-inf`` for windows that cannot be scored)."""
         b, n = windows.shape[:2]
-        fh, fw = int(frame.shape[-2]), int(frame.shape[-1])
-        w = windows.reshape(1, b * n, 4).to(torch.float64)
-        ok = scorable_boxes(w, (fh, fw))
-        safe = torch.where(ok.unsqueeze(-1), w, w.new_tensor([0.0, 0.0, 1.0, 1.0]))
-        det = self.detector
-        feats = haar_features_at(
-            integrals(frame[None]), safe, det.bank, det.feature_index, check=False
-        )
-        m = det.margin_from_features(feats).to(torch.float64)
-        m = torch.where(ok, m, torch.full_like(m, -math.inf))
+        m = self.observation.margins(frame[None], windows.reshape(1, b * n, 4))
         return m.reshape(b, n)
 
     def margin_range(self) -> tuple[float, float]:
@@ -264,18 +253,23 @@ class FusedTracker(DetectorTracker):
         hi = float(torch.maximum(left, right).to(torch.float64).sum())
         return lo, hi
 
-    def detector_term(self, frame: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
-        """``P_det (B, N)``: calibrated probabilities, or (ablations) min-max rescaled raw
-        margins (``raw``) or margins rescaled by the classifier's range (``naive``)."""
+    def detector_term(
+        self, frame: torch.Tensor, states: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(P_det, p) (B, N)``: the detector factor of the weights (calibrated
+        probabilities, or for the ablations the min-max rescaled margins (``raw``) or the
+        margins rescaled by the classifier's range (``naive``)) and the calibrated probabilities
+        (for the evidence), from one scoring of the windows."""
         wins = self.window_boxes(states)
+        m = self.margins(frame, wins)
+        p = self.observation.probabilities_from_margins(m).to(torch.float64)
         cal = self.fused_config.calibration
         if cal == "platt":
-            return self._probabilities(frame, wins)
-        m = self.margins(frame, wins)
+            return p, p
         if cal == "raw":
-            return minmax_rescale(m)
+            return minmax_rescale(m), p
         lo, hi = self.margin_range()
-        return ((m - lo) / max(hi - lo, 1e-12)).clamp(0.0, 1.0)  # -inf (unscorable) -> 0
+        return ((m - lo) / max(hi - lo, 1e-12)).clamp(0.0, 1.0), p  # -inf (unscorable) -> 0
 
     def cotrain_term(self, maps, states: torch.Tensor) -> torch.Tensor:
         """``log L_cot (B, N)``: log mean positive confidence in the object box (floored) minus
@@ -316,11 +310,9 @@ class FusedTracker(DetectorTracker):
         hold: dict[str, torch.Tensor] = {}
 
         def log_likelihood(states: torch.Tensor) -> torch.Tensor:
-            p = self.detector_term(frame, states) if cfg.det_weight > 0 else None
-            if cfg.det_weight > 0 and cfg.calibration != "platt":
-                hold["p"] = self._probabilities(frame, self.window_boxes(states))
-            elif p is not None:
-                hold["p"] = p
+            p = None
+            if cfg.det_weight > 0:
+                p, hold["p"] = self.detector_term(frame, states)
             lc = self.cotrain_term(maps, states) if cfg.cotrain_weight > 0 else None
             zeros = torch.zeros(states.shape[:2], dtype=torch.float64)
             return fused_log_weights(
