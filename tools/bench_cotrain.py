@@ -127,7 +127,7 @@ def main() -> int:
         if args.max_frames:
             cmd += ["--max-frames", str(args.max_frames)]
         cmd += ["--out", tmp, "--no-progress"]
-        # One thread per tracker, as eval's --jobs workers (on a shared 2-core machine a second
+        # One torch thread, as eval's --jobs workers (on a shared 2-core machine a second
         # intra-op thread only adds contention).
         env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env)
@@ -155,7 +155,7 @@ def main() -> int:
         f"Command: `{command}`; its part A is `{eval_cmd}` ({len(res['sequences'])} sequences, "
         f"{frames}; {ov[trackers[0]]['n_frames']} frames per tracker; {t_a / 60:.0f} min), "
         f"part B runs afterwards ({args.direct_frames} frames per sequence, {t_b / 60:.0f} min). "
-        "One thread per tracker. "
+        "One torch thread. "
         f"Shared 2-core machine, load average {load0[0]:.1f} at the start and {load1[0]:.1f} "
         "after part A: fps are only comparable within a table (ratios).",
         "",
