@@ -1,9 +1,16 @@
 """Bachoo et al.'s metrics for the template tracker on every dev sequence, next to OpenCV
-TrackerMIL in the same ``torchtrack eval`` run (one-pass and re-initialising passes).
+TrackerMIL (and TrackerCSRT where opencv-contrib is installed) in the same ``torchtrack eval``
+run (one-pass and re-initialising passes).
 
-Writes ``docs/benchmarks/template.md`` (atomically) and prints it.
+Writes ``docs/benchmarks/template.md`` (atomically) and prints it; hand-written notes below the
+page's ``<!-- notes -->`` marker are kept when the page is rebuilt.
 
-    python tools/bench_template.py --data /work/shared/data/tracking --max-frames 150 --jobs 2
+    python tools/bench_template.py --data /work/shared/data/tracking --jobs 1
+    # with CSRT and the paper's own settings, from an interpreter that has opencv-contrib:
+    /tmp/peers-venv/bin/python tools/bench_template.py --jobs 1 --trackers template \
+        template:d_mode=fixed,update_against=first,antialias=false mil csrt
+
+The evaluator runs with the interpreter that runs this script (``sys.executable``).
 
 Track length % and re-initialisations per 100 frames come from the re-initialising pass
 (``--reinit``: re-init from the ground truth when the centre error exceeds 100 px, Bachoo
@@ -25,6 +32,7 @@ from pathlib import Path
 from torchtrack.io.atomic import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
+NOTES_MARKER = "<!-- notes -->"
 
 
 def _ms(v) -> str:
@@ -75,7 +83,8 @@ def render(trackers: list[str], command: str, out: Path) -> str:
     lines = [
         "# Template tracker (Bachoo et al. 2011) on the dev sequences",
         "",
-        f"Command: `{command}`",
+        f"Command: `{command}` (its `torchtrack eval` run: both passes, `--reinit` for the "
+        "second; the page can be rebuilt from the same folder with `--render-only`)",
         "",
         "Dev-set numbers are means over the sequences that completed (fps: median of the "
         "per-sequence fps; the machine was shared, so compare the ratio to MIL measured in the "
@@ -168,10 +177,12 @@ def main(argv: list[str] | None = None) -> int:
         if a.max_frames:
             cmd += ["--max-frames", str(a.max_frames)]
         subprocess.run(cmd, check=True)
-    command = "python tools/bench_template.py " + " ".join(
-        x for x in (argv if argv is not None else sys.argv[1:])
-    )
+    args = [x for x in (argv if argv is not None else sys.argv[1:]) if x != "--render-only"]
+    command = f"{sys.executable} tools/bench_template.py " + " ".join(args)
     page = render(a.trackers, command, out)
+    old = Path(a.page).read_text() if Path(a.page).exists() else ""
+    if NOTES_MARKER in old:
+        page += "\n" + NOTES_MARKER + old.split(NOTES_MARKER, 1)[1]
     write_text_atomic(a.page, page)
     print(page)
     return 0
