@@ -153,9 +153,7 @@ def test_gaussian_blur_equals_cv2(sx, sy):
     ry = max(1, int(np.ceil(3 * sy))) if sy >= 0.1 else 0
     kx = cv2.getGaussianKernel(2 * rx + 1, sx) if rx else np.ones((1, 1))
     ky = cv2.getGaussianKernel(2 * ry + 1, sy) if ry else np.ones((1, 1))
-    ref = cv2.sepFilter2D(
-        img.numpy(), cv2.CV_64F, kx, ky, borderType=cv2.BORDER_REFLECT_101
-    )
+    ref = cv2.sepFilter2D(img.numpy(), cv2.CV_64F, kx, ky, borderType=cv2.BORDER_REFLECT_101)
     np.testing.assert_allclose(ours, ref, atol=1e-5)
     if rx == ry == 0:
         assert np.array_equal(ours, img.numpy())

@@ -411,9 +411,7 @@ class TemplateTracker(Tracker):
         est = res.estimate[0].to(torch.float64).clone()
         if cfg.lk_iterations > 0:
             m0 = pose_matrices(est[_POSE], cfg.template_size)
-            m = align_ic(
-                luma, self.model.first, m0, iterations=cfg.lk_iterations, tol=cfg.lk_tol
-            )
+            m = align_ic(luma, self.model.first, m0, iterations=cfg.lk_iterations, tol=cfg.lk_tol)
             ref = self.model.first if cfg.update_against == "first" else self.model.current
             g_upd, patch = self.model.gamma_of_matrix(luma, m, ref)
             info["update_gamma"] = g_upd
