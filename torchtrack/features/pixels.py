@@ -200,6 +200,16 @@ def colour_features(images: torch.Tensor) -> torch.Tensor:
     return torch.cat([x, rgb_to_gray(x)], 1)
 
 
+def _pair_channels(x: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centre and neighbour channels of the :data:`CHANNEL_PAIRS` along ``dim`` (a single
+    channel pairs with itself)."""
+    if x.shape[dim] == 1:
+        return x, x
+    ci = torch.tensor([a for a, _ in CHANNEL_PAIRS], device=x.device)
+    ni = torch.tensor([b for _, b in CHANNEL_PAIRS], device=x.device)
+    return x.index_select(dim, ci), x.index_select(dim, ni)
+
+
 def pixel_features(
     images: torch.Tensor, threshold: float = 5.0, *, circular: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -220,12 +230,7 @@ def pixel_features(
     """
     _check(images)
     colour = colour_features(images)
-    if images.shape[1] == 1:
-        c = n = images
-    else:
-        ci = torch.tensor([a for a, _ in CHANNEL_PAIRS], device=images.device)
-        ni = torch.tensor([b for _, b in CHANNEL_PAIRS], device=images.device)
-        c, n = images.index_select(1, ci), images.index_select(1, ni)
+    c, n = _pair_channels(images, 1)
     up, lo = ltp_codes(c, n, threshold, circular=circular)
     texture = torch.stack([up, lo], 2).flatten(1, 2)  # pair-major: RR+, RR-, GG+, ...
     return colour, texture
@@ -309,12 +314,7 @@ def region_features(
     crop = frame[:, my0:my1, mx0:mx1]
     sy, sx = y0 - my0, x0 - mx0
     h, w = y1 - y0, x1 - x0
-    if crop.shape[0] == 1:
-        c = n = crop
-    else:
-        ci = torch.tensor([a for a, _ in CHANNEL_PAIRS], device=crop.device)
-        ni = torch.tensor([b for _, b in CHANNEL_PAIRS], device=crop.device)
-        c, n = crop.index_select(0, ci), crop.index_select(0, ni)
+    c, n = _pair_channels(crop, 0)
     if crop.is_floating_point():
         up, lo = ltp_codes(c[None], n[None], threshold)
         up, lo = up[0].to(torch.uint8), lo[0].to(torch.uint8)
