@@ -77,7 +77,7 @@ from torchtrack.learn.online_gentle import (
 )
 from torchtrack.observe.adaptive_haar import AdaptiveHaarObservation
 from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import apply_overrides, load_tracker_config
+from torchtrack.track.config import _in_unit, _positive_int, resolve_tracker_config
 
 __all__ = ["ADAPT_MODES", "AdaptiveHaarConfig", "AdaptiveHaarTracker"]
 
@@ -135,9 +135,9 @@ class AdaptiveHaarConfig:
     def validate(self) -> None:
         if self.adapt not in ADAPT_MODES:
             raise ConfigError(f"adapt must be one of {', '.join(ADAPT_MODES)}, got {self.adapt!r}")
-        for k in ("n_particles", "n_weak", "pos_max", "neg_max", "n_best", "neg_candidates"):
-            if getattr(self, k) < 1:
-                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+        _positive_int(
+            self, "n_particles", "n_weak", "pos_max", "neg_max", "n_best", "neg_candidates"
+        )
         if not 0 <= self.init_positives < self.pos_max:
             raise ConfigError(
                 f"init_positives must be in [0, pos_max) = [0, {self.pos_max}), "
@@ -151,9 +151,7 @@ class AdaptiveHaarConfig:
             )
         if not 0 <= self.k_new <= self.n_weak:
             raise ConfigError(f"k_new must be in [0, n_weak], got {self.k_new}")
-        for k in ("theta", "visible_threshold", "neg_iou"):
-            if not 0.0 <= getattr(self, k) <= 1.0:
-                raise ConfigError(f"{k} must be in [0, 1], got {getattr(self, k)}")
+        _in_unit(self, "theta", "visible_threshold", "neg_iou")
         for k in ("lam", "first_weight"):
             if not getattr(self, k) > 0:
                 raise ConfigError(f"{k} must be > 0, got {getattr(self, k)}")
@@ -235,18 +233,11 @@ class AdaptiveHaarTracker(Tracker):
         **overrides: Any,
     ) -> None:
         super().__init__()
-        if config is None:
-            cfg = AdaptiveHaarConfig()
-        elif isinstance(config, AdaptiveHaarConfig):
-            cfg = config
-        else:
-            cfg = load_tracker_config(config, AdaptiveHaarConfig)
         if adapt is not None:
             overrides = {**overrides, "adapt": adapt}
-        if overrides:
-            cfg = apply_overrides(cfg, overrides, where="adaptive-haar tracker")
-        else:
-            cfg.validate()
+        cfg = resolve_tracker_config(
+            AdaptiveHaarConfig, config, overrides, where="adaptive-haar tracker"
+        )
         self.config = cfg
         self.generator = generator
         self.pool = cfg.pool()
