@@ -31,3 +31,15 @@ def data_dir() -> Path:
             pytest.fail(msg + " (CI=true: real-data tests must not skip)")
         pytest.skip(msg)
     return d
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread for a test module (small per-frame tensors: extra intra-op threads only
+    wait on each other, and on a shared machine make the tests many times slower)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -12,15 +12,7 @@ from torchtrack.track.base import create_tracker
 from torchtrack.track.config import DetectorTrackerConfig, load_tracker_config
 from torchtrack.track.detector_pf import DetectorTracker, load_dynamics
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # Small per-frame tensors: extra intra-op threads only wait on each other (and on a shared
-    # machine make the test many times slower).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

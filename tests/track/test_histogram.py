@@ -14,13 +14,7 @@ from torchtrack.track.base import create_tracker
 from torchtrack.track.config import HistogramTrackerConfig, load_tracker_config
 from torchtrack.track.histogram import HistogramTracker
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
