@@ -62,3 +62,17 @@ def test_no_negatives_and_missing_file(tmp_path):
         load_train_config(tmp_path / "missing.toml")
     with pytest.raises(ConfigError, match="does not exist"):
         read_name_list(tmp_path / "missing.txt")
+
+
+def test_object_region_to_window_fractions(tmp_path):
+    from torchtrack.detect.config import TrainConfig
+
+    cfg = TrainConfig(window=[128, 64])
+    cfg.data.positives = ["x"]
+    cfg.data.negatives = ["y"]
+    cfg.data.crop_size, cfg.data.region = [160, 96], [16, 16, 64, 128]
+    cfg.data.object = [32, 32, 32, 96]
+    assert cfg.validate().object_box() == (0.25, 0.125, 0.5, 0.75)
+    cfg.data.object = [0, 0, 96, 160]  # the whole crop is larger than the window region
+    with pytest.raises(ConfigError, match="data.object"):
+        cfg.validate()

@@ -167,3 +167,36 @@ def test_detector_validation():
         Detector(bank, torch.tensor([0, 1, 2, len(bank)]), clf)
     with pytest.raises(NotFittedError, match="not fitted"):
         Detector(bank, torch.tensor([0, 1, 2, 3]), BoostedStumps())
+
+
+def test_object_box_round_trip_and_conversion(tmp_path):
+    from dataclasses import replace
+
+    det = replace(make_detector(), object_box=(0.25, 0.125, 0.5, 0.75))
+    again = load_detector(save_detector(tmp_path / "m.safetensors", det))
+    assert again.object_box == (0.25, 0.125, 0.5, 0.75)
+    win = torch.tensor([[10.0, 20.0, 8.0, 16.0], [0.0, 0.0, 64.0, 128.0]])
+    obj = again.window_to_object(win)
+    torch.testing.assert_close(obj[1], torch.tensor([16.0, 16.0, 32.0, 96.0]))
+    torch.testing.assert_close(again.object_to_window(obj), win)
+    plain = make_detector()  # no object box: windows are the objects
+    assert plain.object_box is None and torch.equal(plain.window_to_object(win), win)
+    assert "object_box" not in read_model_metadata(save_detector(tmp_path / "p.st", plain))
+
+
+@pytest.mark.parametrize(
+    "box", [(0.5, 0.0, 0.6, 1.0), (0.0, 0.0, 0.0, 1.0), (0.1, 0.1, float("nan"), 0.5), (1, 2, 3)]
+)
+def test_object_box_outside_window_rejected(box):
+    from dataclasses import replace
+
+    with pytest.raises(ModelFormatError, match="object_box"):
+        replace(make_detector(), object_box=box)
+
+
+def test_bundled_pedestrian_reports_the_person_not_the_window():
+    from torchtrack.detect.bundled import load_model
+
+    det = load_model("pedestrian")
+    # Dalal & Triggs: the INRIA person is 96 px tall with 16 px of margin in the 64x128 window.
+    assert det.object_box == (0.25, 0.125, 0.5, 0.75)

@@ -40,6 +40,11 @@ class DataConfig:
         crop_size, region: ``(H0, W0)`` and ``(x, y, w, h)`` of the object inside each positive
             crop (INRIA 96x160: ``[160, 96]`` and ``[16, 16, 64, 128]``); see
             :func:`torchtrack.io.crops.load_crops`.
+        object: ``(x, y, w, h)`` of the object itself inside each positive crop, in the pixels
+            of ``crop_size`` (or of the window when no region is given): the detector reports
+            this part of its window as the object's box (INRIA 96x160: ``[32, 32, 32, 96]``, a
+            person 96 px tall with 16 px of margin on every side of the 64x128 window).
+            ``None``: the object fills the window.
         mirror_positives, mirror_negatives: add left-right mirror images.
         random_negatives: number of random windows drawn from ``negative_images``.
         negative_min_scale, negative_max_scale: scale range of those windows (x window size).
@@ -53,6 +58,7 @@ class DataConfig:
     negative_images: list[str] = field(default_factory=list)
     crop_size: list[int] | None = None
     region: list[int] | None = None
+    object: list[float] | None = None
     mirror_positives: bool = True
     mirror_negatives: bool = False
     random_negatives: int = 0
@@ -147,6 +153,8 @@ class TrainConfig:
             raise ConfigError(f"data.random_negatives must be >= 0, got {d.random_negatives}")
         if (d.region is None) != (d.crop_size is None):
             raise ConfigError("data.region and data.crop_size go together (give both or neither)")
+        if d.object is not None:
+            self.object_box()
         if not (d.negative_min_scale > 0 and math.isfinite(d.negative_min_scale)):
             raise ConfigError("data.negative_min_scale must be a positive number")
         lr = self.learn
@@ -184,6 +192,34 @@ class TrainConfig:
         if m.rounds > 0 and not d.negative_images:
             raise ConfigError("mining.rounds > 0 needs data.negative_images to scan")
         return self
+
+    def object_box(self) -> tuple[float, float, float, float] | None:
+        """``data.object`` as fractions of the detector window (see
+        :attr:`torchtrack.detect.Detector.object_box`); ``None`` when not given.
+
+        Raises:
+            ConfigError: not four numbers, or not inside the window.
+        """
+        from torchtrack.detect.detector import check_object_box
+        from torchtrack.errors import ModelFormatError
+
+        d = self.data
+        if d.object is None:
+            return None
+        if not isinstance(d.object, (list, tuple)) or len(d.object) != 4:
+            raise ConfigError(f"data.object must be [x, y, w, h] pixels, got {d.object!r}")
+        if d.region is not None:
+            rx, ry, rw, rh = (float(v) for v in d.region)
+        else:
+            rx, ry, rh, rw = 0.0, 0.0, float(self.window[0]), float(self.window[1])
+        try:
+            x, y, w, h = (float(v) for v in d.object)
+            return check_object_box([(x - rx) / rw, (y - ry) / rh, w / rw, h / rh])
+        except (TypeError, ValueError, ModelFormatError) as exc:
+            raise ConfigError(
+                f"data.object {d.object!r} must be four numbers inside the window region "
+                f"({exc})"
+            ) from None
 
     def to_dict(self) -> dict[str, Any]:
         return _asdict(self)

@@ -15,7 +15,35 @@ import torch
 from torchtrack.errors import ModelFormatError, NotFittedError, ShapeError
 from torchtrack.features.haar import HaarBank, Integrals, haar_features_at, integrals
 
-__all__ = ["Detector"]
+__all__ = ["Detector", "check_object_box"]
+
+
+def check_object_box(box: Any) -> tuple[float, float, float, float]:
+    """Validate an object box given as ``(x, y, w, h)`` fractions of the detector window:
+    four finite numbers, ``w, h > 0``, inside ``[0, 1]``.
+
+    Raises:
+        ModelFormatError: anything else (the message says what came).
+    """
+    import math
+
+    if not isinstance(box, (list, tuple)) or len(box) != 4:
+        raise ModelFormatError(
+            f"object_box must be [x, y, w, h] fractions of the window, got {box!r}"
+        )
+    vals = []
+    for v in box:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ModelFormatError(f"object_box must hold four finite numbers, got {box!r}")
+        vals.append(float(v))
+    x, y, w, h = vals
+    eps = 1e-6
+    if not (w > 0 and h > 0 and x >= -eps and y >= -eps and x + w <= 1 + eps and y + h <= 1 + eps):
+        raise ModelFormatError(
+            f"object_box {box!r} must lie inside the window: x, y >= 0, w, h > 0, "
+            "x + w <= 1, y + h <= 1 (fractions of the window)"
+        )
+    return (x, y, w, h)
 
 
 @dataclass
@@ -33,6 +61,12 @@ class Detector:
             :class:`~torchtrack.learn.IsotonicCalibrator`; ``None`` until calibrated.
         name: a label, e.g. ``"pedestrian"``.
         summary: JSON-safe training summary (data counts, held-out metrics, split).
+        object_box: where the object lies inside the detector window, as ``(x, y, w, h)``
+            fractions of the window's width and height (``None``: the object fills the window).
+            Detectors trained on crops with a margin score a window larger than the object
+            (INRIA pedestrians: ``(0.25, 0.125, 0.5, 0.75)``, a 32x96 person in the 64x128
+            window, Dalal and Triggs' 16-px margin on every side); detections and tracks are
+            reported as object boxes (:meth:`window_to_object`).
 
     Save and load it with :func:`torchtrack.detect.save_detector` /
     :func:`~torchtrack.detect.load_detector`.
@@ -44,8 +78,11 @@ class Detector:
     calibrator: Any = None
     name: str = "detector"
     summary: dict[str, Any] = field(default_factory=dict)
+    object_box: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.object_box is not None:
+            self.object_box = check_object_box(self.object_box)
         self.feature_index = (
             torch.as_tensor(self.feature_index, dtype=torch.int64).reshape(-1).cpu()
         )
@@ -68,6 +105,30 @@ class Detector:
     def window(self) -> tuple[int, int]:
         """``(H, W)`` of the training window."""
         return self.bank.window
+
+    def window_to_object(self, boxes: torch.Tensor) -> torch.Tensor:
+        """Object boxes ``(..., 4)`` of detector windows ``boxes (..., 4)`` (x, y, w, h pixels);
+        the windows themselves when the model has no ``object_box``."""
+        if self.object_box is None:
+            return boxes
+        fx, fy, fw, fh = self.object_box
+        x, y, w, h = boxes.unbind(-1)
+        return torch.stack((x + fx * w, y + fy * h, fw * w, fh * h), -1)
+
+    def object_to_window(self, boxes: torch.Tensor) -> torch.Tensor:
+        """Detector windows ``(..., 4)`` around object boxes ``(..., 4)``: the inverse of
+        :meth:`window_to_object` (the window keeps the detector's aspect ratio only when the
+        object box has the aspect ratio of ``object_box``; the height decides the scale)."""
+        if self.object_box is None:
+            return boxes
+        fx, fy, fw, fh = self.object_box
+        wh, ww = self.window
+        x, y, w, h = boxes.unbind(-1)
+        win_h = h / fh
+        win_w = win_h * (ww / wh)
+        cx = x + w / 2 - (fx + fw / 2) * win_w + win_w / 2
+        cy = y + h / 2 - (fy + fh / 2) * win_h + win_h / 2
+        return torch.stack((cx - win_w / 2, cy - win_h / 2, win_w, win_h), -1)
 
     def with_calibrator(self, calibrator: Any) -> Detector:
         """A copy with another fitted calibrator (``predict_proba`` on margins)."""

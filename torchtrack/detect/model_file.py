@@ -9,6 +9,7 @@ document::
      "classifier": {"kind": "boosted_stumps" | "svm", ...},
      "calibration": {"kind": "platt" | "isotonic", ...} | null,
      "training": {...data counts, split, held-out metrics...},
+     "object_box": [x, y, w, h] fractions of the window | absent (the object fills the window),
      "sha256": hex digest of the JSON without this key plus every tensor's name, dtype, shape
                and bytes}
 
@@ -77,6 +78,8 @@ def save_detector(path: str | os.PathLike, det: Detector) -> Path:
         "calibration": cal_m,
         "training": det.summary,
     }
+    if det.object_box is not None:
+        meta["object_box"] = list(det.object_box)
     try:
         json.dumps(meta, allow_nan=False)
     except (TypeError, ValueError) as exc:
@@ -185,6 +188,7 @@ def load_detector(path: str | os.PathLike) -> Detector:
             cal,
             name=str(meta.get("name", "detector")),
             summary=meta.get("training") or {},
+            object_box=meta.get("object_box"),
         )
         if det.selected_features() != meta["selected_features"]:
             raise ModelFormatError("selected feature descriptions disagree with the feature index")

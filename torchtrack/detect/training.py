@@ -413,5 +413,11 @@ def train_detector(
         f"ECE {cal_metrics['ece']:.4f} on {m_ca.numel()} held-out crops"
     )
     return Detector(
-        bank, det.feature_index, det.classifier, calibrator, name=cfg.name, summary=summary
+        bank,
+        det.feature_index,
+        det.classifier,
+        calibrator,
+        name=cfg.name,
+        summary=summary,
+        object_box=cfg.object_box(),
     )
