@@ -74,5 +74,5 @@ def test_object_region_to_window_fractions(tmp_path):
     cfg.data.object = [32, 32, 32, 96]
     assert cfg.validate().object_box() == (0.25, 0.125, 0.5, 0.75)
     cfg.data.object = [0, 0, 96, 160]  # the whole crop is larger than the window region
-    with pytest.raises(ConfigError, match="data.object"):
+    with pytest.raises(ConfigError, match=r"data\.object"):
         cfg.validate()
