@@ -217,8 +217,7 @@ class TrainConfig:
             return check_object_box([(x - rx) / rw, (y - ry) / rh, w / rw, h / rh])
         except (TypeError, ValueError, ModelFormatError) as exc:
             raise ConfigError(
-                f"data.object {d.object!r} must be four numbers inside the window region "
-                f"({exc})"
+                f"data.object {d.object!r} must be four numbers inside the window region ({exc})"
             ) from None
 
     def to_dict(self) -> dict[str, Any]:
