@@ -47,6 +47,8 @@ JSON_VERSION = 1
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_out, add_progress
+
     p = subparsers.add_parser(
         "calibrate",
         help="fit Platt / isotonic calibration for a detector or a CSV of scores",
@@ -74,14 +76,12 @@ def register(subparsers) -> None:
     p.add_argument("--scores", metavar="CSV", help="CSV of score,label rows instead of a model")
     p.add_argument("--method", choices=("platt", "isotonic"), default="platt")
     p.add_argument("--json", metavar="OUT", help="write the calibration to this JSON file")
-    p.add_argument(
-        "-o", "--output", metavar="MODEL", help="write the calibrated model here (default: MODEL)"
-    )
+    add_out(p, "MODEL", "write the calibrated model here (default: MODEL itself)")
     p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
     p.add_argument("--bins", type=int, default=15, help="ECE / diagram bins (default 15)")
     p.add_argument("--seed", type=int, default=0, help="seed of the CV folds (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_progress(p)
     p.set_defaults(func=run)
 
 
@@ -243,6 +243,7 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
+    from torchtrack.cli._common import show_progress
     from torchtrack.errors import ConfigError
     from torchtrack.io.atomic import write_text_atomic
     from torchtrack.learn import (
@@ -259,8 +260,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--bins must be >= 1, got {args.bins}")
     det = None
     if args.scores is not None:
-        if args.pos or args.neg or args.output:
-            raise ConfigError("--pos / --neg / --output need a MODEL, not --scores")
+        if args.pos or args.neg or args.out:
+            raise ConfigError("--pos / --neg / --out need a MODEL, not --scores")
         if not args.json:
             raise ConfigError("--scores needs --json OUT to write the calibration to")
         s, labels = read_scores_csv(args.scores)
@@ -280,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--region and --crop-size go together")
         opts = {
             "strict": args.strict,
-            "progress": not args.quiet,
+            "progress": show_progress(args),
             "region": tuple(args.region) if args.region else None,
             "crop_size": tuple(args.crop_size) if args.crop_size else None,
         }
@@ -334,7 +335,7 @@ def run(args: argparse.Namespace) -> int:
         write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.json}")
     elif det is not None:
-        out = args.output or args.model
+        out = args.out or args.model
         new = det.with_calibrator(cal)
         new.summary = {**det.summary, "recalibration": record}
         save_detector(out, new)

@@ -26,9 +26,8 @@ from pathlib import Path
 _EPILOG = """\
 examples:
   torchtrack detect pedestrian street.jpg
-  torchtrack detect vehicle photos/ -o cars.jsonl --annotate annotated/
-  torchtrack detect pedestrian "$(python -c 'import torchtrack.data as d; print(d.demo_clip_path())')" \\
-      --min-scale 0.35 --threshold 0.9 --video demo_detections.mp4
+  torchtrack detect vehicle photos/ --out cars.jsonl --annotate annotated/
+  torchtrack detect pedestrian demo --min-scale 0.35 --threshold 0.9 --video demo_detections.mp4
   torchtrack detect my_model.safetensors clip.avi --stride 0.05 --scale-step 1.1
 
 MODEL is a model file or a bundled name (pedestrian, vehicle). Objects smaller than the model
@@ -38,6 +37,8 @@ Unreadable images in a folder are skipped and listed on stderr (--strict: fail i
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_out, add_progress, add_threads
+
     p = subparsers.add_parser(
         "detect",
         help="detect objects in an image, a folder of images or a video (JSON lines)",
@@ -51,10 +52,12 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("model", metavar="MODEL", help="model file or bundled name")
-    p.add_argument("source", metavar="SOURCE", help="image file, folder of images or video file")
     p.add_argument(
-        "-o", "--output", metavar="JSONL", help="write the JSON lines here (default: stdout)"
+        "source",
+        metavar="SOURCE",
+        help="image file, folder of images, video file or 'demo' (the bundled clip)",
     )
+    add_out(p, "JSONL", "write the JSON lines here (default: stdout)")
     p.add_argument(
         "--threshold",
         type=float,
@@ -82,7 +85,8 @@ def register(subparsers) -> None:
     )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
-    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    add_progress(p)
+    add_threads(p, default=2)
     p.set_defaults(func=run)
 
 
@@ -106,10 +110,11 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def _open(source: str):
+    from torchtrack.cli.track import resolve_source
     from torchtrack.errors import VideoError
     from torchtrack.io.video import IMAGE_EXTENSIONS, open_source
 
-    p = Path(source)
+    p = Path(resolve_source(source))
     if not p.exists():
         raise VideoError(f"source {source!r} does not exist (give an image, a folder or a video)")
     if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS:
@@ -209,12 +214,14 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
+    from torchtrack.cli._common import apply_threads, show_progress
     from torchtrack.detect.bundled import load_model
     from torchtrack.detect.scan import scan_batch
     from torchtrack.errors import DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
 
     _check_args(args)
+    apply_threads(args)
     det = load_model(args.model)
     if det.calibrator is None:
         raise NotFittedError(
@@ -236,9 +243,15 @@ def run(args: argparse.Namespace) -> int:
     total = len(src) or None
     if args.max_frames is not None and total is not None:
         total = min(total, args.max_frames)
-    out_cm = atomic_write(args.output) if args.output else contextlib.nullcontext(sys.stdout)
+    out_cm = atomic_write(args.out) if args.out else contextlib.nullcontext(sys.stdout)
     with src, out_cm as out, _Writers(args.annotate, args.video, fps) as writers:
-        bar = tqdm(total=total, unit="frame", disable=args.quiet, desc="detect", file=sys.stderr)
+        bar = tqdm(
+            total=total,
+            unit="frame",
+            disable=not show_progress(args),
+            desc="detect",
+            file=sys.stderr,
+        )
         pending: list[tuple[int, torch.Tensor]] = []
 
         def flush() -> None:

@@ -12,6 +12,8 @@ import argparse
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_progress
+
     p = subparsers.add_parser(
         "eval",
         help="evaluate trackers on tracking sequences (OTB / BoBoT / VOT / CSV)",
@@ -38,7 +40,7 @@ def register(subparsers) -> None:
         help="tracker names, optionally with parameters: name:key=value,key=value "
         "(see --list-trackers)",
     )
-    p.add_argument("--out", metavar="DIR", help="output folder")
+    p.add_argument("-o", "--out", metavar="DIR", help="output folder")
     p.add_argument("--plots", action="store_true", help="write success / precision PNG plots")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument(
@@ -74,7 +76,7 @@ def register(subparsers) -> None:
         "repeatable; also imported by --jobs workers",
     )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
     p.set_defaults(func=run)
 
@@ -82,6 +84,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import importlib
 
+    from torchtrack.cli._common import show_progress
     from torchtrack.errors import ConfigError
     from torchtrack.track.base import available_trackers, tracker_info, tracker_names
 
@@ -122,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         reinit=args.reinit,
         invisible=args.invisible,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=show_progress(args),
         command=command,
         modules=args.modules,
     )

@@ -44,6 +44,8 @@ output:
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_progress
+
     p = subparsers.add_parser(
         "track",
         help="track objects in a video, a frame folder or a camera",
@@ -80,7 +82,7 @@ def register(subparsers) -> None:
         help="adaptation mode, passed to trackers that accept it (e.g. adaptive-haar)",
     )
     p.add_argument("--config", metavar="FILE", help="tracker config TOML (configs/trackers/)")
-    p.add_argument("--out", metavar="CSV", help="write boxes to this CSV file")
+    p.add_argument("-o", "--out", metavar="CSV", help="write boxes to this CSV file")
     p.add_argument("--video", metavar="FILE", help="write an annotated video (.mp4 / .avi)")
     p.add_argument("--particles", action="store_true", help="draw particles in --video")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
@@ -99,7 +101,7 @@ def register(subparsers) -> None:
         help="torch threads (default 1: the per-frame work is small and extra threads mostly "
         "wait on each other)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(p)
     p.set_defaults(func=run)
 
 
@@ -365,10 +367,12 @@ class BoxWriter:
 def _progress(src, args):
     from tqdm import tqdm
 
+    from torchtrack.cli._common import show_progress
+
     total = len(src) or None
     if args.max_frames is not None:
         total = min(total, args.max_frames) if total else args.max_frames
-    return tqdm(total=total, unit="frame", disable=args.no_progress, leave=False)
+    return tqdm(total=total, unit="frame", disable=not show_progress(args), leave=False)
 
 
 def _open_video(path: str, frame, fps: float | None):
