@@ -11,6 +11,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 _EPILOG = """\
 examples:
@@ -44,7 +45,7 @@ output:
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress
+    from torchtrack.cli._common import add_progress, add_threads
 
     p = subparsers.add_parser(
         "track",
@@ -93,40 +94,80 @@ def register(subparsers) -> None:
         help="frame colour mode given to the tracker (default rgb; gray frames are replicated)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of trackers that take a generator")
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        metavar="N",
-        help="torch threads (default 1: the per-frame work is small and extra threads mostly "
-        "wait on each other)",
-    )
+    add_threads(p, default=1)
     add_progress(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``torchtrack track`` (returns the exit code)."""
-    import sys
-    import time
+    check_args(args)
+    summary = track_source(args, args.source, out=args.out, video=args.video)
+    print(summary.line())
+    for path in (args.out, args.video):
+        if path:
+            print(f"wrote {path}")
+    return summary.status
 
-    from torchtrack.errors import ConfigError, TrackerError
-    from torchtrack.io.video import open_source
+
+def check_args(args: argparse.Namespace) -> None:
+    """Validate the options of one ``torchtrack track`` run before any work
+    (:class:`ConfigError` naming the option)."""
+    from torchtrack.cli._common import apply_threads
+    from torchtrack.errors import ConfigError
 
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.particles and not args.video:
         raise ConfigError("--particles draws into the annotated video: give --video FILE too")
-    if args.threads < 1:
-        raise ConfigError(f"--threads must be >= 1, got {args.threads}")
-    import torch
+    apply_threads(args)
 
-    torch.set_num_threads(args.threads)
+
+@dataclass
+class TrackSummary:
+    """What one tracked source gave: frames tracked, unreadable frames, timings, exit status."""
+
+    source: str
+    frames: int
+    unreadable: int
+    seconds: float
+    tracker_seconds: float
+    ended_early: bool
+    status: int
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.tracker_seconds if self.tracker_seconds > 0 else float("inf")
+
+    def line(self) -> str:
+        return (
+            f"tracked {self.frames} frames in {self.seconds:.1f} s: {self.fps:.1f} fps (tracker "
+            f"only), {self.frames / max(self.seconds, 1e-9):.1f} fps overall; {self.unreadable} "
+            "unreadable frame(s)" + (" (the video ended early)" if self.ended_early else "")
+        )
+
+
+def track_source(
+    args: argparse.Namespace, source: str, *, out: str | None, video: str | None
+) -> TrackSummary:
+    """Track one ``source`` with the options of ``args`` (the parsed ``torchtrack track``
+    namespace; ``args.source``, ``args.out`` and ``args.video`` are not read), writing the box
+    CSV to ``out`` and the annotated video to ``video`` (either may be ``None``).
+
+    Raises:
+        TorchTrackError: bad options, an unreadable source or a tracker failure.
+    """
+    import sys
+    import time
+
+    from torchtrack.errors import TrackerError
+    from torchtrack.io.video import open_source
+
     box = parse_box(args.box) if args.box is not None else None
     tracker = build_tracker(args, auto=box is None)
-    src = open_source(resolve_source(args.source), color=args.color)
-    csv = BoxWriter(args.out) if args.out else None
-    video = None
+    src = open_source(resolve_source(source), color=args.color)
+    csv = BoxWriter(out) if out else None
+    writer = None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
     last = None
     status = 0
@@ -158,10 +199,10 @@ def run(args: argparse.Namespace) -> int:
             last = state
             if csv is not None:
                 csv.write(i, state)
-            if args.video:
-                if video is None:
-                    video = _open_video(args.video, frame, src.fps)
-                video.write(draw(frame, state, tracker if args.particles else None))
+            if video:
+                if writer is None:
+                    writer = _open_video(video, frame, src.fps)
+                writer.write(draw(frame, state, tracker if args.particles else None))
     except KeyboardInterrupt:
         status = 130
         print("interrupted: keeping the results so far", file=sys.stderr)
@@ -169,23 +210,21 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
         if csv is not None:
             csv.close()
-        if video is not None:
-            video.release()
+        if writer is not None:
+            writer.release()
         src.close()
     elapsed = time.perf_counter() - t0
     if last is None and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
-    n_bad = src.n_bad
-    fps = n_frames / t_track if t_track > 0 else float("inf")
-    print(
-        f"tracked {n_frames} frames in {elapsed:.1f} s: {fps:.1f} fps (tracker only), "
-        f"{n_frames / max(elapsed, 1e-9):.1f} fps overall; {n_bad} unreadable frame(s)"
-        + (" (the video ended early)" if src.ended_early else "")
+    return TrackSummary(
+        source=str(source),
+        frames=n_frames,
+        unreadable=src.n_bad,
+        seconds=elapsed,
+        tracker_seconds=t_track,
+        ended_early=bool(src.ended_early),
+        status=status,
     )
-    for path in (args.out, args.video):
-        if path:
-            print(f"wrote {path}")
-    return status
 
 
 def parse_box(text: str):
