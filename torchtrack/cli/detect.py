@@ -37,7 +37,7 @@ Unreadable images in a folder are skipped and listed on stderr (--strict: fail i
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_out, add_progress, add_threads
+    from torchtrack.cli._common import add_out, add_progress, add_threads, add_trust
 
     p = subparsers.add_parser(
         "detect",
@@ -87,6 +87,7 @@ def register(subparsers) -> None:
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
     add_progress(p)
     add_threads(p, default=2)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
