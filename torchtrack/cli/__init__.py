@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
-        parser.print_help()
+        parser.print_help(sys.stderr)
         return 2
     # OpenCV reads its log level once, at import: warnings it would print before our own
     # clean error message are noise (errors still show).

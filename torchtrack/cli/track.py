@@ -37,15 +37,16 @@ initialisation:
 output:
   --out writes a CSV with the header frame,x,y,w,h,confidence,visible and one row per frame
   of the source (a column 'target' after 'frame' when several targets are tracked). Rows are
-  flushed as they are produced into OUT.part next to OUT; at the end (also after an error or
-  Ctrl-C) the file is fsynced and renamed to OUT, so OUT is never half-written and an early end
-  keeps the rows so far. Unreadable frames get the previous box with visible=0 and are counted.
+  flushed as they are produced into OUT.part next to OUT; at the end (also after an error,
+  Ctrl-C or SIGTERM) the file is fsynced and renamed to OUT, so OUT is never half-written and
+  an early end keeps the rows so far. A run that fails before its first tracked frame leaves
+  no OUT and no video. Output paths are checked before any work. Unreadable frames get the previous box with visible=0 and are counted.
   A target the tracker has lost (left the frame, occluded) is written with visible=0.
 """
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress, add_threads
+    from torchtrack.cli._common import add_progress, add_threads, add_trust
 
     p = subparsers.add_parser(
         "track",
@@ -96,6 +97,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of trackers that take a generator")
     add_threads(p, default=1)
     add_progress(p)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
@@ -120,7 +122,22 @@ def check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.particles and not args.video:
         raise ConfigError("--particles draws into the annotated video: give --video FILE too")
+    check_track_outputs(args, args.source, args.out, args.video)
     apply_threads(args)
+
+
+def check_track_outputs(args: argparse.Namespace, source: str, out, video) -> None:
+    """The output paths of one tracked ``source`` (:func:`torchtrack.cli._common` checks),
+    before any work: files in existing, writable folders, not folders, the video a .mp4 /
+    .avi, no two the same file and none the source itself."""
+    import os
+
+    from torchtrack.cli._common import check_distinct, check_output_file
+
+    check_output_file(out, "--out")
+    check_output_file(video, "--video", (".mp4", ".avi"))
+    src = source if isinstance(source, str) and os.path.isfile(source) else None
+    check_distinct({"SOURCE": src, "--out": out, "--video": video})
 
 
 @dataclass
@@ -203,15 +220,18 @@ def track_source(
                 if writer is None:
                     writer = _open_video(video, frame, src.fps)
                 writer.write(draw(frame, state, tracker if args.particles else None))
-    except KeyboardInterrupt:
-        status = 130
-        print("interrupted: keeping the results so far", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
+        status = getattr(exc, "exit_code", 130)
+        what = "interrupted" if status == 130 else "terminated"
+        print(f"{what}: keeping the results so far", file=sys.stderr)
     finally:
         progress.close()
+        # A run that tracked no frame leaves no output file (no header-only or NaN-only CSV).
+        keep = last is not None
         if csv is not None:
-            csv.close()
+            csv.close(keep=keep)
         if writer is not None:
-            writer.release()
+            writer.close(keep=keep)
         src.close()
     elapsed = time.perf_counter() - t0
     if last is None and status == 0:
@@ -391,10 +411,15 @@ class BoxWriter:
             ),
         )
 
-    def close(self) -> None:
+    def close(self, keep: bool = True) -> None:
+        """Finish: fsync and rename ``PATH.part`` to ``PATH`` (``keep``), or remove it."""
         import os
 
         if self._f.closed:
+            return
+        if not keep:
+            self._f.close()
+            os.remove(self.part)
             return
         self._header(1)
         self._f.flush()
@@ -414,20 +439,54 @@ def _progress(src, args):
     return tqdm(total=total, unit="frame", disable=not show_progress(args), leave=False)
 
 
-def _open_video(path: str, frame, fps: float | None):
-    import os
+class _VideoOut:
+    """An annotated video written to ``.NAME.part.EXT`` beside ``path`` and renamed onto it by
+    ``close(keep=True)`` (removed by ``close(keep=False)``)."""
 
-    import cv2
+    def __init__(self, path: str, frame, fps: float | None) -> None:
+        import os
 
-    from torchtrack.errors import VideoError
+        import cv2
 
-    h, w = int(frame.shape[-2]), int(frame.shape[-1])
-    ext = os.path.splitext(path)[1].lower()
-    fourcc = cv2.VideoWriter_fourcc(*("MJPG" if ext == ".avi" else "mp4v"))
-    writer = cv2.VideoWriter(path, fourcc, float(fps or 25.0), (w, h))
-    if not writer.isOpened():
-        raise VideoError(f"cannot write video {path!r} (use .mp4 or .avi)")
-    return writer
+        from torchtrack.errors import VideoError
+        from torchtrack.io.video import native_output
+
+        h, w = int(frame.shape[-2]), int(frame.shape[-1])
+        folder, name = os.path.split(os.path.abspath(path))
+        stem, ext = os.path.splitext(name)
+        self.path = path
+        self.part = os.path.join(folder, f".{stem}.part{ext}")
+        fourcc = cv2.VideoWriter_fourcc(*("MJPG" if ext.lower() == ".avi" else "mp4v"))
+        with native_output() as log:
+            self._w = cv2.VideoWriter(self.part, fourcc, float(fps or 25.0), (w, h))
+            opened = self._w.isOpened()
+        if not opened:
+            self._w.release()
+            if os.path.exists(self.part):
+                os.remove(self.part)
+            detail = log.first_line()
+            raise VideoError(
+                f"cannot write video {path!r} (use .mp4 or .avi)"
+                + (f": {detail}" if detail else "")
+            )
+
+    def write(self, img) -> None:
+        self._w.write(img)
+
+    def close(self, keep: bool = True) -> None:
+        import os
+
+        self._w.release()
+        if not os.path.exists(self.part):
+            return
+        if keep:
+            os.replace(self.part, self.path)
+        else:
+            os.remove(self.part)
+
+
+def _open_video(path: str, frame, fps: float | None) -> _VideoOut:
+    return _VideoOut(path, frame, fps)
 
 
 #: BGR colours: a visible target, a lost one, particles.

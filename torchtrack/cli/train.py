@@ -112,12 +112,13 @@ def _overrides(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from torchtrack.cli._common import show_progress
+    from torchtrack.cli._common import check_output_file, show_progress
     from torchtrack.detect.config import TrainConfig, apply_override, load_train_config
     from torchtrack.detect.model_file import save_detector
     from torchtrack.detect.training import train_detector
     from torchtrack.errors import ConfigError
 
+    check_output_file(args.out, "--out")  # before the training, not after it
     overrides = _overrides(args)
     if args.config:
         cfg = load_train_config(args.config, overrides)

@@ -851,11 +851,17 @@ def sign_model(
         ModelFormatError: the file does not load.
         ConfigError: the key cannot be read.
     """
+    from torchtrack.detect.signing import key_id
     from torchtrack.io.atomic import write_bytes_atomic
 
     priv = _private_key(key)
     p = Path(path)
-    _, st = _load(p, TrustPolicy.build([]))
+    # Trust the signing key too: a file that claims this key's signature but no longer
+    # verifies was altered after it was signed, and is not signed again.
+    base = TrustPolicy.build([])
+    pub = priv.public_key()
+    policy = TrustPolicy({**base.keys, key_id(pub): pub}, False, base.sources)
+    _, st = _load(p, policy)
     data = p.read_bytes()
     (n,) = struct.unpack("<Q", data[:8])
     header = json.loads(data[8 : 8 + n].decode("utf-8"))
