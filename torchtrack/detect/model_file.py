@@ -753,10 +753,40 @@ class SignatureStatus:
     digest: str
 
 
+def _section(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
+
+
+def _build_v1(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
+    """A :class:`Detector` from a validated version-1 description and its checked tensors."""
+    from torchtrack.learn import calibrator_from_state, classifier_from_state
+
+    meta = desc.meta
+    bank = HaarBank.from_dict(meta["bank"])
+    clf = classifier_from_state(_section(tensors, "classifier."), meta["classifier"])
+    cal = None
+    if meta["calibration"] is not None:
+        cal = calibrator_from_state(_section(tensors, "calibration."), meta["calibration"])
+    det = Detector(
+        bank,
+        tensors["features.index"],
+        clf,
+        cal,
+        name=meta["name"],
+        summary=meta["training"],
+        object_box=meta.get("object_box"),
+    )
+    if det.selected_features() != meta["selected_features"]:
+        raise ModelFormatError("selected feature descriptions disagree with the feature index")
+    return det
+
+
+#: format version -> builder(description, tensors) -> Detector
+_BUILDERS: dict[int, Callable[[Description, dict[str, torch.Tensor]], Detector]] = {1: _build_v1}
+
+
 def _load(p: Path, trust: TrustPolicy | None) -> tuple[Detector, SignatureStatus]:
     from safetensors.torch import load as st_load
-
-    from torchtrack.learn import calibrator_from_state, classifier_from_state
 
     where = repr(str(p))
     data, cont, desc = _open(p)
@@ -773,33 +803,9 @@ def _load(p: Path, trust: TrustPolicy | None) -> tuple[Detector, SignatureStatus
         )
     policy = trust if trust is not None else TrustPolicy.from_env()
     status, kid = check_signature(cont.signature, digest, policy, where)
-    meta = desc.meta
     try:
         check_tensor_values(desc, tensors)
-        bank = HaarBank.from_dict(meta["bank"])
-        sc_t = {
-            k[len("classifier.") :]: v for k, v in tensors.items() if k.startswith("classifier.")
-        }
-        clf = classifier_from_state(sc_t, meta["classifier"])
-        cal = None
-        if meta["calibration"] is not None:
-            cal_t = {
-                k[len("calibration.") :]: v
-                for k, v in tensors.items()
-                if k.startswith("calibration.")
-            }
-            cal = calibrator_from_state(cal_t, meta["calibration"])
-        det = Detector(
-            bank,
-            tensors["features.index"],
-            clf,
-            cal,
-            name=meta["name"],
-            summary=meta["training"],
-            object_box=meta.get("object_box"),
-        )
-        if det.selected_features() != meta["selected_features"]:
-            raise ModelFormatError("selected feature descriptions disagree with the feature index")
+        det = _BUILDERS[desc.version](desc, tensors)
     except ModelFormatError as exc:
         raise ModelFormatError(f"{where}: {exc}") from None
     except ConfigError as exc:
