@@ -156,7 +156,10 @@ def native_output() -> Iterator[_NativeOutput]:
             pass
         try:
             if _capture_file is None:
+                import atexit
+
                 _capture_file = tempfile.TemporaryFile()
+                atexit.register(_capture_file.close)
             fd = _capture_file.fileno()
             saved = os.dup(2)
         except OSError:
