@@ -40,8 +40,10 @@ output:
   flushed as they are produced into OUT.part next to OUT; at the end (also after an error,
   Ctrl-C or SIGTERM) the file is fsynced and renamed to OUT, so OUT is never half-written and
   an early end keeps the rows so far. A run that fails before its first tracked frame leaves
-  no OUT and no video. Output paths are checked before any work. Unreadable frames get the previous box with visible=0 and are counted.
-  A target the tracker has lost (left the frame, occluded) is written with visible=0.
+  no OUT and no video; output paths are checked before any work. Unreadable frames (also
+  truncated JPEGs) get the previous box with visible=0 and are counted. A target the tracker
+  has lost (left the frame, occluded) is written with visible=0, and a box less than half
+  inside the frame is never visible.
 """
 
 
