@@ -64,6 +64,7 @@ __all__ = [
     "MotSequence",
     "SeqInfo",
     "find_mot_sequences",
+    "format_mot_row",
     "is_mot_folder",
     "load_mot_sequence",
     "read_mot",
@@ -331,11 +332,17 @@ def write_mot(path: str | os.PathLike, rows: MotRows) -> None:
     order = np.lexsort((rows.ids, rows.frames))
     with atomic_write(path, "w", encoding="utf-8", newline="\n") as f:
         for k in order:
-            x, y, w, h = rows.boxes[k]
-            f.write(
-                f"{rows.frames[k] + 1},{rows.ids[k]},{x + 1:.3f},{y + 1:.3f},{w:.3f},{h:.3f},"
-                f"{rows.conf[k]:.6g},-1,-1,-1\n"
-            )
+            f.write(format_mot_row(rows.frames[k], rows.ids[k], rows.boxes[k], rows.conf[k]))
+
+
+def format_mot_row(frame: int, ident: int, box, conf: float) -> str:
+    """One results line ``frame,id,x,y,w,h,conf,-1,-1,-1`` from a 0-based ``frame`` and a
+    0-based ``box`` (x, y, w, h): 1-based in the file, boxes with three decimals."""
+    x, y, w, h = (float(v) for v in box)
+    return (
+        f"{int(frame) + 1},{int(ident)},{x + 1:.3f},{y + 1:.3f},{w:.3f},{h:.3f},"
+        f"{float(conf):.6g},-1,-1,-1\n"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
