@@ -71,7 +71,7 @@ def test_raw_scores_and_calibrated_scores(clip, dets, tmp_path):
     raw.write_text(dets.read_text().replace(",0.97,", ",55.0,"))
     out = tmp_path / "r.txt"
     assert main(["track", str(clip), "--detections", str(raw), "--mot", str(out), "-q"]) == 0
-    assert len(out.read_text().splitlines()) == 22  # raw scores: every detection confident
+    assert len(out.read_text().splitlines()) == 22  # raw scores: relative to the best
     assert main(
         ["track", str(clip), "--detections", str(raw), "--det-min-score", "60",
          "--mot", str(out), "-q"]

@@ -113,7 +113,7 @@ def register(subparsers) -> None:
         metavar="JSON",
         help="map the scores of --detections to probabilities with this calibration (from "
         "`torchtrack calibrate --scores ... --json`); without it scores in [0, 1] are taken as "
-        "probabilities and other scores make every detection a confident one",
+        "probabilities and other scores are divided by the file's highest score",
     )
     p.add_argument(
         "--det-min-score",
@@ -397,8 +397,8 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
         prob = cal.predict_proba(score).to(torch.float64)
     elif len(score) == 0 or bool(((score >= 0) & (score <= 1)).all()):
         prob = score
-    else:
-        prob = torch.ones_like(score)
+    else:  # raw detector scores: relative to the file's best (a crude map; calibrate instead)
+        prob = (score / score.max().clamp_min(1e-12)).clamp(0.0, 1.0)
     boxes = torch.from_numpy(rows.boxes)
     frames = rows.frames
     order = np.argsort(frames, kind="stable")

@@ -250,7 +250,10 @@ class MultiTargetTracker:
             keep = det_p >= cfg.detection_threshold
             det_boxes, det_p = det_boxes[keep], det_p[keep]
         bin_map = None
-        if self._bins is not None and (self.n_targets or (scan and det_boxes.shape[0])):
+        need = (scan and det_boxes.shape[0] > 0) or (
+            self.n_targets > 0 and cfg.appearance_lambda > 0
+        )
+        if self._bins is not None and need:
             from torchtrack.observe.histogram import hsv_bin_map
 
             bin_map = hsv_bin_map(frame[None], self._bins)
