@@ -177,14 +177,22 @@ class VideoOut:
         from torchtrack.io.atomic import atomic_path
 
         if self._writer is None:
+            from torchtrack.io.video import native_output
+
             self._tmp = self._stack.enter_context(atomic_path(self.path))
             h, w = img.shape[:2]
             ext = os.path.splitext(self.path)[1].lower()
             fourcc = cv2.VideoWriter_fourcc(*("MJPG" if ext == ".avi" else "mp4v"))
-            self._writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, (w, h))
-            if not self._writer.isOpened():
+            with native_output() as log:  # OpenCV's own log lines, kept out of the terminal
+                self._writer = cv2.VideoWriter(str(self._tmp), fourcc, self.fps, (w, h))
+                opened = self._writer.isOpened()
+            if not opened:
                 self.discard()
-                raise VideoError(f"cannot write video {self.path!r} (use .mp4 or .avi)")
+                detail = log.first_line()
+                raise VideoError(
+                    f"cannot write video {self.path!r} (use .mp4 or .avi)"
+                    + (f": {detail}" if detail else "")
+                )
         self._writer.write(img)
 
     def close(self) -> None:

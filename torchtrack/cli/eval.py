@@ -16,7 +16,7 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress
+    from torchtrack.cli._common import add_progress, add_trust
 
     p = subparsers.add_parser(
         "eval",
@@ -119,6 +119,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
     add_progress(p)
+    add_trust(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
     p.set_defaults(func=run)
 
@@ -167,6 +168,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
+    from torchtrack.cli._common import check_output_dir
+
+    check_output_dir(args.out, "--out")
 
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate

@@ -47,13 +47,15 @@ outputs:
   written with visible=0). --mot TXT: MOTChallenge results, frame,id,x,y,w,h,conf,-1,-1,-1
   (frames and pixels 1-based). --video FILE: annotated video (.mp4 or .avi). Boxes are the
   object's box (the person or car), not the detector window. Rows stream into OUT.part and
-  are renamed to OUT at the end (also after an error or Ctrl-C, keeping the rows so far); a
-  run that tracks no frame leaves no output.
+  are renamed to OUT at the end (also after an error, Ctrl-C or SIGTERM, keeping the rows so
+  far), so OUT is never half-written; a run that fails before its first tracked frame leaves no
+  output, and output paths are checked before any work. Unreadable frames (also truncated
+  JPEGs) are counted; a box less than half inside the frame is never visible.
 """
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress, add_threads
+    from torchtrack.cli._common import add_progress, add_threads, add_trust
 
     p = subparsers.add_parser(
         "track",
@@ -135,6 +137,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of trackers that take a generator")
     add_threads(p, default=1)
     add_progress(p)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
@@ -192,7 +195,23 @@ def check_args(args: argparse.Namespace) -> None:
         raise ConfigError("--det-calibration and --det-min-score apply to --detections FILE")
     if args.adapt is not None and multi:
         raise ConfigError("--adapt is an option of single-target trackers (give --box)")
+    check_track_outputs(args, args.source, args.out, args.video, args.mot)
     apply_threads(args)
+
+
+def check_track_outputs(args: argparse.Namespace, source: str, out, video, mot=None) -> None:
+    """The output paths of one tracked ``source`` (:func:`torchtrack.cli._common` checks),
+    before any work: files in existing, writable folders, not folders, the video a .mp4 /
+    .avi, no two the same file and none the source itself."""
+    import os
+
+    from torchtrack.cli._common import check_distinct, check_output_file
+
+    check_output_file(out, "--out")
+    check_output_file(mot, "--mot")
+    check_output_file(video, "--video", (".mp4", ".avi"))
+    src = source if isinstance(source, str) and os.path.isfile(source) else None
+    check_distinct({"SOURCE": src, "--out": out, "--mot": mot, "--video": video})
 
 
 @dataclass
@@ -305,9 +324,10 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
                 csv.write_state(i, state)
             if vid is not None:
                 vid.write(draw(frame, state, tracker if args.particles else None))
-    except KeyboardInterrupt:
-        status = 130
-        print("interrupted: keeping the results so far", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
+        status = getattr(exc, "exit_code", 130)
+        what = "interrupted" if status == 130 else "terminated"
+        print(f"{what}: keeping the results so far", file=sys.stderr)
     finally:
         progress.close()
         _finish((csv, vid), ok=last is not None)
@@ -454,9 +474,10 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 trails.add(i, res)
                 parts = mt.particle_boxes() if args.particles else None
                 vid.write(draw_multi(frame, res, trails, parts))
-    except KeyboardInterrupt:
-        status = 130
-        print("interrupted: keeping the results so far", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
+        status = getattr(exc, "exit_code", 130)
+        what = "interrupted" if status == 130 else "terminated"
+        print(f"{what}: keeping the results so far", file=sys.stderr)
     finally:
         progress.close()
         _finish((csv, motw, vid), ok=n_frames > 0)

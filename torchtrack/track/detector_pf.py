@@ -338,7 +338,7 @@ class DetectorTracker(Tracker):
         res = sir_step(
             self._states,
             self._log_w,
-            self.dynamics.predict,
+            self._predict,
             log_likelihood,
             scheme=cfg.resample,
             estimator=cfg.estimator,
@@ -358,6 +358,11 @@ class DetectorTracker(Tracker):
             particles=self._states,
             log_weights=self._log_w,
         )
+
+    def _predict(self, states: torch.Tensor, generator) -> torch.Tensor:
+        """The AR dynamics, confined to the frame (a lost target's particles do not run away:
+        :meth:`~torchtrack.filter.ChateauAR.confine`)."""
+        return self.dynamics.confine(self.dynamics.predict(states, generator), self.frame_size)
 
     def particle_boxes(self) -> torch.Tensor:
         """Current particles as object boxes ``(B, N, 4)`` (for drawing)."""
