@@ -66,6 +66,12 @@ def register(subparsers) -> None:
         "<sequence name>.txt per sequence",
     )
     mot.add_argument(
+        "--public-detections",
+        action="store_true",
+        help="with --mot and --trackers multi...: the tracker takes each sequence's "
+        "det/det.txt instead of scanning (scores relative to the file's best)",
+    )
+    mot.add_argument(
         "--gt",
         nargs="+",
         metavar="FILE",
@@ -258,8 +264,15 @@ def run_mot(args: argparse.Namespace) -> int:
     """``torchtrack eval --mot SEQ ... --results FILE_OR_DIR ...``: score MOT results files."""
     from torchtrack.errors import ConfigError
 
+    if args.mot and args.trackers and not args.results:
+        return run_mot_trackers(args)
+    if args.public_detections:
+        raise ConfigError("--public-detections goes with --mot SEQ ... --trackers multi")
     if not args.mot or not args.results:
-        raise ConfigError("MOT scoring needs both --mot SEQ ... and --results FILE_OR_DIR ...")
+        raise ConfigError(
+            "MOT scoring needs --mot SEQ ... and either --results FILE_OR_DIR ... (score "
+            "files) or --trackers multi... (run the multi-target tracker, then score)"
+        )
     clash = [
         flag
         for flag, used in (
@@ -286,6 +299,73 @@ def run_mot(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_mot_trackers(args: argparse.Namespace) -> int:
+    """``torchtrack eval --mot SEQ ... --trackers multi[:key=value,...] ... -o DIR``: run the
+    multi-target tracker on every sequence (``DIR/<tracker>/<sequence>.txt``), then score."""
+    import dataclasses
+    from pathlib import Path
+
+    import torch
+
+    from torchtrack.errors import ConfigError
+    from torchtrack.eval.mot import evaluate_mot, mot_table
+    from torchtrack.io.mot import write_mot
+    from torchtrack.track.base import parse_tracker_spec
+    from torchtrack.track.multi import MultiTargetTracker, score_probabilities, track_sequence
+
+    if not args.out:
+        raise ConfigError("running trackers with --mot needs -o/--out DIR for their results")
+    clash = [f for f, used in (("--sequences", args.sequences), ("--plots", args.plots),
+                               ("--reinit", args.reinit)) if used]  # fmt: skip
+    if clash:
+        raise ConfigError(f"{', '.join(clash)} do(es) not apply to --mot")
+    specs = []
+    for spec in args.trackers:
+        name, params = parse_tracker_spec(spec)
+        if name != "multi":
+            raise ConfigError(
+                f"--mot runs the multi-target tracker ('multi' or 'multi:key=value,...'), got "
+                f"{spec!r}"
+            )
+        specs.append((spec, params))
+    labels = [spec.replace(":", "_").replace(",", "_").replace("=", "-") for spec, _ in specs]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"--trackers given twice: {args.trackers}")
+    seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
+    full = {s.name: s for s in seqs}
+    n = args.max_frames
+    if n is not None:
+        if n < 2:
+            raise ConfigError(f"--max-frames must be >= 2, got {n}")
+        seqs = [
+            dataclasses.replace(s, n_frames=min(n, s.n_frames), gt=s.gt.select(s.gt.frames < n))
+            for s in seqs
+        ]
+    for (spec, params), label in zip(specs, labels, strict=True):
+        for seq in seqs:
+            dets = None
+            if args.public_detections:
+                d = full[seq.name].detections()
+                d = d.select(d.frames < seq.n_frames)
+                dets = dataclasses.replace(d, conf=score_probabilities(
+                    torch.from_numpy(d.conf)).numpy())  # fmt: skip
+            mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
+            with seq.open() as src:
+                rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)
+            write_mot(Path(args.out) / label / f"{seq.name}.txt", rows)
+            print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
+    summary = evaluate_mot(
+        seqs,
+        [Path(args.out) / label for label in labels],
+        args.out,
+        labels=labels,
+        command=_mot_command_line(args),
+    )
+    print(mot_table(summary))
+    print(f"results: {args.out}/results.json, {args.out}/results.md")
+    return 0
+
+
 def _mot_command_line(args: argparse.Namespace) -> str:
     import shlex
 
@@ -294,7 +374,16 @@ def _mot_command_line(args: argparse.Namespace) -> str:
         parts += ["--gt", *args.gt]
     if args.gt_scale != "auto":
         parts += ["--gt-scale", args.gt_scale]
-    parts += ["--results", *args.results]
+    if args.results:
+        parts += ["--results", *args.results]
+    if args.trackers:
+        parts += ["--trackers", *args.trackers]
+    if args.public_detections:
+        parts.append("--public-detections")
+    if args.max_frames:
+        parts += ["--max-frames", str(args.max_frames)]
+    if args.seed:
+        parts += ["--seed", str(args.seed)]
     if args.out:
         parts += ["--out", args.out]
     return " ".join(shlex.quote(str(p)) for p in parts)

@@ -415,10 +415,10 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
                 f"written by `torchtrack calibrate --json` ({exc})"
             ) from None
         prob = cal.predict_proba(score).to(torch.float64)
-    elif len(score) == 0 or bool(((score >= 0) & (score <= 1)).all()):
-        prob = score
-    else:  # raw detector scores: relative to the file's best (a crude map; calibrate instead)
-        prob = (score / score.max().clamp_min(1e-12)).clamp(0.0, 1.0)
+    else:
+        from torchtrack.track.multi import score_probabilities
+
+        prob = score_probabilities(score)
     boxes = torch.from_numpy(rows.boxes)
     frames = rows.frames
     order = np.argsort(frames, kind="stable")
