@@ -45,6 +45,34 @@ def one_thread():
     torch.set_num_threads(n)
 
 
+def require_module(name: str, install: str):
+    """Import an optional dependency, or skip with the install command (fail under CI=true)."""
+    import contextlib
+    import importlib
+    import io
+
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # TrackEval prints on import
+            return importlib.import_module(name)
+    except ImportError:
+        msg = f"{name} is not installed ({install})"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(msg + " (CI=true: tests must not skip)")
+        pytest.skip(msg)
+
+
+@pytest.fixture(scope="session")
+def trackeval():
+    """TrackEval, the MOT metrics (installed with --no-deps, see README)."""
+    return require_module("trackeval", "pip install --no-deps trackeval==1.3.0")
+
+
+@pytest.fixture(scope="session")
+def motmetrics():
+    """motmetrics, the MOTA / IDF1 cross-check (the test extra)."""
+    return require_module("motmetrics", 'pip install -e ".[test]"')
+
+
 def forge_model_file(
     src,
     dst,

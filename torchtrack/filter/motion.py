@@ -245,10 +245,24 @@ class ChateauAR:
         m = (self.B @ self._L).to(states)  # (6, K): B v with v = L z
         return v @ m.T
 
-    def predict(self, states: torch.Tensor, generator: GeneratorLike = None) -> torch.Tensor:
-        """Eq. (4): ``(B, N, 6) -> (B, N, 6)``."""
+    def predict(
+        self,
+        states: torch.Tensor,
+        generator: GeneratorLike = None,
+        noise_scale: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Eq. (4): ``(B, N, 6) -> (B, N, 6)``.
+
+        Args:
+            noise_scale: optional ``(B,)`` factor on the noise's standard deviation per row
+                (e.g. a multi-target tracker widens the search of a target that missed its
+                detections); ``None`` is eq. (4) as fitted.
+        """
         _check_states(states, 6, "ChateauAR")
-        out = states @ self.A.to(states).T + self._noise(states, generator)
+        noise = self._noise(states, generator)
+        if noise_scale is not None:
+            noise = noise * noise_scale.to(noise).reshape(-1, 1, 1)
+        out = states @ self.A.to(states).T + noise
         out[..., 4] = out[..., 4].clamp_min(self.min_scale)
         return out
 
