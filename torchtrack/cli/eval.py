@@ -262,7 +262,10 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
 
 def run_mot(args: argparse.Namespace) -> int:
     """``torchtrack eval --mot SEQ ... --results FILE_OR_DIR ...``: score MOT results files."""
+    from torchtrack.cli._common import check_output_dir
     from torchtrack.errors import ConfigError
+
+    check_output_dir(args.out, "--out")  # before any work, on both MOT paths
 
     if args.mot and args.trackers and not args.results:
         return run_mot_trackers(args)
