@@ -5,7 +5,15 @@ import torch
 
 from torchtrack.errors import ConfigError, FilterError, ShapeError
 from torchtrack.filter.particles import ess
-from torchtrack.filter.resample import RESAMPLERS, get_resampler, resample
+from torchtrack.filter.resample import (
+    _STEPS,
+    RESAMPLERS,
+    _cdf,
+    _count_below,
+    _sorted_uniforms,
+    get_resampler,
+    resample,
+)
 
 SCHEMES = sorted(RESAMPLERS)
 
@@ -43,6 +51,19 @@ def test_low_variance_schemes_beat_multinomial():
         assert var[s] < 0.7 * var["multinomial"], (s, var)
     # Systematic counts are floor(Nw) or ceil(Nw): variance at most 1/4 per particle.
     assert var["systematic"] <= 0.25 * n
+
+
+def test_residual_variance_is_multinomial_on_the_residuals():
+    # Var(n_i) = r p_i (1 - p_i): r multinomial draws with probabilities p_i = residual_i / r.
+    n, reps = 12, 20000
+    g = torch.Generator().manual_seed(8)
+    w = torch.softmax(torch.randn(n, generator=g, dtype=torch.float64), 0)
+    rest = n * w - torch.floor(n * w)
+    r = rest.sum()
+    p = rest / r
+    c = _counts(get_resampler("residual")(w.expand(reps, n), g), n)
+    torch.testing.assert_close(c.mean(0), n * w, atol=0.03, rtol=0)
+    assert abs(c.var(0).sum() / (r * p * (1 - p)).sum() - 1) < 0.05
 
 
 def test_residual_keeps_deterministic_copies():
@@ -120,6 +141,131 @@ def test_batch_equals_single_runs_with_same_generators(scheme):
         assert torch.equal(batch[b : b + 1], single)
     with pytest.raises(ConfigError, match="sequence of B=5 generators"):
         get_resampler(scheme)(w, gens[:2])
+
+
+def _uniform_rows(rows: list[list[float]], length: int) -> torch.Tensor:
+    """``_sorted_uniforms``' layout for given sorted rows: each padded to ``length - 1`` values
+    with the sentinel ``length``, then the sentinel ``length`` once more, then the padding."""
+    flat = [v for r in rows for v in r + [float(length)] * (length - len(r))]
+    return torch.tensor(flat + [float(length)] * _STEPS, dtype=torch.float64)
+
+
+def test_count_below_equals_searchsorted():
+    # The merge through unit bins against the obvious reference, on rows built to hit every
+    # path: empty and crowded bins (19 uniforms in bin 5: more than _STEPS plus a full window of
+    # steps), CDF values equal to uniforms and to bin edges, zero-weight runs, the last bin.
+    g = torch.Generator().manual_seed(0)
+    crowded = sorted((5 + torch.rand(19, generator=g, dtype=torch.float64)).tolist())
+    rows = [
+        [0.5, 1.0, 1.25, 3.0, *crowded, 7.5, 9.99],
+        [0.0, 0.1, 0.2, 0.3, 2.0, 2.0, 9.0],
+        [],
+    ]
+    length = 30
+    u = _uniform_rows(rows, length)
+    cdf = torch.tensor(
+        [
+            [0.0, 0.5, 0.75, 1.0, 1.0, 3.0, 5.0, crowded[3], crowded[-1], 5.999, 6.0, 29.0],
+            [0.0, 0.0, 0.05, 2.0, 2.0, 2.5, 8.99, 9.0, 9.5, 10.0, 10.0, 29.5],
+            [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0],
+        ],
+        dtype=torch.float64,
+    )
+    s = u[: 3 * length].view(3, length)
+    ref = torch.searchsorted(s, cdf, right=False) + torch.arange(3).unsqueeze(1) * length
+    assert torch.equal(_count_below(u, 3, cdf).view(3, -1).long(), ref)
+    for b in range(3):  # each row alone: the single-row path
+        one = _uniform_rows([rows[b]], length)
+        got = _count_below(one, 1, cdf[b : b + 1]).long()
+        assert torch.equal(got, torch.searchsorted(s[b], cdf[b], right=False))
+
+
+@pytest.mark.parametrize("b", [1, 4])
+def test_count_below_random_merges(b):
+    g = torch.Generator().manual_seed(11)
+    for n in (1, 7, 300):
+        w = torch.rand(b, n, generator=g, dtype=torch.float64) ** 6
+        w[:, : n // 3] = 0  # leading zero weights: runs of equal CDF values
+        w[:, -1] += 1e-3
+        count = torch.randint(0, n + 1, (b,), generator=g)
+        for k, cnt, top in ((n, None, None), (int(count.max()), count, count.double())):
+            u = _sorted_uniforms(b, k, g, w.device, count=cnt, top=top)
+            cdf = _cdf(w, k) if cnt is None else _cdf(w, 1.0) * top.unsqueeze(1)
+            s = u[: b * (k + 1)].view(b, k + 1)
+            ref = torch.searchsorted(s, cdf, right=False)
+            ref += torch.arange(b).unsqueeze(1) * (k + 1)
+            assert torch.equal(_count_below(u, b, cdf).view(b, -1).long(), ref)
+
+
+def test_sorted_uniforms_are_sorted_uniform_draws():
+    # Rows sorted, in [0, top), count[b] of them, then sentinels; pooled values uniform.
+    g = torch.Generator().manual_seed(12)
+    b, k = 400, 50
+    count = torch.randint(0, k + 1, (b,), generator=g)
+    top = torch.rand(b, generator=g, dtype=torch.float64) * k
+    u = _sorted_uniforms(b, k, g, torch.device("cpu"), count=count, top=top)
+    s = u[: b * (k + 1)].view(b, k + 1)
+    real = torch.arange(k + 1).unsqueeze(0) < count.unsqueeze(1)
+    assert (s[~real] == k + 1).all() and (u[b * (k + 1) :] == k + 1).all()
+    assert (s.diff(dim=1) >= 0).all()
+    x = (s / top.unsqueeze(1))[real].sort().values  # pooled: i.i.d. uniform on [0, 1)
+    assert x.min() >= 0 and x.max() < 1
+    ks = (x - torch.arange(1, x.numel() + 1, dtype=torch.float64) / x.numel()).abs().max()
+    assert ks < 1.63 / math.sqrt(x.numel())  # Kolmogorov-Smirnov, 1 % level
+    u = _sorted_uniforms(3, k, g, torch.device("cpu"))  # count None: k per row on [0, k)
+    s = u[: 3 * (k + 1)].view(3, k + 1)
+    assert (s[:, :k] < k).all() and (s[:, k] == k + 1).all() and (s.diff(dim=1) > 0).all()
+
+
+def test_multinomial_and_residual_equal_the_inverse_cdf_of_their_uniforms():
+    # Reference: inverse CDF by binary search on the same uniforms (same generator state).
+    w = torch.softmax(torch.randn(3, 500, generator=torch.Generator().manual_seed(9)) * 3, 1)
+    wd = w.double()
+    u = _sorted_uniforms(3, 500, torch.Generator().manual_seed(1), w.device)
+    s = u[: 3 * 501].view(3, 501)[:, :500].contiguous()
+    ref = torch.searchsorted(_cdf(w, 500), s, right=True)
+    assert torch.equal(get_resampler("multinomial")(w, torch.Generator().manual_seed(1)), ref)
+    for b in range(3):  # residual: floor(M w) copies, then r draws on the residual CDF
+        nw = 500 * wd[b] / wd[b].sum()
+        floor = nw.floor().long()
+        r = 500 - int(floor.sum())
+        rest = (nw - nw.floor()).cumsum(0)
+        gen = torch.Generator().manual_seed(2)
+        u = _sorted_uniforms(1, r, gen, w.device, torch.tensor([r]), rest[-1:])[:r]
+        ref = torch.cat(
+            [torch.arange(500).repeat_interleave(floor), torch.searchsorted(rest, u, right=True)]
+        )
+        got = get_resampler("residual")(w[b : b + 1], torch.Generator().manual_seed(2))
+        assert torch.equal(got[0], ref.sort().values)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_zero_weights_never_drawn_in_a_batch(scheme):
+    # Zero-weight particles (leading, interleaved, trailing) get no offspring in any row of a
+    # batch, and the batch still equals single runs (per-row generators), also with M != N.
+    w = torch.rand(4, 60, generator=torch.Generator().manual_seed(10))
+    w[:, :7] = 0
+    w[:, 20::2] = 0
+    w[:, -5:] = 0
+    w[2] = 0
+    w[2, 30] = 1.0  # one particle carries all the mass
+    for n_out in (None, 37):
+        gens = [torch.Generator().manual_seed(200 + b) for b in range(4)]
+        anc = get_resampler(scheme)(w, gens, n_out)
+        assert (torch.gather(w, 1, anc) > 0).all()
+        assert (anc[2] == 30).all()
+        for b in range(4):
+            one = get_resampler(scheme)(w[b : b + 1], torch.Generator().manual_seed(200 + b), n_out)
+            assert torch.equal(anc[b : b + 1], one)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_negative_weights_and_empty_batches(scheme):
+    fn = get_resampler(scheme)
+    with pytest.raises(FilterError, match="must be non-negative"):
+        fn(torch.tensor([[0.5, -0.1, 0.6]]))
+    assert fn(torch.zeros(0, 5)).shape == (0, 5)
+    assert fn(torch.zeros(0, 5), None, 3).shape == (0, 3)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")

@@ -21,9 +21,18 @@ GeneratorLike = torch.Generator | Sequence[torch.Generator] | None
 
 
 def _draw(
-    fn, shape: tuple[int, ...], generator: GeneratorLike, dtype, device, active=None
+    fn,
+    shape: tuple[int, ...],
+    generator: GeneratorLike,
+    dtype,
+    device,
+    active=None,
+    out=None,
+    lengths=None,
 ) -> torch.Tensor:
     if generator is None or isinstance(generator, torch.Generator):
+        if out is not None:
+            return fn(shape, generator=generator, out=out)
         return fn(shape, generator=generator, dtype=dtype, device=device)
     gens = list(generator)
     if len(gens) != shape[0]:
@@ -36,14 +45,20 @@ def _draw(
     # One call per batch row (a loop over targets, not over particles). Inactive rows draw
     # nothing (zeros), so their streams advance exactly as in a single run of that row.
     flags = [True] * len(gens) if active is None else [bool(v) for v in active.tolist()]
-    return torch.stack(
-        [
-            fn(shape[1:], generator=g, dtype=dtype, device=device)
-            if on
-            else torch.zeros(shape[1:], dtype=dtype, device=device)
+    zeros = torch.zeros(shape[1:], dtype=dtype, device=device)
+    if lengths is None:
+        rows = [
+            fn(shape[1:], generator=g, dtype=dtype, device=device) if on else zeros
             for g, on in zip(gens, flags, strict=True)
         ]
-    )
+    else:  # row b draws its first lengths[b] entries only (2-D shapes)
+        rows = [
+            torch.cat([fn((k,), generator=g, dtype=dtype, device=device), zeros[k:]])
+            if on
+            else zeros
+            for g, on, k in zip(gens, flags, lengths, strict=True)
+        ]
+    return torch.stack(rows) if out is None else torch.stack(rows, out=out)
 
 
 def rand(
@@ -52,13 +67,19 @@ def rand(
     dtype: torch.dtype,
     device: torch.device,
     active: torch.Tensor | None = None,
+    out: torch.Tensor | None = None,
+    lengths: list[int] | None = None,
 ) -> torch.Tensor:
     """Uniform [0, 1) draws of ``shape = (B, ...)``; row b comes from ``generator[b]`` if a list.
 
     ``active (B,)`` bool: with a list of generators, inactive rows get zeros and consume
-    nothing from their generator (ignored for a single generator).
+    nothing from their generator (ignored for a single generator). ``out``: a contiguous tensor
+    of ``shape`` and ``dtype`` to draw into (the same numbers as without it). ``lengths`` (B
+    ints, 2-D shapes): with a list of generators, row b draws only its first ``lengths[b]``
+    entries (zeros after), so its stream advances as in a single run of ``(1, lengths[b])``;
+    a single generator fills the whole shape.
     """
-    return _draw(torch.rand, tuple(shape), generator, dtype, device, active)
+    return _draw(torch.rand, tuple(shape), generator, dtype, device, active, out, lengths)
 
 
 def randn(

@@ -10,8 +10,11 @@ All schemes turn the weights' cumulative distribution (accumulated in float64 wh
 weights' dtype, so float32 weights with N = 10^6 lose no mass to rounding) into cumulative
 offspring counts, then counts into sorted ancestors with one histogram and one cumulative sum:
 O(N) per row, no Python loop over particles or rows. Systematic and stratified counts are closed
-forms; multinomial and residual counts need one sorted search. Randomness comes only from
-``generator``.
+forms; multinomial and residual counts merge sorted uniforms (exponential spacings, no sort)
+with the CDF through unit-width bins (``_count_below``), with no binary search. Randomness comes
+only from ``generator``. On CPU, fresh large buffers cost page faults (a visible share of the
+time at N = 10^5), so the schemes work in place, in int32 where values allow, and keep few
+temporaries alive at once.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 from torchtrack.errors import ConfigError, FilterError, ShapeError
@@ -38,21 +42,25 @@ __all__ = [
 Resampler = Callable[..., torch.Tensor]
 
 
+_BAD_WEIGHTS = (
+    "resampling weights must be non-negative with a positive finite sum in every row "
+    "(use resample() with log-weights to get all-zero rows restarted uniform)"
+)
+
+
 def _totals(c: torch.Tensor) -> torch.Tensor:
-    """Row totals ``(B, 1)`` of a cumulative sum; FilterError unless positive and finite."""
-    last = c[:, -1:].clone()
-    if not bool(((last > 0) & torch.isfinite(last)).all()):
-        raise FilterError(
-            "resampling weights must be non-negative with a positive finite sum in every row "
-            "(use resample() with log-weights to get all-zero rows restarted uniform)"
-        )
+    """Row totals ``(B, 1)`` of a cumulative sum (a view: callers divide it before writing to
+    ``c``); FilterError unless positive and finite."""
+    last = c[:, -1:]
+    lo, hi = torch.aminmax(last)
+    if not (float(lo) > 0 and float(hi) < math.inf):  # also false for NaN
+        raise FilterError(_BAD_WEIGHTS)
     return last
 
 
 def _cdf(weights: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
-    """``(B, N)`` float64 CDF times ``scale``, the last entry exactly ``scale``."""
+    """``(B, N)`` float64 CDF times ``scale`` (the last entry ``scale`` up to rounding)."""
     c = weights.to(torch.float64).cumsum(1)
-    # In place: fresh large allocations cost page faults on CPU, a visible share of the time.
     return c.mul_(scale / _totals(c))
 
 
@@ -63,61 +71,152 @@ def _invert(cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     return idx.clamp_(max=cdf.shape[1] - 1)
 
 
-def _ancestors_from_cumcounts(cum: torch.Tensor, n_out: int) -> torch.Tensor:
-    """Offspring cumulative counts ``cum (B, N)`` (non-decreasing, last = n_out) -> ancestors.
+def _ancestors(pos: torch.Tensor, b: int, m: int) -> torch.Tensor:
+    """Row-offset cumulative offspring counts -> sorted ancestors ``(B, M)``.
 
-    ``cum[b, i]`` is the number of offspring of particles ``0..i``; the ancestor of new particle
-    j is ``#{i : cum[b, i] <= j}``: a histogram of ``cum`` and a cumulative sum, O(N) with no
-    search (faster than a binary search per particle).
+    ``pos (B * N,)`` or ``(B, N)``: ``b * (M + 1) + cum[b, i]``, where ``cum[b, i]`` (non-
+    decreasing along the row, at most M) is the number of offspring of particles ``0..i``. The
+    ancestor of new particle j is ``#{i : cum[b, i] <= j}``: one histogram and one cumulative
+    sum, O(N) with no search.
     """
-    b = cum.shape[0]
-    if b > 1:
-        cum = cum + (torch.arange(b, device=cum.device) * (n_out + 1)).unsqueeze(1)
-    hist = torch.bincount(cum.flatten(), minlength=b * (n_out + 1)).view(b, n_out + 1)
-    return hist[:, :n_out].cumsum(1)
+    h = torch.bincount(pos.reshape(-1), minlength=b * (m + 1)).view(b, m + 1)
+    # In place where the slice stays contiguous (B = 1): a fresh buffer costs page faults.
+    return h.cumsum_(1)[:, :m] if b == 1 else h[:, :m].cumsum(1)
 
 
-def _count_below(u: torch.Tensor, cdf: torch.Tensor) -> torch.Tensor:
-    """``#{j : u[b, j] < cdf[b, i]}`` for row-sorted ``u (B, M)`` and ``cdf (B, N)`` -> (B, N).
+def _row_offsets(b: int, stride: int, device: torch.device, dtype=torch.int64) -> torch.Tensor:
+    """``(B, 1)`` ``b * stride``: row offsets into a flattened ``(B, stride)`` layout."""
+    return (torch.arange(b, device=device, dtype=dtype) * stride).unsqueeze(1)
 
-    On CPU one NumPy ``searchsorted`` over all rows at once (rows shifted apart by 2 b; NumPy's
-    search exploits sorted queries and is several times faster than ``torch.searchsorted``).
-    """
-    if u.device.type == "cpu":
-        import numpy as np
 
-        b, m = u.shape
-        shift = 2.0 * torch.arange(b, dtype=torch.float64).unsqueeze(1)
-        uu = (u + shift).flatten().numpy()
-        cc = (cdf + shift).flatten().numpy()
-        cnt = torch.from_numpy(np.searchsorted(uu, cc, side="left")).view(b, -1)
-        return cnt - (torch.arange(b) * m).unsqueeze(1)
-    return torch.searchsorted(u.contiguous(), cdf.contiguous(), right=False)
+# Forward steps of _count_below over all values at once (and sentinels padding _sorted_uniforms),
+# then over the values still moving, _WINDOW at a time.
+_STEPS = 3
+_WINDOW = 8
 
 
 def _sorted_uniforms(
     b: int,
-    m: int,
+    k: int,
     generator: GeneratorLike,
     device: torch.device,
     count: torch.Tensor | None = None,
+    top: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Row-sorted i.i.d. uniforms ``(B, m)`` from normalised sums of exponential spacings (O(m),
-    no sort). With ``count (B,)``, row b holds ``count[b]`` sorted uniforms followed by 2.0
-    (never below a CDF value)."""
-    # -log(1 - U) ~ Exp(1), computed in place (fresh buffers cost page faults on CPU).
-    s = rand((b, m + 1), generator, torch.float64, device).neg_().log1p_().neg_().cumsum_(1)
+    """Row-sorted i.i.d. uniforms, flat: ``(B * (k + 1) + _STEPS,)`` float64.
+
+    Row b (``[b * (k + 1), (b + 1) * (k + 1))``) holds ``count[b] <= k`` sorted uniforms (k if
+    ``count`` is None) on ``[0, top[b])`` (``[0, k)`` if ``top`` is None), then the sentinel
+    ``k + 1``, above every CDF value given to ``_count_below``; ``_STEPS`` more sentinels end
+    the buffer. ``S_j / S_{c+1}`` (S: cumulative sums of c + 1 Exp(1) draws) are the order
+    statistics of c i.i.d. uniforms: O(k), no sort. Row b draws ``count[b] + 1`` numbers from
+    its generator when ``generator`` is a list (so a batch of B equals B single runs), the whole
+    ``(B, k + 1)`` block from a single generator.
+    """
+    row = k + 1
+    flat = torch.empty(b * row + _STEPS, dtype=torch.float64, device=device)
+    flat[b * row :] = row
+    s = flat[: b * row].view(b, row)
+    lengths = None if count is None else [c + 1 for c in count.tolist()]
+    rand((b, row), generator, torch.float64, device, out=s, lengths=lengths)
+    # log(1 - U) = -Exp(1), in place (fresh buffers cost page faults on CPU); its cumulative sum
+    # is -S, and the ratios below cancel the sign exactly.
+    s.neg_().log1p_().cumsum_(1)
     if count is None:
-        return s[:, :m].div_(s[:, -1:])
-    u = s[:, :m].div_(torch.gather(s, 1, count.unsqueeze(1)))  # S_j / S_{count+1}
-    j = torch.arange(m, device=device).unsqueeze(0)
-    return u.masked_fill_(j >= count.unsqueeze(1), 2.0)
+        s.mul_(k / s[:, -1:])
+        s[:, -1] = row
+    else:
+        s.mul_(top.unsqueeze(1) / torch.gather(s, 1, count.unsqueeze(1)))  # top S_j / S_{c+1}
+        if b == 1:
+            s[0, lengths[0] - 1 :] = row
+        else:
+            j = torch.arange(row, device=device, dtype=torch.int32).unsqueeze(0)
+            s.masked_fill_(j >= count.unsqueeze(1), row)
+    return flat
 
 
-def _check_weights(weights: torch.Tensor) -> None:
+def _index_dtype(numel: int) -> torch.dtype:
+    """int32 for bins, positions and counts below 2^31 (half the memory of int64)."""
+    return torch.int32 if numel < 2**31 else torch.int64
+
+
+def _nonzero(mask: torch.Tensor) -> torch.Tensor:
+    """Indices of the True entries of a 1-D ``mask`` (NumPy's on CPU: several times faster)."""
+    if mask.device.type == "cpu":
+        return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return mask.nonzero().squeeze(1)
+
+
+def _count_below(u: torch.Tensor, b: int, cdf: torch.Tensor) -> torch.Tensor:
+    """``b * L + #{j : s[b, j] < cdf[b, i]}`` as flat ``(B * N,)`` positions
+    (``_index_dtype(B * (L + 2))``).
+
+    ``u``: ``_sorted_uniforms``' buffer, rows ``s (B, L)`` sorted with values in ``[0, L]``,
+    each ending with the sentinel L; ``cdf (B, N)`` float64 in ``[0, L)``.
+
+    A merge of two sorted rows without a binary search per value (``torch.searchsorted`` costs
+    ~17 dependent, mispredicted steps per value at N = 10^5). Unit-width bins ``floor(x)`` are
+    monotone in x (in floating point too), so every ``s`` in a lower bin than ``c`` is below it
+    and every one in a higher bin is above it. A histogram of the bins of ``s`` and its
+    cumulative sum give the position of the first ``s`` in the bin of each ``c``; stepping
+    forward over the ``s`` of that bin below ``c`` (Poisson(1)-many when the uniforms spread
+    over ``[0, L - 1)``) finishes the count: ``_STEPS`` steps over all values, then steps over
+    the few that still move. Memory: fresh buffers cost page faults on CPU, a visible share of
+    the time, so temporaries are few, int32 where they can be, and released early.
+    """
+    row = (u.numel() - _STEPS) // b
+    s = u[: b * row].view(b, row)
+    cf = cdf.reshape(-1)
+    it = _index_dtype(b * (row + 2))
+    ks = s.to(it)  # bins 0..L; + 1 makes the cumulative sum below exclusive
+    ks += 1 if b == 1 else _row_offsets(b, row + 2, u.device, it) + 1
+    hist = torch.bincount(ks.view(-1), minlength=b * (row + 2))
+    del ks
+    start = hist.cumsum_(0).to(it)  # flat index of the first s in each bin
+    del hist
+    kc = cdf.to(it)
+    if b > 1:
+        kc += _row_offsets(b, row + 2, u.device, it)
+    pos = start.index_select(0, kc.view(-1))
+    del kc, start
+    # Step t reads u at pos + t (the padding keeps the last row in range) and counts only while
+    # every earlier step did: a row's sentinel stops the run before the next row's small values.
+    v = torch.empty_like(cf)
+    run = torch.lt(torch.index_select(u, 0, pos, out=v), cf)
+    ahead, step = run.to(torch.uint8), torch.empty_like(run)
+    for t in range(1, _STEPS):
+        torch.lt(torch.index_select(u[t:], 0, pos, out=v), cf, out=step)
+        ahead += run.logical_and_(step)
+    # pos += ahead, with v's memory holding ahead in pos' dtype (a mixed-dtype add would
+    # allocate that copy).
+    pos += v.view(pos.dtype)[: pos.numel()].copy_(ahead)
+    del v, step, ahead
+    # The few still below c after _STEPS steps take their next _WINDOW steps at once (prefix
+    # products keep the count to the run before the first u not below c), more only if needed.
+    moving = _nonzero(run)
+    del run
+    while moving.numel():
+        p, c = pos[moving], cf[moving]
+        at = (p.unsqueeze(1) + torch.arange(_WINDOW, device=u.device)).clamp_(max=u.numel() - 1)
+        below = (u[at] < c.unsqueeze(1)).to(pos.dtype).cumprod_(1)
+        pos[moving] = p + below.sum(1, dtype=pos.dtype)
+        moving = moving[below[:, -1].bool()]
+    return pos
+
+
+def _check_weights(weights: torch.Tensor, n_out: int | None) -> tuple[int, int]:
+    """``(B, M)`` for weights ``(B, N)``; ShapeError for another shape, FilterError for a
+    negative weight (NaN and rows without positive finite mass are caught by ``_totals``)."""
     if not isinstance(weights, torch.Tensor) or weights.ndim != 2 or weights.shape[1] == 0:
         shape = tuple(weights.shape) if isinstance(weights, torch.Tensor) else type(weights)
         raise ShapeError(f"weights must be a (B, N) tensor with N >= 1, got {shape}")
+    if weights.numel() and bool(weights.min() < 0):
+        raise FilterError(_BAD_WEIGHTS)
+    return weights.shape[0], weights.shape[1] if n_out is None else int(n_out)
+
+
+def _no_rows(n: int, device: torch.device) -> torch.Tensor:
+    return torch.zeros(0, n, dtype=torch.int64, device=device)
 
 
 def multinomial(
@@ -126,13 +225,16 @@ def multinomial(
     """Multinomial resampling: i.i.d. draws from the weights, ``(B, N) -> (B, M)``.
 
     Sorted uniforms come from normalised cumulative sums of exponential spacings (O(N), no
-    sort), as in ``particles.resampling.multinomial``; the ancestors come out sorted.
+    sort), as in ``particles.resampling.multinomial``; their counts below each CDF value come
+    from a merge through unit-width bins (``_count_below``); the ancestors come out sorted.
     """
-    _check_weights(weights)
-    b, n_in = weights.shape
-    n = n_in if n_out is None else int(n_out)
-    u = _sorted_uniforms(b, n, generator, weights.device)
-    return _ancestors_from_cumcounts(_count_below(u, _cdf(weights)), n)
+    b, n = _check_weights(weights, n_out)
+    if b == 0:
+        return _no_rows(n, weights.device)
+    u = _sorted_uniforms(b, n, generator, weights.device)  # on [0, M)
+    pos = _count_below(u, b, _cdf(weights, n))  # CDF scaled to [0, M] like the uniforms
+    del u
+    return _ancestors(pos, b, n)
 
 
 def stratified(
@@ -143,17 +245,21 @@ def stratified(
     Offspring counts need no search: with ``k = floor(M c)``, the number of points
     ``(j + U_j) / M`` below a CDF value c is ``k + [U_k < M c - k]``.
     """
-    _check_weights(weights)
-    b, n_in = weights.shape
-    n = n_in if n_out is None else int(n_out)
+    b, n = _check_weights(weights, n_out)
+    if b == 0:
+        return _no_rows(n, weights.device)
     uj = rand((b, n), generator, torch.float64, weights.device)
     x = _cdf(weights, n)
     # k = floor(M c) clamped to M - 1; at c = 1 the fraction is then 1 and U_k < 1 counts the
     # last point, so cum = M there as it must.
-    k = x.floor().clamp_(max=n - 1)
+    k = x.long().clamp_(max=n - 1)
     frac = x.sub_(k)
-    ki = k.long()
-    return _ancestors_from_cumcounts(ki.add_(torch.gather(uj, 1, ki) < frac), n)
+    if b > 1:  # flat indices into uj (B * M,)
+        k += _row_offsets(b, n, weights.device)
+    k += uj.view(-1).index_select(0, k.view(-1)).view(b, -1) < frac
+    if b > 1:  # row offsets b * M -> b * (M + 1) for _ancestors
+        k += _row_offsets(b, 1, weights.device)
+    return _ancestors(k, b, n)
 
 
 def systematic(
@@ -163,15 +269,18 @@ def systematic(
 
     Offspring counts need no search: ``ceil(M c - U)`` points lie below a CDF value c.
     """
-    _check_weights(weights)
-    b, n_in = weights.shape
-    n = n_in if n_out is None else int(n_out)
+    b, n = _check_weights(weights, n_out)
+    if b == 0:
+        return _no_rows(n, weights.device)
     u = rand((b, 1), generator, torch.float64, weights.device)
     c = weights.to(torch.float64).cumsum(1)
     # c <- M c / c_last - U in one fused pass; 0 <= c / c_last <= 1 exactly (monotone cumsum of
     # non-negative weights), so ceil lies in [0, M] without a clamp.
     torch.addcmul(-u, c, n / _totals(c), out=c)
-    return _ancestors_from_cumcounts(c.ceil_().long(), n)
+    cum = c.ceil_().long()
+    if b > 1:
+        cum += _row_offsets(b, n + 1, weights.device)
+    return _ancestors(cum, b, n)
 
 
 def residual(
@@ -179,23 +288,26 @@ def residual(
 ) -> torch.Tensor:
     """Residual resampling: ``floor(M w_i)`` deterministic copies, the remaining
     ``R = M - sum floor(M w_i)`` drawn multinomially from the residuals ``M w_i - floor(M w_i)``."""
-    _check_weights(weights)
-    b, n_in = weights.shape
-    n = n_in if n_out is None else int(n_out)
+    b, n = _check_weights(weights, n_out)
+    if b == 0:
+        return _no_rows(n, weights.device)
     nw = weights.to(torch.float64, copy=True)
     nw.mul_(n / _totals(nw.sum(1, keepdim=True)))
-    floor = nw.floor()
-    rest = nw.sub_(floor)  # residual weights M w - floor(M w), in place
-    floor = floor.long()
+    floor = nw.to(_index_dtype(b * (n + 1)))  # floor(M w) (M w >= 0)
+    # Residuals M w - floor(M w) = frac(M w) exactly, in place, and their unnormalised CDF.
+    rest = nw.frac_().cumsum_(1)
     r = n - floor.sum(1)  # (B,) residual draws per row, 0 <= r <= M
-    empty = rest.sum(1) <= 0
-    if bool(empty.any()):  # every weight an exact multiple of 1/M: no residual mass
-        rest[empty] = 1.0
-    # Always M uniforms per row (not max(r)): a row's random stream must not depend on the
-    # other rows of the batch (a batch of B equals B single runs with the same generators).
-    u = _sorted_uniforms(b, n, generator, weights.device, count=r)
-    cum = floor.cumsum_(1).add_(_count_below(u, _cdf(rest)))
-    return _ancestors_from_cumcounts(cum, n)
+    k = int(r.max())
+    # r sorted uniforms per row, scaled to [0, R_total): no normalisation pass over the CDF.
+    u = _sorted_uniforms(b, k, generator, weights.device, count=r, top=rest[:, -1])
+    pos = _count_below(u, b, rest)  # b * (k + 1) + residual offspring of particles 0..i
+    del u, rest
+    floor.cumsum_(1)
+    if b > 1:  # row offsets b * (k + 1) -> b * (M + 1) for _ancestors
+        floor += _row_offsets(b, n - k, weights.device, floor.dtype)
+    pos = pos.to(floor.dtype)  # the same dtype unless B * (M + 1) >= 2^31 > B * (k + 3)
+    pos += floor.view(-1)
+    return _ancestors(pos, b, n)
 
 
 RESAMPLERS: dict[str, Resampler] = {
