@@ -10,6 +10,7 @@ from torchtrack.filter.resample import (
     RESAMPLERS,
     _cdf,
     _count_below,
+    _merge_below,
     _sorted_uniforms,
     get_resampler,
     resample,
@@ -173,11 +174,12 @@ def test_count_below_equals_searchsorted():
     )
     s = u[: 3 * length].view(3, length)
     ref = torch.searchsorted(s, cdf, right=False) + torch.arange(3).unsqueeze(1) * length
-    assert torch.equal(_count_below(u, 3, cdf).view(3, -1).long(), ref)
-    for b in range(3):  # each row alone: the single-row path
-        one = _uniform_rows([rows[b]], length)
-        got = _count_below(one, 1, cdf[b : b + 1]).long()
-        assert torch.equal(got, torch.searchsorted(s[b], cdf[b], right=False))
+    for count_below in (_merge_below, _count_below):
+        assert torch.equal(count_below(u, 3, cdf).view(3, -1).long(), ref)
+        for b in range(3):  # each row alone: the single-row path
+            one = _uniform_rows([rows[b]], length)
+            got = count_below(one, 1, cdf[b : b + 1]).long()
+            assert torch.equal(got, torch.searchsorted(s[b], cdf[b], right=False))
 
 
 @pytest.mark.parametrize("b", [1, 4])
@@ -194,7 +196,8 @@ def test_count_below_random_merges(b):
             s = u[: b * (k + 1)].view(b, k + 1)
             ref = torch.searchsorted(s, cdf, right=False)
             ref += torch.arange(b).unsqueeze(1) * (k + 1)
-            assert torch.equal(_count_below(u, b, cdf).view(b, -1).long(), ref)
+            for count_below in (_merge_below, _count_below):
+                assert torch.equal(count_below(u, b, cdf).view(b, -1).long(), ref)
 
 
 def test_sorted_uniforms_are_sorted_uniform_draws():
