@@ -307,7 +307,11 @@ def residual(
     weights: torch.Tensor, generator: GeneratorLike = None, n_out: int | None = None
 ) -> torch.Tensor:
     """Residual resampling: ``floor(M w_i)`` deterministic copies, the remaining
-    ``R = M - sum floor(M w_i)`` drawn multinomially from the residuals ``M w_i - floor(M w_i)``."""
+    ``R = M - sum floor(M w_i)`` drawn multinomially from the residuals ``M w_i - floor(M w_i)``.
+
+    Row b draws ``R_b + 1`` uniforms (with a list of generators, from its own; from one
+    generator, ``max_b R_b + 1`` per row), as ``particles.resampling.residual`` does.
+    """
     b, n = _check_weights(weights, n_out)
     if b == 0:
         return _no_rows(n, weights.device)
