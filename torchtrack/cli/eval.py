@@ -4,6 +4,8 @@ Example::
 
     torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
         --out runs/eval --plots --jobs 2
+    torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
+        --out runs/eval --backend ray --address 10.0.0.5:6379      # on a Ray cluster
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress
+    from torchtrack.cli._common import add_backend, add_progress
 
     p = subparsers.add_parser(
         "eval",
@@ -42,7 +44,6 @@ def register(subparsers) -> None:
     )
     p.add_argument("-o", "--out", metavar="DIR", help="output folder")
     p.add_argument("--plots", action="store_true", help="write success / precision PNG plots")
-    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument(
         "--reinit",
         action="store_true",
@@ -76,6 +77,7 @@ def register(subparsers) -> None:
         "repeatable; also imported by --jobs workers",
     )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
+    add_backend(p, "(tracker, sequence, seed)")
     add_progress(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
     p.set_defaults(func=run)
@@ -122,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         plots=args.plots,
         jobs=args.jobs,
+        backend=args.backend,
+        address=args.address,
+        max_retries=args.max_retries,
         reinit=args.reinit,
         invisible=args.invisible,
         seed=args.seed,
@@ -148,8 +153,14 @@ def _command_line(args: argparse.Namespace) -> str:
     parts += ["--out", args.out]
     if args.plots:
         parts.append("--plots")
-    if args.jobs != 1:
+    if args.backend != "local":
+        parts += ["--backend", args.backend]
+    if args.jobs is not None:
         parts += ["--jobs", str(args.jobs)]
+    if args.address:
+        parts += ["--address", args.address]
+    if args.max_retries != 3:
+        parts += ["--max-retries", str(args.max_retries)]
     if args.reinit:
         parts.append("--reinit")
     if args.invisible != "box":
