@@ -31,3 +31,21 @@ def die_once(x: int, marker: str) -> tuple[int, int]:
         Path(marker).write_text("died once\n")
         os._exit(3)
     return x, os.getpid()
+
+
+def size_job(calls: str, source: str, out: str | None = None, note: str | None = None) -> dict:
+    """A corpus job: writes the source's name and size to ``out`` (and ``note``); appends the
+    source to the ``calls`` file; raises on sources named ``bad*``, writes nothing for
+    ``empty*``, stops the run (Ctrl-C) on ``stop*``."""
+    name = Path(source).name
+    with open(calls, "a") as f:
+        f.write(source + "\n")
+    if name.startswith("bad"):
+        raise ValueError(f"cannot read {name}")
+    if name.startswith("stop"):
+        raise KeyboardInterrupt
+    size = Path(source).stat().st_size
+    for path in (out, note):
+        if path and not name.startswith("empty"):
+            Path(path).write_text(f"{name},{size}\n")
+    return {"bytes": size}

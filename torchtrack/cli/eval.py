@@ -108,9 +108,13 @@ def run(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
 
+    from torchtrack.cli._common import backend_from_args
+    from torchtrack.eval.backends import check_backend
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate
     from torchtrack.io.sequences import find_sequences
+
+    check_backend(backend_from_args(args))  # Ray installed, its address answering: fail fast
 
     seqs = []
     for path in args.sequences:

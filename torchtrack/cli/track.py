@@ -6,6 +6,7 @@ Examples::
     torchtrack track clip.mp4 --box 120,40,56,156 --out boxes.csv
     torchtrack track frames/ --tracker histogram --box 120,40,56,156 --video out.mp4 --particles
     torchtrack track 0 --detect vehicle --max-frames 500          # camera 0, scan for a car
+    torchtrack track footage/ --out-dir runs/tracks --write csv,video --backend ray  # a corpus
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ examples:
       find the first frame's best car with the bundled vehicle detector, then track it with MIL
   torchtrack track clip.mp4 --box 10,20,40,80 --tracker adaptive-haar --adapt global
   torchtrack track clip.mp4 --box 10,20,40,80 --tracker detector:n_particles=500,model=my.safetensors
+  torchtrack track footage/ 'more/**/*.mp4' @list.txt --out-dir runs/tracks --write csv,video
+      a corpus: every video, one CSV and one annotated video each, resumable (docs/scale.md)
+  torchtrack track footage/ --out-dir runs/tracks --backend ray --address 10.0.0.5:6379
+      the same on a Ray cluster, one task per video
 
 initialisation:
   --box x,y,w,h is the target on the first readable frame (pixels, top-left corner, 0-based).
@@ -46,6 +51,7 @@ output:
 
 def register(subparsers) -> None:
     from torchtrack.cli._common import add_progress, add_threads
+    from torchtrack.cli._corpus import add_corpus_options
 
     p = subparsers.add_parser(
         "track",
@@ -60,9 +66,11 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "source",
+        "sources",
+        nargs="+",
         metavar="SOURCE",
-        help="video file, frame folder, camera index (0, 1, ...) or 'demo' (the bundled clip)",
+        help="video file, frame folder, camera index (0, 1, ...) or 'demo' (the bundled clip); "
+        "several, a folder of videos, a glob or @list.txt: a corpus run (--out-dir)",
     )
     p.add_argument("--box", metavar="X,Y,W,H", help="target box on the first frame (pixels)")
     p.add_argument(
@@ -96,13 +104,18 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of trackers that take a generator")
     add_threads(p, default=1)
     add_progress(p)
+    add_corpus_options(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``torchtrack track`` (returns the exit code)."""
+    from torchtrack.cli._corpus import run_corpus_command, wants_corpus
+
+    if wants_corpus(args):
+        return run_corpus_command(args)
     check_args(args)
-    summary = track_source(args, args.source, out=args.out, video=args.video)
+    summary = track_source(args, args.sources[0], out=args.out, video=args.video)
     print(summary.line())
     for path in (args.out, args.video):
         if path:
@@ -151,7 +164,7 @@ def track_source(
     args: argparse.Namespace, source: str, *, out: str | None, video: str | None
 ) -> TrackSummary:
     """Track one ``source`` with the options of ``args`` (the parsed ``torchtrack track``
-    namespace; ``args.source``, ``args.out`` and ``args.video`` are not read), writing the box
+    namespace; ``args.sources``, ``args.out`` and ``args.video`` are not read), writing the box
     CSV to ``out`` and the annotated video to ``video`` (either may be ``None``).
 
     Raises:
