@@ -49,3 +49,7 @@ def size_job(calls: str, source: str, out: str | None = None, note: str | None =
         if path and not name.startswith("empty"):
             Path(path).write_text(f"{name},{size}\n")
     return {"bytes": size}
+
+
+def cwd() -> str:
+    return os.getcwd()

@@ -18,7 +18,7 @@ import pytest
 
 from torchtrack.cli import build_parser, main
 from torchtrack.data import demo_clip_path
-from torchtrack.eval.backends import Backend
+from torchtrack.eval.backends import Backend, run_tasks
 from torchtrack.eval.corpus import MANIFEST, run_corpus
 from torchtrack.eval.runner import evaluate
 from torchtrack.io.sequences import load_sequence
@@ -194,6 +194,16 @@ def test_corpus_worker_death_is_retried_without_loss_or_duplicates(ray_address, 
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
         ".manifest.lock", MANIFEST, "pets2009_s2l1_demo.csv", "vtest.csv"
     ]  # fmt: skip
+
+
+def test_tasks_run_in_the_callers_folder(ray_address, tmp_path, monkeypatch):
+    """Workers started elsewhere (here: before the chdir) resolve relative paths as the caller."""
+    from .backend_tasks import cwd
+
+    monkeypatch.chdir(tmp_path)
+    got = {}
+    run_tasks(cwd, [(), ()], Backend("ray"), got.__setitem__)
+    assert got == {0: str(tmp_path), 1: str(tmp_path)}
 
 
 def test_a_cli_in_another_process_joins_the_cluster_by_address(ray_address, tmp_path):

@@ -91,9 +91,9 @@ def add_backend(p: argparse.ArgumentParser, unit: str) -> None:
     g.add_argument(
         "--address",
         metavar="HOST:PORT",
-        help="Ray cluster to run on: the head node's address (`ray start --head` prints it), "
-        "ray://HOST:PORT, or 'auto' (a `ray start` cluster on this machine); default "
-        "$RAY_ADDRESS, else a new local instance",
+        help="Ray cluster to run on: the head node's address (`ray start --head` prints it) "
+        "or 'auto' (a `ray start` cluster on this machine); default $RAY_ADDRESS, else a new "
+        "local instance",
     )
     g.add_argument(
         "--max-retries",

@@ -13,8 +13,7 @@ Backends
   down are rerun one process each, so only the culprit is reported as crashed.
 * ``ray``: one Ray task per item (``num_cpus`` CPUs each), on a fresh local Ray instance
   (``jobs`` CPUs; all cores when ``None``) or on the cluster at ``address`` (``host:port``,
-  ``ray://host:port``, ``auto``; the ``RAY_ADDRESS`` environment variable when ``address`` is
-  ``None``). A task whose worker process or node dies is rerun by Ray up to ``max_retries``
+  ``auto``; the ``RAY_ADDRESS`` environment variable when ``address`` is ``None``). A task whose worker process or node dies is rerun by Ray up to ``max_retries``
   times; one that still dies is reported as crashed. An exception raised by ``fn`` is not
   retried: it is deterministic. A connection to Ray already open in this process (the caller's
   own ``ray.init``) is used as it is and left open.
@@ -25,7 +24,9 @@ backend (:class:`~torchtrack.errors.BackendError`) and ``KeyboardInterrupt`` do.
 
 ``fn`` and its arguments travel to the workers by pickling (the standard library's for the
 process pool, cloudpickle for Ray): ``fn`` must be a module-level function (or a
-``functools.partial`` of one) importable on every worker.
+``functools.partial`` of one) importable on every worker. A Ray task runs in the caller's
+working directory when that folder exists on its machine (a shared file system), so relative
+paths in the arguments mean the same files there.
 """
 
 from __future__ import annotations
@@ -69,8 +70,7 @@ class Backend:
         jobs: local: worker processes (``None`` or 1: in this process); ray: CPUs of the local
             Ray instance started when there is no address (``None``: every core); ignored when
             connecting to a cluster.
-        address: the Ray cluster (``host:port`` of its head node, ``ray://host:port``, or
-            ``auto`` for a cluster started with ``ray start`` on this machine); ``None``: the
+        address: the Ray cluster (``host:port`` of its head node, or ``auto`` for a cluster started with ``ray start`` on this machine); ``None``: the
             ``RAY_ADDRESS`` environment variable, else a new local instance.
         max_retries: times Ray reruns a task whose worker process or node died.
         num_cpus: CPUs each Ray task reserves (its torch threads).
@@ -218,8 +218,14 @@ def worker_info() -> dict:
     return {"host": socket.gethostname(), "pid": os.getpid(), "max_rss_mib": mib}
 
 
-def _call(fn: Callable[..., Any], modules: tuple[str, ...], args: tuple) -> Any:
+def _call(
+    fn: Callable[..., Any], modules: tuple[str, ...], args: tuple, cwd: str | None = None
+) -> Any:
     worker_init(modules)
+    if cwd is not None and os.path.isdir(cwd):
+        # A Ray worker of a `ray start` node runs elsewhere; in the caller's folder (there on a
+        # shared file system) the caller's relative paths mean the same files.
+        os.chdir(cwd)
     return fn(*args)
 
 
@@ -277,7 +283,7 @@ def _split_address(address: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise BackendError(
             f"Ray address {address!r} is not host:port (e.g. 10.0.0.5:6379, the address "
-            "`ray start --head` prints) or ray://host:port"
+            "`ray start --head` prints)"
         )
     return host, int(port)
 
@@ -359,7 +365,7 @@ def _run_ray(fn, items, backend: Backend, on_result) -> None:
         fn_ref = ray.put(fn)  # shipped once, not with every task
         index = {}
         for i, args in enumerate(items):
-            index[task.remote(fn_ref, backend.modules, tuple(args))] = i
+            index[task.remote(fn_ref, backend.modules, tuple(args), os.getcwd())] = i
         pending = list(index)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
