@@ -64,6 +64,21 @@ def test_eval_bad_inputs(tmp_path, capsys):
     assert "no tracking sequence found" in capsys.readouterr().err
     assert main([*args, str(tmp_path / "o"), "--max-frames", "1"]) == 1
     assert "--max-frames must be >= 2" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "o"), "--jobs", "0"]) == 1
+    assert "--jobs must be >= 1" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "o"), "--address", "10.0.0.5:6379"]) == 1
+    assert "--address names a Ray cluster: use it with --backend ray" in capsys.readouterr().err
+
+
+def test_eval_output_folder_that_cannot_be_written(data_dir, tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    code = main(
+        ["eval", "--sequences", str(data_dir / "tracking" / "otb" / "Crossing"), "--trackers",
+         "camshift", "--out", str(tmp_path / "file" / "run"), "--max-frames", "3"]
+    )  # fmt: skip
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "--out " in err and "cannot be written: Not a directory" in err
 
 
 def test_list_trackers_and_import(capsys):

@@ -64,6 +64,15 @@ def closed_port() -> int:
     return port
 
 
+def test_a_local_instance_too_small_for_a_task_is_refused_before_it_starts(tmp_path, capsys):
+    ray = import_ray()
+    assert not ray.is_initialized()  # first in the module: before the fixture's instance
+    rc = track([str(demo_clip_path())], tmp_path / "p", "--backend", "ray", "--jobs", "1",
+               "--threads", "2")  # fmt: skip
+    assert rc == 1 and "the local Ray instance gets 1 (--jobs)" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists() and not ray.is_initialized()
+
+
 def records(out: Path) -> dict[str, dict]:
     return {
         str(p.relative_to(out)): json.loads(p.read_text())
@@ -215,6 +224,12 @@ def test_a_cli_in_another_process_joins_the_cluster_by_address(ray_address, tmp_
     assert r.returncode == 0, r.stderr
     assert "1 source(s): 1 done" in r.stdout
     assert len((out / "pets2009_s2l1_demo.csv").read_text().splitlines()) == 4
+
+
+def test_a_task_no_node_can_hold_is_an_error_not_a_hang(ray_address, tmp_path, capsys):
+    rc = track([str(demo_clip_path())], tmp_path / "o", "--backend", "ray", "--threads", "3")
+    assert rc == 1  # the fixture's instance has 2 CPUs
+    assert "each task needs 3 CPU(s) (--threads), but the largest node" in capsys.readouterr().err
 
 
 def test_unreachable_address_fails_fast_with_a_clear_message(tmp_path, capsys):

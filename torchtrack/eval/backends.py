@@ -70,8 +70,9 @@ class Backend:
         jobs: local: worker processes (``None`` or 1: in this process); ray: CPUs of the local
             Ray instance started when there is no address (``None``: every core); ignored when
             connecting to a cluster.
-        address: the Ray cluster (``host:port`` of its head node, or ``auto`` for a cluster started with ``ray start`` on this machine); ``None``: the
-            ``RAY_ADDRESS`` environment variable, else a new local instance.
+        address: the Ray cluster (``host:port`` of its head node, or ``auto`` for a cluster
+            started with ``ray start`` on this machine); ``None``: the ``RAY_ADDRESS``
+            environment variable, else a new local instance.
         max_retries: times Ray reruns a task whose worker process or node died.
         num_cpus: CPUs each Ray task reserves (its torch threads).
         modules: Python modules imported in every worker before its first task (modules that
@@ -122,18 +123,26 @@ class TaskFailure:
 
 
 def check_backend(backend: Backend) -> None:
-    """Fail early, before any work or output: for Ray, that it is installed and that its
-    address (``backend.address`` or ``RAY_ADDRESS``) answers.
+    """Fail early, before any work or output: for Ray, that it is installed, that its address
+    (``backend.address`` or ``RAY_ADDRESS``) answers, and that a local instance has the CPUs
+    a task needs.
 
     Raises:
         BackendError: see :func:`connect_ray`.
     """
     if backend.kind != "ray":
         return
-    import_ray()
+    ray = import_ray()
     address = backend.address or os.environ.get("RAY_ADDRESS") or None
     if address is not None and address not in ("auto", "local"):
         probe_address(address, backend.connect_timeout)
+    elif (address is None or address == "local") and not ray.is_initialized():
+        cpus = backend.jobs or os.cpu_count() or 1
+        if cpus < backend.num_cpus:
+            raise BackendError(
+                f"each task needs {backend.num_cpus:g} CPU(s) (--threads), but the local Ray "
+                f"instance gets {cpus} (--jobs): raise --jobs or lower --threads"
+            )
 
 
 def run_tasks(
@@ -354,11 +363,25 @@ def _ray_failure(ray, exc: BaseException) -> TaskFailure:
     return TaskFailure(f"{CRASH_MESSAGE} [{type(exc).__name__}]", str(exc), crashed=True)
 
 
+def _check_cpus(ray, need: float) -> None:
+    """:class:`BackendError` when no node of the cluster can ever run a task of ``need`` CPUs
+    (Ray would keep it pending forever)."""
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    most = max((n.get("Resources", {}).get("CPU", 0.0) for n in nodes), default=0.0)
+    if most < need:
+        raise BackendError(
+            f"each task needs {need:g} CPU(s) (--threads), but the largest node of the Ray "
+            f"cluster has {most:g}: add nodes with `ray start --address=...`, give the local "
+            "instance more (--jobs), or lower --threads"
+        )
+
+
 def _run_ray(fn, items, backend: Backend, on_result) -> None:
     ray = import_ray()
     opened = connect_ray(backend.address, num_cpus=backend.jobs, timeout=backend.connect_timeout)
     pending: list = []
     try:
+        _check_cpus(ray, backend.num_cpus)
         task = ray.remote(_call).options(
             num_cpus=backend.num_cpus, max_retries=backend.max_retries, retry_exceptions=False
         )
