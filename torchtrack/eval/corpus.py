@@ -542,7 +542,7 @@ def run_corpus(
                 bar.update(1)
                 bar.set_postfix_str(f"{len(report.failed)} failed", refresh=False)
 
-            items = [(job, s, names[s], kinds, str(folder)) for s in todo]
+            items = [(job, s, names[s], kinds, os.path.abspath(folder)) for s in todo]
             try:
                 run_tasks(_source_task, items, backend, finished)
             finally:
