@@ -280,7 +280,6 @@ def _finish(writers, ok: bool) -> None:
 
 
 def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
-    import sys
     import time
 
     from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
@@ -325,15 +324,29 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
             if vid is not None:
                 vid.write(draw(frame, state, tracker if args.particles else None))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
-        status = getattr(exc, "exit_code", 130)
-        what = "interrupted" if status == 130 else "terminated"
-        print(f"{what}: keeping the results so far", file=sys.stderr)
+        status = _interrupted(exc)
     finally:
         progress.close()
         _finish((csv, vid), ok=last is not None)
         src.close()
     if last is None and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
+    return _summary(source, src, n_frames, t0, t_track, status)
+
+
+def _interrupted(exc: BaseException) -> int:
+    """The exit status of a run stopped by SIGINT (130) or SIGTERM (143), said on stderr."""
+    import sys
+
+    status = getattr(exc, "exit_code", 130)
+    what = "interrupted" if status == 130 else "terminated"
+    print(f"{what}: keeping the results so far", file=sys.stderr)
+    return status
+
+
+def _summary(source, src, n_frames, t0, t_track, status, identities=None) -> TrackSummary:
+    import time
+
     return TrackSummary(
         source=str(source),
         frames=n_frames,
@@ -342,6 +355,7 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
         tracker_seconds=t_track,
         ended_early=bool(src.ended_early),
         status=status,
+        identities=identities,
     )
 
 
@@ -475,9 +489,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 parts = mt.particle_boxes() if args.particles else None
                 vid.write(draw_multi(frame, res, trails, parts))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
-        status = getattr(exc, "exit_code", 130)
-        what = "interrupted" if status == 130 else "terminated"
-        print(f"{what}: keeping the results so far", file=sys.stderr)
+        status = _interrupted(exc)
     finally:
         progress.close()
         _finish((csv, motw, vid), ok=n_frames > 0)
@@ -489,16 +501,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
             f"no {mt.detector.name!r} target was found in {source} (empty tracks written)",
             file=sys.stderr,
         )
-    return TrackSummary(
-        source=str(source),
-        frames=n_frames,
-        unreadable=src.n_bad,
-        seconds=time.perf_counter() - t0,
-        tracker_seconds=t_track,
-        ended_early=bool(src.ended_early),
-        status=status,
-        identities=len(seen),
-    )
+    return _summary(source, src, n_frames, t0, t_track, status, identities=len(seen))
 
 
 def parse_box(text: str):
