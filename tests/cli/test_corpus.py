@@ -67,9 +67,10 @@ def test_corpus_equals_single_runs_reports_failures_and_resumes(clips, tmp_path,
         (["{clips}/demo.mp4", "--jobs", "2"], "only corpus runs use --jobs: give --out-dir"),
         (["{clips}/demo.mp4", "--backend", "ray"], "only corpus runs use --backend ray"),
         (["{clips}", "--out-dir", "o", "--out", "x.csv"], "choose them with --write .*not --out"),
-        (["{clips}", "--out-dir", "o", "--write", "csv,gif"], "--write takes .* csv, video"),
+        (["{clips}", "--out-dir", "o", "--write", "csv,gif"], "--write takes .* csv, mot, video"),
         (["{clips}", "--out-dir", "o", "--particles"], "add it with --write video"),
-        (["{clips}", "--out-dir", "{clips}/demo.mp4/o"], "--out-dir .* cannot be written"),
+        (["{clips}", "--out-dir", "{clips}/demo.mp4/o"], "--out-dir .*demo.mp4' is not a folder"),
+        (["{clips}", "--out-dir", "o", "--detections", "d.txt"], "cannot use one file for every"),
         (["0", "--out-dir", "o"], "'0' is a camera index"),
         (["{clips}", "--out-dir", "o", "--jobs", "0"], "--jobs must be >= 1"),
     ],
@@ -82,3 +83,12 @@ def test_bad_input(clips, tmp_path, monkeypatch, capsys, argv, message):
     assert err.startswith("torchtrack track: error: ") and "Traceback" not in err
     assert re.search(message, err), err
     assert not (tmp_path / "o").exists()
+
+
+def test_multi_target_corpus_writes_the_mot_file_of_a_single_run(tmp_path):
+    """Without --box every source gets the multi-target tracker; --write mot is its --mot."""
+    opts = ["--max-frames", "3", "--no-progress"]
+    assert main(["track", "demo", "--out-dir", str(tmp_path / "c"), "--write", "mot", *opts]) == 0
+    assert main(["track", "demo", "--mot", str(tmp_path / "one.txt"), *opts]) == 0
+    got = (tmp_path / "c" / "pets2009_s2l1_demo.mot.txt").read_bytes()
+    assert got == (tmp_path / "one.txt").read_bytes() and got.count(b"\n") > 3

@@ -53,3 +53,7 @@ def size_job(calls: str, source: str, out: str | None = None, note: str | None =
 
 def cwd() -> str:
     return os.getcwd()
+
+
+def getenv(name: str) -> str | None:
+    return os.environ.get(name)

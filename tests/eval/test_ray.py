@@ -205,14 +205,23 @@ def test_corpus_worker_death_is_retried_without_loss_or_duplicates(ray_address, 
     ]  # fmt: skip
 
 
-def test_tasks_run_in_the_callers_folder(ray_address, tmp_path, monkeypatch):
-    """Workers started elsewhere (here: before the chdir) resolve relative paths as the caller."""
-    from .backend_tasks import cwd
+def test_tasks_run_in_the_callers_folder_and_trust_policy(ray_address, tmp_path, monkeypatch):
+    """Workers started elsewhere (here: before the chdir) resolve relative paths as the caller,
+    and see its TORCHTRACK_* variables (--require-signed travels as one) only during a task."""
+    from torchtrack.detect.signing import ENV_REQUIRE
+
+    from .backend_tasks import cwd, getenv
 
     monkeypatch.chdir(tmp_path)
     got = {}
     run_tasks(cwd, [(), ()], Backend("ray"), got.__setitem__)
     assert got == {0: str(tmp_path), 1: str(tmp_path)}
+    monkeypatch.setenv(ENV_REQUIRE, "1")
+    run_tasks(getenv, [(ENV_REQUIRE,)], Backend("ray"), got.__setitem__)
+    assert got[0] == "1"
+    monkeypatch.delenv(ENV_REQUIRE)
+    run_tasks(getenv, [(ENV_REQUIRE,)], Backend("ray"), got.__setitem__)
+    assert got[0] is None  # restored after the task
 
 
 def test_a_cli_in_another_process_joins_the_cluster_by_address(ray_address, tmp_path):

@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import os
 import sys
+import tempfile
 
 from torchtrack.eval.corpus import OutputKind
 
@@ -22,14 +23,15 @@ from torchtrack.eval.corpus import OutputKind
 #: ``dest`` of the single-source option: ``--out``, ``--video``). A new kind is one line.
 OUTPUT_KINDS: tuple[OutputKind, ...] = (
     OutputKind("csv", ".csv", "out"),
+    OutputKind("mot", ".mot.txt", "mot"),
     OutputKind("video", ".mp4", "video"),
 )
 
 #: Options that do not change what a source's outputs hold (left out of the manifest's
 #: settings, so a stopped run may be resumed with other values).
 _NOT_SETTINGS = frozenset(
-    {"sources", "out_dir", "write", "backend", "jobs", "address", "max_retries"}
-    | {"no_progress", "quiet", "threads", "func", "command"}
+    {"sources", "source", "out_dir", "write", "backend", "jobs", "address", "max_retries"}
+    | {"no_progress", "quiet", "threads", "func", "command", "trusted_key", "require_signed"}
     | {k.keyword for k in OUTPUT_KINDS}
 )
 
@@ -124,11 +126,12 @@ def run_corpus_command(args: argparse.Namespace) -> int:
     """``torchtrack track ... --out-dir DIR``: every source, one output set each."""
     from tqdm import tqdm
 
-    from torchtrack.cli._common import backend_from_args, show_progress
+    from torchtrack.cli._common import backend_from_args, check_output_dir, show_progress
     from torchtrack.cli.track import check_args, resolve_source
     from torchtrack.errors import ConfigError
     from torchtrack.eval.corpus import find_sources, run_corpus
 
+    check_output_dir(args.out_dir, "--out-dir")
     given = [f"--{k.keyword}" for k in OUTPUT_KINDS if getattr(args, k.keyword, None)]
     if given:
         raise ConfigError(
@@ -138,10 +141,17 @@ def run_corpus_command(args: argparse.Namespace) -> int:
     kinds = _kinds(args.write)
     if args.particles and not any(k.keyword == "video" for k in kinds):
         raise ConfigError("--particles draws into the annotated video: add it with --write video")
-    # Check the single-source options once, as they will be used for every source.
+    if getattr(args, "detections", None):
+        raise ConfigError(
+            "--detections gives the detections of one source; a corpus run cannot use one "
+            "file for every source (run each source with its own --detections)"
+        )
+    # Check the single-source options once, as they will be used for every source; the
+    # output names stand in for each source's files (which go in --out-dir, checked later).
     one = copy.copy(args)
+    one.source = args.sources[0]
     for k in kinds:
-        setattr(one, k.keyword, os.path.join(args.out_dir, "check" + k.suffix))
+        setattr(one, k.keyword, os.path.join(tempfile.gettempdir(), "torchtrack-check" + k.suffix))
     check_args(one)
     quiet = bool(getattr(args, "quiet", False))
 

@@ -47,7 +47,7 @@ JSON_VERSION = 1
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_out, add_progress
+    from torchtrack.cli._common import add_out, add_progress, add_trust
 
     p = subparsers.add_parser(
         "calibrate",
@@ -81,7 +81,19 @@ def register(subparsers) -> None:
     p.add_argument("--bins", type=int, default=15, help="ECE / diagram bins (default 15)")
     p.add_argument("--seed", type=int, default=0, help="seed of the CV folds (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
+    p.add_argument(
+        "--min-per-class",
+        type=int,
+        default=10,
+        metavar="N",
+        help="fewest positive and negative samples to calibrate on (default 10; Platt's two "
+        "parameters from fewer are noise)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="calibrate even below --min-per-class samples"
+    )
     add_progress(p)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
@@ -258,6 +270,16 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give either a MODEL (with --pos and --neg) or --scores CSV, not both")
     if args.bins < 1:
         raise ConfigError(f"--bins must be >= 1, got {args.bins}")
+    if args.min_per_class < 1:
+        raise ConfigError(f"--min-per-class must be >= 1, got {args.min_per_class}")
+    from torchtrack.cli._common import check_distinct, check_output_file
+
+    check_output_file(args.json, "--json")
+    check_output_file(args.plot, "--plot", (".png", ".pdf", ".svg"))
+    check_output_file(args.out, "--out")
+    check_distinct({"--json": args.json, "--plot": args.plot, "--out": args.out})
+    check_distinct({"--json": args.json, "--plot": args.plot, "MODEL": args.model})
+    check_distinct({"--json": args.json, "--plot": args.plot, "--scores": args.scores})
     det = None
     if args.scores is not None:
         if args.pos or args.neg or args.out:
@@ -299,6 +321,16 @@ def run(args: argparse.Namespace) -> int:
         source["skipped_files"] = sk_pos + sk_neg
 
     n_pos, n_neg = int(y01.sum()), int((1 - y01).sum())
+    if min(n_pos, n_neg) < args.min_per_class:
+        from torchtrack.errors import DataError
+
+        msg = (
+            f"{n_pos} positive and {n_neg} negative samples: fewer than --min-per-class "
+            f"{args.min_per_class} in a class"
+        )
+        if not args.force:
+            raise DataError(f"too little data to calibrate: {msg} (--force calibrates anyway)")
+        print(f"warning (--force): {msg}", file=sys.stderr)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
         cal = make_calibrator(args.method).fit(s, y01)
@@ -335,6 +367,14 @@ def run(args: argparse.Namespace) -> int:
         write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.json}")
     elif det is not None:
+        if args.method == "platt" and not cal.a_ < 0:
+            from torchtrack.errors import DataError
+
+            raise DataError(
+                f"the Platt fit gives a probability that falls as the model's margin rises "
+                f"(A = {cal.a_:.4g} >= 0): on these crops the model scores the negatives higher; "
+                "are --pos and --neg swapped, or is it the wrong model? Nothing was written"
+            )
         out = args.out or args.model
         new = det.with_calibrator(cal)
         new.summary = {**det.summary, "recalibration": record}

@@ -37,7 +37,7 @@ Unreadable images in a folder are skipped and listed on stderr (--strict: fail i
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_out, add_progress, add_threads
+    from torchtrack.cli._common import add_out, add_progress, add_threads, add_trust
 
     p = subparsers.add_parser(
         "detect",
@@ -87,6 +87,7 @@ def register(subparsers) -> None:
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
     add_progress(p)
     add_threads(p, default=2)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
@@ -107,6 +108,13 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.video is not None and Path(args.video).suffix.lower() != ".mp4":
         raise ConfigError(f"--video writes MPEG-4 (mp4v): give a .mp4 path, got {args.video!r}")
+    from torchtrack.cli._common import check_distinct, check_output_dir, check_output_file
+
+    check_output_file(args.out, "--out")
+    check_output_file(args.video, "--video", (".mp4",))
+    check_output_dir(args.annotate, "--annotate")
+    source = args.source if Path(args.source).is_file() else None
+    check_distinct({"SOURCE": source, "--out": args.out, "--video": args.video})
 
 
 def _open(source: str):
@@ -152,9 +160,7 @@ class _Writers:
     def __init__(self, annotate: str | None, video: str | None, fps: float | None) -> None:
         import contextlib
 
-        self.dir = Path(annotate) if annotate else None
-        if self.dir is not None:
-            self.dir.mkdir(parents=True, exist_ok=True)
+        self.dir = Path(annotate) if annotate else None  # made at the first frame written
         self.video_path = video
         self.fps = fps or 10.0
         self._stack = contextlib.ExitStack()
@@ -176,6 +182,7 @@ class _Writers:
         from torchtrack.io.atomic import atomic_path
 
         if self.dir is not None:
+            self.dir.mkdir(exist_ok=True)
             stem = Path(name).stem if name else f"frame_{index:06d}"
             with atomic_path(self.dir / f"{stem}.png") as tmp:
                 if not cv2.imwrite(str(tmp), img):
@@ -183,12 +190,20 @@ class _Writers:
         if self._tmp is not None:
             h, w = img.shape[:2]
             if self._writer is None:
+                from torchtrack.io.video import native_output
+
                 self._size = (w, h)
-                self._writer = cv2.VideoWriter(
-                    str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h)
-                )
-                if not self._writer.isOpened():
-                    raise VideoError(f"OpenCV cannot write an mp4v video to {self.video_path}")
+                with native_output() as log:
+                    self._writer = cv2.VideoWriter(
+                        str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h)
+                    )
+                    opened = self._writer.isOpened()
+                if not opened:
+                    detail = log.first_line()
+                    raise VideoError(
+                        f"OpenCV cannot write an mp4v video to {self.video_path}"
+                        + (f" ({detail})" if detail else "")
+                    )
             if (w, h) != self._size:  # a video has one frame size: pad or crop to the first
                 canvas = cv2.copyMakeBorder(
                     img[: self._size[1], : self._size[0]],
@@ -289,24 +304,28 @@ def run(args: argparse.Namespace) -> int:
             pending.clear()
 
         seen = 0
-        for i, frame in src.items():
-            if args.max_frames is not None and seen >= args.max_frames:
-                break
-            seen += 1
-            if frame is None:
-                reason = src.bad_frames[-1].reason if src.bad_frames else "unreadable"
-                if args.strict:
-                    raise DataError(f"{reason} (--strict)")
-                skipped.append((i, reason))
-                bar.update(1)
-                continue
-            if pending and pending[0][1].shape != frame.shape:
-                flush()
-            pending.append((i, frame))
-            if len(pending) >= args.batch:
-                flush()
-        flush()
-        bar.close()
+        try:
+            for i, frame in src.items():
+                if args.max_frames is not None and seen >= args.max_frames:
+                    break
+                seen += 1
+                if frame is None:
+                    reason = src.bad_frames[-1].reason if src.bad_frames else "unreadable"
+                    if args.strict:
+                        raise DataError(f"{reason} (--strict)")
+                    skipped.append((i, reason))
+                    bar.update(1)
+                    continue
+                if pending and pending[0][1].shape != frame.shape:
+                    flush()
+                pending.append((i, frame))
+                if len(pending) >= args.batch:
+                    flush()
+            flush()
+        finally:
+            bar.close()
+        if src.ended_early and args.strict:
+            raise DataError(f"{src.bad_frames[-1].reason} in {args.source} (--strict)")
         if n_frames == 0:
             # nothing was written: leave no empty output behind
             detail = "; ".join(r for _, r in skipped[:3])
@@ -314,6 +333,12 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         for i, reason in skipped:
             print(f"skipped frame {i}: {reason}", file=sys.stderr)
+        if src.ended_early:
+            print(
+                f"warning: {src.bad_frames[-1].reason}: {args.source} ended early (truncated "
+                "or corrupt video)",
+                file=sys.stderr,
+            )
         rate = n_det / n_frames if n_frames else math.nan
         print(
             f"{n_frames} frame(s), {n_det} detection(s) ({rate:.2f} per frame) with P >= "

@@ -71,6 +71,13 @@ def register(subparsers) -> None:
     p.add_argument("--mirror", action="store_true", help="add mirror images of the positives")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="train even on too little data (fewer than learn.min_train_per_class = 20 training "
+        "or learn.min_calibration_per_class = 10 calibration crops per class, mostly flat "
+        "positives); the reasons are recorded in the model",
+    )
     add_progress(p)
     p.set_defaults(func=run)
 
@@ -105,12 +112,13 @@ def _overrides(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from torchtrack.cli._common import show_progress
+    from torchtrack.cli._common import check_output_file, show_progress
     from torchtrack.detect.config import TrainConfig, apply_override, load_train_config
     from torchtrack.detect.model_file import save_detector
     from torchtrack.detect.training import train_detector
     from torchtrack.errors import ConfigError
 
+    check_output_file(args.out, "--out")  # before the training, not after it
     overrides = _overrides(args)
     if args.config:
         cfg = load_train_config(args.config, overrides)
@@ -127,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(line, file=sys.stderr, flush=True)
 
-    det = train_detector(cfg, progress=show_progress(args), log=log)
+    det = train_detector(cfg, progress=show_progress(args), log=log, force=args.force)
     path = save_detector(args.out, det)
     held = det.summary["held_out"]
     print(

@@ -26,7 +26,8 @@ backend (:class:`~torchtrack.errors.BackendError`) and ``KeyboardInterrupt`` do.
 process pool, cloudpickle for Ray): ``fn`` must be a module-level function (or a
 ``functools.partial`` of one) importable on every worker. A Ray task runs in the caller's
 working directory when that folder exists on its machine (a shared file system), so relative
-paths in the arguments mean the same files there.
+paths in the arguments mean the same files there, and with the caller's ``TORCHTRACK_*``
+environment variables (the model trust policy of ``--trusted-key`` / ``--require-signed``).
 """
 
 from __future__ import annotations
@@ -227,15 +228,37 @@ def worker_info() -> dict:
     return {"host": socket.gethostname(), "pid": os.getpid(), "max_rss_mib": mib}
 
 
+#: Environment variables of the caller that every Ray task sees (``TORCHTRACK_*``: the model
+#: trust policy of ``--trusted-key`` / ``--require-signed``, ``TORCHTRACK_DATA``).
+ENV_PREFIX = "TORCHTRACK_"
+
+
+def _caller_env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k.startswith(ENV_PREFIX)}
+
+
 def _call(
-    fn: Callable[..., Any], modules: tuple[str, ...], args: tuple, cwd: str | None = None
+    fn: Callable[..., Any],
+    modules: tuple[str, ...],
+    args: tuple,
+    cwd: str | None = None,
+    env: dict[str, str] | None = None,
 ) -> Any:
     worker_init(modules)
     if cwd is not None and os.path.isdir(cwd):
         # A Ray worker of a `ray start` node runs elsewhere; in the caller's folder (there on a
         # shared file system) the caller's relative paths mean the same files.
         os.chdir(cwd)
-    return fn(*args)
+    old = {k: os.environ.get(k) for k in env or {}}
+    os.environ.update(env or {})  # a worker started before the caller set them lacks them
+    try:
+        return fn(*args)
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 # ---------------------------------------------------------------------------------------------
@@ -386,9 +409,10 @@ def _run_ray(fn, items, backend: Backend, on_result) -> None:
             num_cpus=backend.num_cpus, max_retries=backend.max_retries, retry_exceptions=False
         )
         fn_ref = ray.put(fn)  # shipped once, not with every task
+        cwd, env = os.getcwd(), _caller_env()
         index = {}
         for i, args in enumerate(items):
-            index[task.remote(fn_ref, backend.modules, tuple(args), os.getcwd())] = i
+            index[task.remote(fn_ref, backend.modules, tuple(args), cwd, env)] = i
         pending = list(index)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)

@@ -83,18 +83,24 @@ class CropSet:
         )
 
 
-def read_gray(path: str | os.PathLike) -> np.ndarray | None:
-    """Decode an image file as ``(H, W)`` uint8 luma; ``None`` when it is not a decodable image."""
+def _decode_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
+    """``(image (H, W) uint8, "")`` or ``(None, why it cannot be used)``, through the one
+    image decoder of :mod:`torchtrack.io.video` (the frame reader uses the same one)."""
+    from torchtrack.io.video import decode_image
+
     try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError:
-        return None
-    if data.size == 0:
-        return None
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
-    if img is None or img.ndim != 2 or img.size == 0:
-        return None
-    return img
+        img = decode_image(path, cv2.IMREAD_GRAYSCALE)
+    except DataError as exc:
+        return None, str(exc)
+    if img.ndim != 2:
+        return None, f"image {path} did not decode to one gray channel"
+    return img, ""
+
+
+def read_gray(path: str | os.PathLike) -> np.ndarray | None:
+    """Decode an image file as ``(H, W)`` uint8 luma; ``None`` when it is not a decodable image
+    (missing, empty, truncated, corrupt)."""
+    return _decode_gray(path)[0]
 
 
 def list_image_files(folder: str | os.PathLike) -> tuple[list[Path], list[tuple[str, str]]]:
@@ -204,9 +210,9 @@ def load_crops(
         files_iter = files
     imgs, sources, resized = [], [], 0
     for p in files_iter:
-        img = read_gray(p)
+        img, why = _decode_gray(p)
         if img is None:
-            skipped.append((str(p), "cannot be decoded as an image"))
+            skipped.append((str(p), why))
             continue
         win, was_resized = _to_window(img, window, region, crop_size)
         resized += was_resized
@@ -248,9 +254,9 @@ def load_images(
     """
     imgs, used, skipped = [], [], []
     for p in paths:
-        img = read_gray(p)
+        img, why = _decode_gray(p)
         if img is None:
-            skipped.append((str(p), "cannot be decoded as an image"))
+            skipped.append((str(p), why))
             continue
         imgs.append(img)
         used.append(str(p))
