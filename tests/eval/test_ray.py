@@ -83,14 +83,14 @@ def records(out: Path) -> dict[str, dict]:
 def test_eval_on_ray_equals_local(ray_address, data_dir, tmp_path):
     seqs = [
         s.head(8)
-        for name in ("otb/Crossing", "otb/Couple", "bobot_pedestrian")
+        for name in ("otb/Crossing", "bobot_pedestrian")
         for s in load_sequence(data_dir / "tracking" / name)
     ]
     trackers = ["histogram:n_particles=200", "camshift"]
     local = evaluate(seqs, trackers, tmp_path / "local", progress=False, seed=3)
     on_ray = evaluate(seqs, trackers, tmp_path / "ray", backend="ray", progress=False, seed=3)
     a, b = records(tmp_path / "local"), records(tmp_path / "ray")
-    assert sorted(a) == sorted(b) and len(a) == 6  # the same result files
+    assert sorted(a) == sorted(b) and len(a) == 4  # the same result files
     for key in a:
         assert b[key]["error"] is None
         for field in ("boxes", "visible", "confidence", "metrics", "bad_frames"):
@@ -113,7 +113,7 @@ def test_a_worker_dying_is_retried_once_and_a_crashing_one_recorded(
     out = tmp_path / "ray"
     summary = evaluate(
         [seq.head(5)],
-        [once, "test-crash", "camshift"],
+        [once, "test-crash"],
         out,
         backend="ray",
         max_retries=1,
@@ -122,13 +122,13 @@ def test_a_worker_dying_is_retried_once_and_a_crashing_one_recorded(
     )
     assert marker.is_file()  # a worker did die on it ...
     per = summary["per_sequence"]["Crossing"]
-    assert per[once]["error"] is None and per["camshift"]["error"] is None  # ... and was rerun
+    assert per[once]["error"] is None  # ... and its task was rerun
     (path,) = (out / "sequences" / "Crossing").glob("test-die-once*.json")
     rec = json.loads(path.read_text())
     assert rec["boxes"] == [[204.0, 150.0, 17.0, 50.0]] * 5  # the static box, every frame once
     assert "crashed" in per["test-crash"]["error"]  # dies every time: recorded after 1 retry
     assert summary["overall"]["test-crash"]["n_failed"] == 1
-    assert len(list((out / "sequences").rglob("*.json"))) == 3
+    assert len(list((out / "sequences").rglob("*.json"))) == 2  # one record per task
 
 
 @pytest.fixture
