@@ -46,8 +46,9 @@ def add_corpus_options(p: argparse.ArgumentParser) -> None:
         "many sources (a corpus)",
         "Several SOURCE arguments, a folder of videos, a quoted glob ('footage/**/*.mp4') or "
         "@list.txt (one source per line) make a corpus run: it needs --out-dir, writes "
-        "<name>.csv / <name>.mp4 per source (name = the file's stem, plus parent folders where "
-        "stems clash) and manifest.jsonl, and skips sources an earlier run finished.",
+        + ", ".join(f"<name>{k.suffix}" for k in OUTPUT_KINDS)
+        + " per source (--write; name = the file's stem, plus parent folders where stems "
+        "clash) and manifest.jsonl, and skips sources an earlier run finished.",
     )
     g.add_argument(
         "--out-dir",
