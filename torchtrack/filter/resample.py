@@ -215,12 +215,15 @@ def _merge_below(u: torch.Tensor, b: int, cdf: torch.Tensor) -> torch.Tensor:
     # products keep the count to the run before the first u not below c), more only if needed.
     moving = _nonzero(run)
     del run
+    window = torch.arange(_WINDOW, device=u.device, dtype=pos.dtype)
     while moving.numel():
-        p, c = pos[moving], cf[moving]
-        at = (p.unsqueeze(1) + torch.arange(_WINDOW, device=u.device)).clamp_(max=u.numel() - 1)
-        below = (u[at] < c.unsqueeze(1)).to(pos.dtype).cumprod_(1)
-        pos[moving] = p + below.sum(1, dtype=pos.dtype)
-        moving = moving[below[:, -1].bool()]
+        p, c = pos.index_select(0, moving), cf.index_select(0, moving)
+        at = (p.unsqueeze(1) + window).clamp_(max=u.numel() - 1).view(-1)
+        below = torch.lt(u.index_select(0, at).view(-1, _WINDOW), c.unsqueeze(1))
+        below = below.to(pos.dtype).cumprod_(1)
+        pos.index_copy_(0, moving, p.add_(below.sum(1, dtype=pos.dtype)))
+        more = below[:, -1]
+        moving = moving[more.bool()] if bool(more.any()) else moving[:0]
     return pos
 
 
@@ -230,7 +233,7 @@ def _check_weights(weights: torch.Tensor, n_out: int | None) -> tuple[int, int]:
     if not isinstance(weights, torch.Tensor) or weights.ndim != 2 or weights.shape[1] == 0:
         shape = tuple(weights.shape) if isinstance(weights, torch.Tensor) else type(weights)
         raise ShapeError(f"weights must be a (B, N) tensor with N >= 1, got {shape}")
-    if weights.numel() and bool(weights.min() < 0):
+    if weights.numel() and float(weights.amin()) < 0:
         raise FilterError(_BAD_WEIGHTS)
     return weights.shape[0], weights.shape[1] if n_out is None else int(n_out)
 
