@@ -243,16 +243,18 @@ def test_multinomial_and_residual_equal_the_inverse_cdf_of_their_uniforms():
 
 
 @pytest.mark.parametrize("scheme", SCHEMES)
-def test_zero_weights_never_drawn_in_a_batch(scheme):
+@pytest.mark.parametrize("n", [60, 3000])
+def test_zero_weights_never_drawn_in_a_batch(scheme, n):
     # Zero-weight particles (leading, interleaved, trailing) get no offspring in any row of a
     # batch, and the batch still equals single runs (per-row generators), also with M != N.
-    w = torch.rand(4, 60, generator=torch.Generator().manual_seed(10))
+    # With n = 3000 the batch (12000 values) takes the merge, each row alone the search.
+    w = torch.rand(4, n, generator=torch.Generator().manual_seed(10))
     w[:, :7] = 0
     w[:, 20::2] = 0
     w[:, -5:] = 0
     w[2] = 0
     w[2, 30] = 1.0  # one particle carries all the mass
-    for n_out in (None, 37):
+    for n_out in (None, n // 2 + 7):
         gens = [torch.Generator().manual_seed(200 + b) for b in range(4)]
         anc = get_resampler(scheme)(w, gens, n_out)
         assert (torch.gather(w, 1, anc) > 0).all()

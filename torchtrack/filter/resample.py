@@ -152,15 +152,13 @@ def _count_below(u: torch.Tensor, b: int, cdf: torch.Tensor) -> torch.Tensor:
     (``_index_dtype(B * (L + 2))``).
 
     ``u``: ``_sorted_uniforms``' buffer, rows ``s (B, L)`` sorted with values in ``[0, L]``,
-    each ending with the sentinel L; ``cdf (B, N)`` float64 in ``[0, L)``. Small inputs take a
-    binary search per value (``torch.searchsorted``), larger ones the merge of
-    ``_merge_below``: the same counts, whichever is faster (measured on CPU: the search below
-    about 32768 values in rows of at most 4096, where the merge's ~40 tensor operations cost
-    more than the searches).
+    each ending with the sentinel L; ``cdf (B, N)`` float64 in ``[0, L)``. Up to 2^13 values
+    take a binary search each (``torch.searchsorted``), more the merge of ``_merge_below``: the
+    same counts, whichever is faster (measured on CPU: the merge's ~40 tensor operations cost
+    more than the searches below ~8000 values, the searches several times more at 10^5).
     """
     row = (u.numel() - _STEPS) // b
-    n = cdf.shape[1]
-    if b * n > 2**15 or row > 2**12:
+    if cdf.numel() > 2**13:
         return _merge_below(u, b, cdf)
     s = u[: b * row].view(b, row)
     pos = torch.searchsorted(
