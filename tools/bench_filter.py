@@ -329,7 +329,10 @@ def resampling_table(res_rows) -> list[str]:
         "",
         "Wall-clock medians, and in the last column the ratio of medians of CPU time of the "
         "timing thread (torchtrack at 1 thread, `particles` and filterpy are single-threaded): "
-        "time spent waiting for a core on the shared machine does not count there.",
+        "time spent waiting for a core on the shared machine does not count there. The goals "
+        "use the 1-thread columns; with 2 threads on a loaded 2-core machine, torchtrack's "
+        "second OpenMP thread mostly waits for a core, so that column measures the load more "
+        "than the code.",
         "",
         "| N | scheme | torchtrack 1 thread | torchtrack 2 threads | particles (numba) | filterpy "
         "| vs filterpy (1t) | vs particles (1t) | vs particles (1t, CPU time) |",
