@@ -46,3 +46,7 @@ class FilterError(TorchTrackError, RuntimeError):
 
 class TrackerError(TorchTrackError, RuntimeError):
     """A tracker was used wrongly (e.g. ``update`` before ``init``) or failed."""
+
+
+class TrainingWarning(UserWarning):
+    """Training finished but did not reach what was asked (e.g. a false-positive rate)."""

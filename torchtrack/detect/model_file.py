@@ -1,17 +1,26 @@
 """Detector model files: safetensors tensors + a JSON description, checksummed, never pickle.
 
-Layout: a standard safetensors file. Its tensors are ``features.index``, ``classifier.*`` and
-``calibration.*``; its ``__metadata__`` holds one key, ``torchtrack``, whose value is a JSON
-document::
+Layout: a standard safetensors file. Its tensors are ``features.index``, the feature bank's
+tables ``features.<name>`` (channel banks: ``features.rects``, ``features.channel``),
+``classifier.*`` and ``calibration.*``; its ``__metadata__`` holds one key, ``torchtrack``, whose
+value is a JSON document::
 
-    {"format": "torchtrack-detector", "format_version": 1,
-     "name": ..., "window": [H, W], "bank": {...}, "selected_features": [{kind, size, y, x}, ...],
-     "classifier": {"kind": "boosted_stumps" | "svm", ...},
+    {"format": "torchtrack-detector", "format_version": 2,
+     "name": ..., "window": [H, W],
+     "features": {"kind": "haar", window, sizes, stride, min_std, kinds}
+               | {"kind": "channels", window, cell, n_features,
+                  "channels": {names, orientations, norm_radius, norm_const, gradient_lambda}},
+     "selected_features": [{kind, size, y, x}, ...]   (Haar banks only),
+     "classifier": {"kind": "boosted_stumps" | "boosted_trees" | "svm", ...},
      "calibration": {"kind": "platt" | "isotonic", ...} | null,
      "training": {...data counts, split, held-out metrics...},
      "object_box": [x, y, w, h] fractions of the window | absent (the object fills the window),
      "sha256": hex digest of the JSON without this key plus every tensor's name, dtype, shape
                and bytes}
+
+Version 1 files (the grey Haar bank under ``"bank"``, no ``"features"``) still load. The
+feature description (channel names, geometry, table shapes in the safetensors header) is
+validated before any tensor is read.
 
 Loading reads the whole file, parses the header by hand (so a truncated file is detected
 before any tensor is touched), checks the format name and version, recomputes the checksum and
@@ -32,13 +41,14 @@ import torch
 
 from torchtrack.detect.detector import Detector
 from torchtrack.errors import ConfigError, ModelFormatError
+from torchtrack.features import bank_from_dict, bank_tensor_shapes, bank_to_dict
 from torchtrack.features.haar import HaarBank
 from torchtrack.io.atomic import atomic_path
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "load_detector", "read_model_metadata", "save_detector"]
 
 FORMAT = "torchtrack-detector"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _MAX_HEADER = 100 * 1024 * 1024
 
 
@@ -61,7 +71,9 @@ def save_detector(path: str | os.PathLike, det: Detector) -> Path:
     from safetensors.torch import save_file
 
     sc_t, sc_m = det.classifier.to_state()
+    bank_d, bank_t = bank_to_dict(det.bank)
     tensors = {"features.index": det.feature_index.contiguous()}
+    tensors.update({f"features.{k}": v.contiguous() for k, v in bank_t.items()})
     tensors.update({f"classifier.{k}": v.contiguous() for k, v in sc_t.items()})
     cal_m = None
     if det.calibrator is not None:
@@ -72,12 +84,13 @@ def save_detector(path: str | os.PathLike, det: Detector) -> Path:
         "format_version": FORMAT_VERSION,
         "name": det.name,
         "window": list(det.window),
-        "bank": det.bank.to_dict(),
-        "selected_features": det.selected_features(),
+        "features": bank_d,
         "classifier": sc_m,
         "calibration": cal_m,
         "training": det.summary,
     }
+    if isinstance(det.bank, HaarBank):
+        meta["selected_features"] = det.selected_features()
     if det.object_box is not None:
         meta["object_box"] = list(det.object_box)
     try:
@@ -137,6 +150,28 @@ def _read(path: str | os.PathLike) -> tuple[bytes, dict[str, Any], dict[str, Any
     return data, header, meta
 
 
+def _check_features_header(p: Path, meta: dict[str, Any], header: dict[str, Any]) -> None:
+    """Validate the feature description and the declared shapes of its tables before any
+    tensor is read (version 2; version 1 files have the grey Haar bank under ``"bank"``)."""
+    if meta["format_version"] == 1:
+        if not isinstance(meta.get("bank"), dict):
+            raise ModelFormatError(
+                f"{str(p)!r}: a version 1 model needs its Haar 'bank' description"
+            )
+        return
+    try:
+        shapes = bank_tensor_shapes(meta.get("features"))
+    except ConfigError as exc:
+        raise ModelFormatError(f"{str(p)!r}: invalid feature description ({exc})") from None
+    for name, shape in shapes.items():
+        entry = header.get(f"features.{name}")
+        got = entry.get("shape") if isinstance(entry, dict) else None
+        if got != list(shape):
+            raise ModelFormatError(
+                f"{str(p)!r}: tensor 'features.{name}' must have shape {list(shape)}, got {got}"
+            )
+
+
 def read_model_metadata(path: str | os.PathLike) -> dict[str, Any]:
     """The JSON description of a model file, after the format and version checks."""
     return _read(path)[2]
@@ -154,7 +189,8 @@ def load_detector(path: str | os.PathLike) -> Detector:
     from torchtrack.learn import calibrator_from_state, classifier_from_state
 
     p = Path(path)
-    data, _, meta = _read(p)
+    data, header, meta = _read(p)
+    _check_features_header(p, meta, header)
     try:
         tensors = st_load(data)
     except Exception as exc:  # safetensors raises its own error types
@@ -166,7 +202,15 @@ def load_detector(path: str | os.PathLike) -> Detector:
             "retrain or restore the original file"
         )
     try:
-        bank = HaarBank.from_dict(meta["bank"])
+        if meta["format_version"] == 1:
+            bank = HaarBank.from_dict(meta["bank"])
+        else:
+            bank_t = {
+                k[len("features.") :]: v
+                for k, v in tensors.items()
+                if k.startswith("features.") and k != "features.index"
+            }
+            bank = bank_from_dict(meta["features"], bank_t)
         if list(bank.window) != list(meta["window"]):
             raise ModelFormatError("window and bank window disagree")
         sc_t = {
@@ -190,7 +234,7 @@ def load_detector(path: str | os.PathLike) -> Detector:
             summary=meta.get("training") or {},
             object_box=meta.get("object_box"),
         )
-        if det.selected_features() != meta["selected_features"]:
+        if isinstance(bank, HaarBank) and det.selected_features() != meta["selected_features"]:
             raise ModelFormatError("selected feature descriptions disagree with the feature index")
     except ModelFormatError as exc:
         raise ModelFormatError(f"{str(p)!r}: {exc}") from None
