@@ -2,6 +2,8 @@
 
 Usage:
     python tools/fit_dynamics.py [--data ../shared/data/tracking] [--out torchtrack/data/dynamics_chateau.toml]
+    python tools/fit_dynamics.py --structure constant_velocity \
+        --out torchtrack/data/dynamics_chateau_cv.toml     # the multi-target tracker's default
 
 Reads every OTB / BoBoT ground truth under ``--data`` (with ``torchtrack.io.sequences`` when it
 is available, else a small built-in parser), fits A, B, Sigma by least squares
@@ -78,9 +80,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--out", type=Path, default=REPO / "torchtrack" / "data" / "dynamics_chateau.toml"
     )
+    ap.add_argument(
+        "--structure",
+        choices=("free", "constant_velocity"),
+        default="free",
+        help="free A (eq. 4 as fitted in the paper) or constant velocity with Sigma fitted",
+    )
     args = ap.parse_args(argv)
     tracks = load_tracks(args.data)
-    fit = fit_chateau_dynamics(list(tracks.values()))
+    fit = fit_chateau_dynamics(list(tracks.values()), structure=args.structure)
     cp = torch.eye(6, dtype=torch.float64)  # constant position (c_{t+1} = c_t)
     cp[2, 0], cp[3, 1], cp[5, 4], cp[2, 2], cp[3, 3], cp[5, 5] = 1, 1, 1, 0, 0, 0
     cv = default_chateau_A()
@@ -100,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     comment = (
         "Fitted by tools/fit_dynamics.py on the ground truth of "
         f"{len(tracks)} sequences ({', '.join(tracks)}): "
-        f"{fit.n_transitions} transitions; s relative to each track's first box."
+        f"{fit.n_transitions} transitions; s relative to each track's first box; "
+        f"structure {args.structure}."
     )
     save_chateau_toml(args.out, fit, comment=comment)
     print(comment)

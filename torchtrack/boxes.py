@@ -20,6 +20,7 @@ __all__ = [
     "check_boxes",
     "clip_boxes",
     "cxcywh_to_xywh",
+    "inside_fraction",
     "xywh_to_cxcywh",
     "xywh_to_xyxy",
     "xyxy_to_xywh",
@@ -142,6 +143,16 @@ def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor
     x2 = xyxy[..., 2].clamp(0, w_img)
     y2 = xyxy[..., 3].clamp(0, h_img)
     return xyxy_to_xywh(torch.stack((x1, y1, x2, y2), dim=-1))
+
+
+def inside_fraction(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
+    """The fraction ``(...)`` of each xywh box's area ``(..., 4)`` that lies inside a frame of
+    size ``(H, W)``: 1 inside, 0 entirely outside; NaN for a box that is not finite or has no
+    area (compare with ``>=`` and such boxes fail)."""
+    _check_last4(boxes)
+    area = boxes[..., 2] * boxes[..., 3]
+    inside = box_area(clip_boxes(boxes, frame_size))
+    return torch.where(area > 0, inside / torch.where(area > 0, area, 1), float("nan"))
 
 
 def _first_false(mask: torch.Tensor) -> int:

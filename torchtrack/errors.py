@@ -36,6 +36,15 @@ class SequenceError(TorchTrackError, ValueError):
     """A tracking sequence (frames + ground truth) is malformed."""
 
 
+class MotFormatError(SequenceError):
+    """A MOTChallenge file (ground truth, detections, results) or ``seqinfo.ini`` is malformed or
+    does not fit its sequence; the message names the file and the line."""
+
+
+class MissingDependencyError(TorchTrackError, ImportError):
+    """An optional dependency is not installed; the message gives the command that installs it."""
+
+
 class NotFittedError(TorchTrackError, RuntimeError):
     """An estimator was used before ``fit``."""
 

@@ -3,6 +3,14 @@
     python train/default_models.py                 # pedestrian and vehicle
     python train/default_models.py --only vehicle
     python train/default_models.py --readme-only   # rewrite torchtrack/models/README.md
+    python train/default_models.py --sign-key /work/keys/torchtrack-models.pem   # and sign them
+
+The bundled models are signed (Ed25519, :mod:`torchtrack.detect.signing`) with the project key
+whose public half ships as ``torchtrack/models/torchtrack-models.pub``; its private half lives
+outside the repository (on the project machine ``/work/keys/torchtrack-models.pem``) and is
+never committed. ``--sign-key`` signs each model as it is written; a model written without it
+is signed afterwards with ``torchtrack sign torchtrack/models/NAME.safetensors --key PEM``.
+``tests/detect/test_signing.py`` fails while a bundled model is unsigned.
 
 Each model is ``torchtrack train --config configs/<name>.toml`` with the config's seed: the
 held-out test splits in ``configs/splits`` are excluded, 30% of the remaining crops calibrate
@@ -26,6 +34,7 @@ from torchtrack.detect import Detector, load_detector, save_detector
 from torchtrack.detect.config import TrainConfig, load_train_config, read_name_list
 from torchtrack.detect.evaluate import crop_scores, detection_rate_at_fpr, roc_auc
 from torchtrack.detect.model_file import read_model_metadata
+from torchtrack.detect.signing import load_private_key
 from torchtrack.detect.training import portable_config, train_detector
 from torchtrack.io.atomic import write_text_atomic
 from torchtrack.io.crops import (
@@ -150,6 +159,14 @@ def write_readme(models_dir: Path) -> Path:
         "python train/default_models.py            # = torchtrack train --config configs/<name>.toml",
         "```",
         "",
+        "Both files are signed (Ed25519) with the project key; its public half is",
+        "`torchtrack-models.pub` here, always trusted by the loader, and its private half is kept",
+        "outside the repository (`/work/keys/torchtrack-models.pem` on the project machine). After",
+        "retraining, sign again: `python train/default_models.py --sign-key PEM`, or",
+        "`torchtrack sign torchtrack/models/NAME.safetensors --key PEM` for a file already",
+        "written; `torchtrack sign --check NAME` shows the signer. The tests fail while a bundled",
+        "model is unsigned.",
+        "",
     ]
     for f in sorted(models_dir.glob("*.safetensors")):
         meta = read_model_metadata(f)
@@ -229,7 +246,14 @@ def main() -> None:
         help="instead of training: add the test-split metrics to models already trained with "
         "`torchtrack train --config configs/<name>.toml` (the config must match) and install them",
     )
+    ap.add_argument(
+        "--sign-key",
+        metavar="PEM",
+        help="Ed25519 private key to sign the written models with (the project key; never "
+        "commit it)",
+    )
     args = ap.parse_args()
+    key = load_private_key(args.sign_key) if args.sign_key else None
     for f in args.evaluate or []:
         det = load_detector(f)
         cfg = load_train_config(REPO / "configs" / f"{det.name}.toml")
@@ -237,7 +261,7 @@ def main() -> None:
         if recorded not in (_norm(cfg.to_dict()), _norm(portable_config(cfg))):
             raise SystemExit(f"{f} was not trained with configs/{det.name}.toml as it is now")
         det.summary["test_split"] = test_split_metrics(cfg, det)
-        path = save_detector(args.out / f"{det.name}.safetensors", det)
+        path = save_detector(args.out / f"{det.name}.safetensors", det, signing_key=key)
         path.chmod(0o644)
         print(f"{path}: test split {det.summary['test_split']}")
     if not args.readme_only and not args.evaluate:
@@ -247,7 +271,7 @@ def main() -> None:
                 cfg, progress=True, log=lambda s: print(s, file=sys.stderr, flush=True)
             )
             det.summary["test_split"] = test_split_metrics(cfg, det)
-            path = save_detector(args.out / f"{name}.safetensors", det)
+            path = save_detector(args.out / f"{name}.safetensors", det, signing_key=key)
             path.chmod(0o644)
             held, ts = det.summary["held_out"], det.summary["test_split"]
             print(

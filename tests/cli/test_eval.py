@@ -75,3 +75,157 @@ def test_list_trackers_and_import(capsys):
     assert "test-crash" in capsys.readouterr().out
     assert main(["eval", "--import", "no_such_module_xyz", "--list-trackers"]) == 1
     assert "cannot import tracker module 'no_such_module_xyz'" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# --mot: scoring MOTChallenge results files
+# ---------------------------------------------------------------------------------------------
+def test_eval_mot_folder_and_video(data_dir, tmp_path, capsys, trackeval):
+    from torchtrack.io.mot import load_mot_sequence, write_mot
+
+    tud = data_dir / "mot" / "TUD-Stadtmitte"
+    seq = load_mot_sequence(tud)
+    keep = seq.gt.frames % 5 != 0  # every 5th frame missed
+    write_mot(tmp_path / "res" / "TUD-Stadtmitte.txt", seq.gt.select(keep))
+    out = tmp_path / "out"
+    assert (
+        main(["eval", "--mot", str(tud), "--results", str(tmp_path / "res"), "-o", str(out)]) == 0
+    )
+    printed = capsys.readouterr().out
+    assert "| res | TUD-Stadtmitte | " in printed
+    summary = json.loads((out / "results.json").read_text())
+    m = summary["per_sequence"]["TUD-Stadtmitte"]["res"]
+    assert m["fp"] == 0 and m["fn"] == int((~keep).sum()) and m["id_switches"] == 0
+    assert summary["command"].startswith("torchtrack eval --mot")
+    assert (out / "results.md").is_file()
+
+    # the PETS video plus its GT: scale 0.625 from seqinfo.ini; results in video pixels
+    video = data_dir / "videos" / "pets2009_s2l1_vtest" / "vtest.avi"
+    gt = data_dir / "mot" / "PETS09-S2L1" / "gt" / "gt.txt"
+    pets = load_mot_sequence(video, gt=gt)
+    write_mot(tmp_path / "pets.txt", pets.gt.select(pets.gt.conf > 0))
+    assert (
+        main(
+            ["eval", "--mot", str(video), "--gt", str(gt), "--results", str(tmp_path / "pets.txt")]
+        )
+        == 0
+    )
+    row = capsys.readouterr().out.splitlines()[2]
+    assert row.startswith("| pets | PETS09-S2L1 | 100.0 | 100.0 | 100.0 | 100.0 |")
+    # without the scale the same file scores badly: the 768x576 GT on 480x360 boxes
+    assert (
+        main(
+            [
+                "eval",
+                "--mot",
+                str(video),
+                "--gt",
+                str(gt),
+                "--gt-scale",
+                "1",
+                "--results",
+                str(tmp_path / "pets.txt"),
+            ]
+        )
+        == 0
+    )
+    assert "| pets | PETS09-S2L1 | 100.0 |" not in capsys.readouterr().out
+
+
+def _mot_seq(tmp_path, n=3):
+    d = tmp_path / "Tiny"
+    (d / "gt").mkdir(parents=True)
+    (d / "seqinfo.ini").write_text(f"[Sequence]\nname=Tiny\nseqLength={n}\n")
+    (d / "gt" / "gt.txt").write_text("1,1,11,11,20,40,1,-1,-1,-1\n2,1,11,11,20,40,1,-1,-1,-1\n")
+    return d
+
+
+def test_eval_mot_empty_results_scores_as_empty_tracker(tmp_path, capsys, trackeval):
+    d = _mot_seq(tmp_path)
+    (tmp_path / "empty.txt").write_text("")
+    assert main(["eval", "--mot", str(d), "--results", str(tmp_path / "empty.txt")]) == 0
+    assert (
+        "| empty | Tiny | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 | 0.0 | 0 | 0 | 2 |"
+        in capsys.readouterr().out
+    )
+
+
+def test_eval_mot_bad_inputs(tmp_path, capsys, trackeval):
+    d = _mot_seq(tmp_path)
+    out = tmp_path / "out"
+
+    def fails(args, message):
+        assert main(["eval", *args]) == 1
+        err = capsys.readouterr().err
+        assert message in err, err
+        assert "Traceback" not in err
+
+    res = tmp_path / "r.txt"
+    res.write_text("1,1,11,11,20,40,1\n2,1,11,11,20,x,1\n")
+    fails(
+        ["--mot", str(d), "--results", str(res), "-o", str(out)],
+        f"{res} line 2: not a row of numbers",
+    )
+    assert not out.exists()  # a failed run leaves no output
+    res.write_text("1,1,11,11,20,40,1\n4,1,11,11,20,40,1\n")
+    fails(
+        ["--mot", str(d), "--results", str(res)],
+        f"{res} line 2: frame 4 is beyond the sequence's 3 frames",
+    )
+    (tmp_path / "resdir").mkdir()
+    (tmp_path / "resdir" / "Other.txt").write_text("")
+    fails(["--mot", str(d), "--results", str(tmp_path / "resdir")], "no file for sequence(s) Tiny")
+    fails(["--mot", str(d)], "MOT scoring needs --mot SEQ ... and either --results")
+    fails(
+        ["--mot", str(d), "--results", str(res), "--trackers", "mil"], "--trackers do(es) not apply"
+    )
+    fails(
+        ["--mot", str(d), "--results", str(res), "--gt-scale", "-2"],
+        "--gt-scale must be a positive",
+    )
+    fails(
+        ["--mot", str(d), "--results", str(res), "--gt", str(res)],
+        "--gt gives 1 file(s) for 0 video(s)",
+    )
+    fails(
+        ["--mot", str(tmp_path / "resdir"), "--results", str(res)], "holds no MOTChallenge sequence"
+    )
+    fails(["--sequences", str(d), "--gt", str(res)], "--gt and --gt-scale go with --mot")
+    # GT rows beyond the video's frames
+    import cv2
+    import numpy as np
+
+    video = tmp_path / "clip.mp4"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (32, 24))
+    for _ in range(3):
+        w.write(np.zeros((24, 32, 3), np.uint8))
+    w.release()
+    gt = tmp_path / "clip_gt.txt"
+    gt.write_text("1,1,1,1,5,5,1\n9,1,1,1,5,5,1\n")
+    fails(
+        ["--mot", str(video), "--gt", str(gt), "--results", str(res)],
+        f"{gt} line 2: frame 9 is beyond",
+    )
+
+
+def test_mot_runs_the_multi_target_tracker_and_scores_it(data_dir, tmp_path, capsys, trackeval):
+    """eval --mot SEQ --trackers multi --public-detections: results per tracker, then TrackEval."""
+    import json
+
+    seq = data_dir / "mot" / "TUD-Stadtmitte"
+    out = tmp_path / "ev"
+    rc = main(
+        ["eval", "--mot", str(seq), "--trackers", "multi", "multi:appearance=none",
+         "--public-detections", "--max-frames", "15", "-o", str(out), "-q"]
+    )  # fmt: skip
+    assert rc == 0
+    for label in ("multi", "multi_appearance-none"):
+        assert (out / label / "TUD-Stadtmitte.txt").is_file()
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["overall"]) == {"multi", "multi_appearance-none"}
+    assert "HOTA" in capsys.readouterr().out
+    # only the multi-target tracker runs on MOT sequences; an output folder is needed
+    assert main(["eval", "--mot", str(seq), "--trackers", "mil", "-o", str(out)]) == 1
+    assert main(["eval", "--mot", str(seq), "--trackers", "multi"]) == 1
+    assert main(["eval", "--mot", str(seq), "--results", str(out / "multi"),
+                 "--public-detections"]) == 1  # fmt: skip

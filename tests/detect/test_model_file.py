@@ -125,7 +125,7 @@ def rewrite_meta(path, edit):
 
 def test_edited_metadata_fails_checksum(tmp_path):
     path = save_detector(tmp_path / "m.safetensors", make_detector())
-    rewrite_meta(path, lambda m: m["calibration"].update(A=-30.0))
+    rewrite_meta(path, lambda m: m["calibration"].update(a=-30.0))
     with pytest.raises(ModelFormatError, match="checksum"):
         load_detector(path)
 
@@ -200,3 +200,165 @@ def test_bundled_pedestrian_reports_the_person_not_the_window():
     det = load_model("pedestrian")
     # Dalal & Triggs: the INRIA person is 96 px tall with 16 px of margin in the 64x128 window.
     assert det.object_box == (0.25, 0.125, 0.5, 0.75)
+
+
+# ---------------------------------------------------------------- malformed and forged files
+@pytest.fixture
+def model_path(tmp_path):
+    return save_detector(tmp_path / "m.safetensors", make_detector())
+
+
+@pytest.mark.parametrize(
+    "header_edit, match",
+    [
+        (lambda h: h.__setitem__("features.index", "x"), "features.index"),
+        (lambda h: h["features.index"].pop("data_offsets"), "data_offsets"),
+        (lambda h: h["features.index"].update(dtype="Q128"), "unknown dtype"),
+        (lambda h: h["features.index"].update(shape=[2, -1]), "invalid shape"),
+        (lambda h: h["features.index"].update(shape=[5]), "data_offsets .* do not match"),
+        (lambda h: h["features.index"].update(data_offsets=[0, "8"]), "invalid data_offsets"),
+        (lambda h: h["__metadata__"].update(torchtrack=7), "no torchtrack metadata"),
+        (lambda h: h["__metadata__"].update(torchtrack="{not json"), "not valid JSON"),
+        (lambda h: h["__metadata__"].update(extra=[1]), "strings to strings"),
+    ],
+)
+def test_malformed_header_is_a_typed_error(tmp_path, model_path, forge_model, header_edit, match):
+    bad = forge_model(model_path, tmp_path / "bad.safetensors", header_edit=header_edit)
+    with pytest.raises(ModelFormatError, match=match):
+        load_detector(bad)
+
+
+@pytest.mark.parametrize(
+    "meta_edit, match",
+    [
+        (None, "format"),  # metadata that is a list (meta_replace below)
+        (lambda m: m.update(window=[100000, 100000]), "window height"),
+        (lambda m: m.update(window=[16.5, 8]), "window height"),
+        (lambda m: m["features"].update(window=[100000, 100000]), "bank window"),
+        (lambda m: m["features"].update(sizes=[4], stride=1, min_std=1e-9), "min_std"),
+        (lambda m: m["features"].update(sizes=[6]), "multiple of 4"),
+        (lambda m: m["classifier"].update(n_features_in=3), "n_features_in"),
+        (lambda m: m["classifier"].update(kind="forest"), "unknown classifier kind"),
+        (lambda m: m["calibration"].update(a=-m["calibration"]["a"]), "Platt slope"),
+        (lambda m: m["calibration"].update(a=-1e308), "Platt slope"),
+        (lambda m: m["calibration"].update(b=1e308), "calibration.b"),
+        (lambda m: m["calibration"].update(b="1"), "calibration.b"),
+        (lambda m: m.update(name=["x"]), "name"),
+        (lambda m: m.update(format_version=True), "format_version"),
+        (lambda m: m.update(surprise=1), "unknown key"),
+        (lambda m: m.pop("selected_features"), "lacks"),
+        (lambda m: m["selected_features"].pop(), "selected_features"),
+        (lambda m: m.update(object_box=[0.5, 0.5, 0.9, 0.9]), "object_box"),
+    ],
+)
+def test_forged_description_is_refused(tmp_path, model_path, forge_model, meta_edit, match):
+    """Edits with a recomputed checksum: the range and consistency checks refuse them."""
+    if meta_edit is None:
+        bad = forge_model(model_path, tmp_path / "bad.safetensors", meta_replace=lambda m: [m])
+    else:
+        bad = forge_model(model_path, tmp_path / "bad.safetensors", meta_edit=meta_edit)
+    with pytest.raises(ModelFormatError, match=match):
+        load_detector(bad)
+
+
+def _set(name, fn):
+    def edit(t):
+        t[name] = fn(t[name].clone())
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    "tensor_edit, match",
+    [
+        (_set("classifier.threshold", lambda v: v + 1000), "classifier.threshold"),
+        (_set("classifier.threshold", lambda v: v.fill_(float("nan"))), "NaN"),
+        (_set("classifier.left", lambda v: v * 1e30), "classifier.left"),
+        (_set("features.index", lambda v: v + 10**6), "outside the bank"),
+        (_set("features.index", lambda v: v - 10**6), "outside the bank"),
+        (_set("classifier.feature", lambda v: v + 4), "classifier.feature"),
+        (_set("classifier.threshold", lambda v: v.double()), "dtype F64"),
+        (_set("classifier.threshold", lambda v: v[:-1]), "shape"),
+        (lambda t: t.update(extra=torch.zeros(2)), "unexpected tensor"),
+    ],
+)
+def test_forged_tensors_are_refused(tmp_path, model_path, forge_model, tensor_edit, match):
+    bad = forge_model(model_path, tmp_path / "bad.safetensors", tensor_edit=tensor_edit)
+    with pytest.raises(ModelFormatError, match=match):
+        load_detector(bad)
+
+
+def test_svm_and_isotonic_ranges(tmp_path, forge_model):
+    x, y = toy_data()
+    det = make_detector(svm=True)
+    path = save_detector(tmp_path / "svm.safetensors", det)
+    C = read_model_metadata(path)["classifier"]["C"]
+    for edit, match in (
+        (_set("classifier.dual_coef", lambda v: v * 0 + 2 * C), "dual_coef"),
+        (_set("classifier.scale", lambda v: -v), "scale"),
+        (_set("classifier.support_vectors", lambda v: v[:, :2]), "support_vectors"),
+    ):
+        bad = forge_model(path, tmp_path / "bad.safetensors", tensor_edit=edit)
+        with pytest.raises(ModelFormatError, match=match):
+            load_detector(bad)
+    bad = forge_model(
+        path, tmp_path / "bad.safetensors", meta_edit=lambda m: m["classifier"].update(gamma=0)
+    )
+    with pytest.raises(ModelFormatError, match="gamma"):
+        load_detector(bad)
+    iso = det.with_calibrator(
+        IsotonicCalibrator().fit(det.classifier.decision_function(x).double(), y)
+    )
+    path = save_detector(tmp_path / "iso.safetensors", iso)
+    bad = forge_model(
+        path, tmp_path / "bad.safetensors", tensor_edit=_set("calibration.y", lambda v: 1 - v)
+    )
+    with pytest.raises(ModelFormatError, match=r"calibration\.y"):
+        load_detector(bad)
+
+
+def test_huge_window_is_refused_before_allocating(tmp_path, model_path, forge_model):
+    """The issue's 100000 x 100000 window with a recomputed checksum: refused from the header
+    (the bank of that window would be ~5e10 features, 1.6 TB of table)."""
+    import resource
+
+    def huge(m):
+        m["window"] = [100000, 100000]
+        m["features"]["window"] = [100000, 100000]
+        m["features"]["sizes"] = [64, 32, 16]
+
+    bad = forge_model(model_path, tmp_path / "bad.safetensors", meta_edit=huge)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(ModelFormatError, match="window height"):
+        load_detector(bad)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000  # KiB
+
+
+def test_bank_too_large_for_a_model_file(tmp_path, model_path, forge_model):
+    def big(m):
+        m["window"] = [512, 512]
+        m["features"].update(window=[512, 512], sizes=[4, 8, 12, 16, 20, 24, 28, 32])
+
+    bad = forge_model(model_path, tmp_path / "bad.safetensors", meta_edit=big)
+    with pytest.raises(ModelFormatError, match="more than a model file may ask for"):
+        load_detector(bad)
+
+
+def test_save_refuses_a_model_that_would_not_load(tmp_path):
+    det = make_detector()
+    det.calibrator.a_ = abs(det.calibrator.a_)  # probability falling with the margin
+    with pytest.raises(ModelFormatError, match=r"not writing .*Platt slope"):
+        save_detector(tmp_path / "m.safetensors", det)
+    assert not (tmp_path / "m.safetensors").exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_folder_or_a_huge_file_is_not_read(tmp_path, monkeypatch):
+    from torchtrack.detect import model_file
+
+    with pytest.raises(ModelFormatError, match="is a folder"):
+        load_detector(tmp_path)
+    path = save_detector(tmp_path / "m.safetensors", make_detector())
+    monkeypatch.setattr(model_file, "LIMITS", model_file.Limits(file_bytes=100))
+    with pytest.raises(ModelFormatError, match="more than a model file may have"):
+        load_detector(path)

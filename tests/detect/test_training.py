@@ -91,3 +91,65 @@ def test_portable_config_paths_relative_to_the_data_root(tmp_path):
     assert d["exclude"] == ["test.txt"]
     assert str(tmp_path) not in repr(d)
     assert cfg.data.positives == [str(root / "inria" / "pos")]  # the config itself is unchanged
+
+
+# ------------------------------------------------------------------- too little data (issue 12)
+def _subset(root, tmp_path, n_pos, n_neg):
+    out = tmp_path / f"sub{n_pos}_{n_neg}"
+    for kind, n in (("pos", n_pos), ("neg", n_neg)):
+        (out / kind).mkdir(parents=True)
+        for i in range(n):
+            shutil.copy(root / kind / f"{kind}-{i}.pgm", out / kind)
+    return out
+
+
+@pytest.mark.parametrize(
+    "n_pos, n_neg, holdout, match",
+    [
+        (3, 3, 0.3, "4 positive training crops, fewer than the minimum 20"),
+        (40, 40, 0.99, "positive training crops, fewer than"),
+        (40, 40, 0.01, "2 positive calibration crops, fewer than the minimum 10"),
+        (40, 5, 0.3, "negative training crops"),
+    ],
+)
+def test_too_little_data_is_refused_before_training(
+    car_folders, tmp_path, n_pos, n_neg, holdout, match
+):
+    cfg = small_config(_subset(car_folders, tmp_path, n_pos, n_neg))
+    cfg.learn.calibration_fraction = holdout
+    with pytest.raises(DataError, match=f"too little data.*{match}.*--force"):
+        train_detector(cfg)
+
+
+def test_flat_positives_are_refused(tmp_path):
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    for kind in ("pos", "neg"):
+        (tmp_path / kind).mkdir()
+        for i in range(40):
+            img = np.full((40, 100), 128, np.uint8)
+            if kind == "neg":
+                img = rng.integers(0, 255, (40, 100), np.uint8)
+            cv2.imwrite(str(tmp_path / kind / f"{i}.png"), img)
+    cfg = small_config(tmp_path)
+    with pytest.raises(DataError, match="80 of 80 positive crops are flat"):
+        train_detector(cfg)
+
+
+def test_force_trains_anyway_and_says_so(car_folders, tmp_path):
+    cfg = small_config(_subset(car_folders, tmp_path, 12, 12))
+    lines = []
+    det = train_detector(cfg, force=True, log=lines.append)
+    assert any("warning (forced)" in ln for ln in lines)
+    assert det.summary["forced"] and "fewer than the minimum 20" in det.summary["forced"][0]
+
+
+def test_minimums_are_config_keys():
+    cfg = TrainConfig()
+    cfg.data.positives = ["p"]
+    cfg.data.negatives = ["n"]
+    cfg.learn.min_train_per_class = 0
+    with pytest.raises(Exception, match="min_train_per_class"):
+        cfg.validate()

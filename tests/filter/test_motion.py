@@ -99,3 +99,38 @@ def test_bachoo_noise_adapts_and_inflates_on_occlusion():
         BachooMotion(history=0)
     with pytest.raises(ConfigError, match="min_sigma must be >= 0"):
         BachooMotion(min_sigma=-1)
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR(window=(15.0, 30.0)), BachooMotion()])
+def test_confine_keeps_particles_from_running_away(model):
+    """A lost target's particles stop at the frame border: centre clamped, velocity along the
+    clamped axis zeroed, size at most twice the frame; particles inside are unchanged."""
+    frame = (240, 320)
+    g = torch.Generator().manual_seed(0)
+    s = model.init(torch.tensor([[150.0, 100.0, 30.0, 60.0]], dtype=torch.float64), 50, g)
+    torch.testing.assert_close(model.confine(s, frame), s)
+    # push every particle far right and down with a large velocity, and grow them
+    far = s.clone()
+    far[..., 0] += 10_000
+    far[..., 1] -= 5_000
+    if isinstance(model, ChateauAR):
+        far[..., 2:4] = far[..., 0:2] - 50  # c_{t-1}: moving at 50 px / frame
+        far[..., 4:6] = 1e4
+    else:
+        far[..., 4:6] = 50.0
+        far[..., 2:4] = 1e6
+    c = model.confine(far, frame)
+    assert torch.equal(c[..., 0], torch.full_like(c[..., 0], 320.0))
+    assert torch.equal(c[..., 1], torch.zeros_like(c[..., 1]))
+    boxes = model.to_boxes(c)
+    assert bool((boxes[..., 2] <= 640 + 1e-6).all()) and bool((boxes[..., 3] <= 480 + 1e-6).all())
+    if isinstance(model, ChateauAR):
+        assert torch.equal(c[..., 2:4], c[..., 0:2])  # no velocity left
+    else:
+        assert bool((c[..., 4:6] == 0).all())
+    for _ in range(50):  # predicting on stays near the frame
+        c = model.confine(model.predict(c, g), frame)
+    assert bool((c[..., 0] <= 320).all()) and bool((c[..., 1] >= 0).all())
+    nan = s.clone()
+    nan[0, 0, 0] = float("nan")
+    assert torch.isfinite(model.confine(nan, frame)[..., :2]).all()

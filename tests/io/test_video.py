@@ -122,7 +122,7 @@ def test_read_image_errors_and_bgr_roundtrip(tmp_path, folder):
     with pytest.raises(DataError, match="does not exist"):
         read_image(tmp_path / "nope.png")
     (tmp_path / "bad.jpg").write_bytes(b"")
-    with pytest.raises(DataError, match="cannot be decoded"):
+    with pytest.raises(DataError, match="is empty"):
         read_image(tmp_path / "bad.jpg")
     img = cv2.imread(str(folder / "f1.png"))
     assert np.array_equal(to_numpy_bgr(read_image(folder / "f1.png")), img)
@@ -159,3 +159,78 @@ def test_real_grayscale_sequence_frame(data_dir):
     assert rgb.shape == (3, 240, 360)
     assert torch.equal(rgb[0], rgb[1]) and torch.equal(rgb[1], rgb[2])
     assert read_image(first, color="keep").shape == (1, 240, 360)
+
+
+# ------------------------------------------------------------------ the one image decoder
+def _jpeg(path, seed=0, size=(60, 80)):
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (*size, 3), np.uint8), (5, 5), 2)
+    assert cv2.imwrite(str(path), img)
+    return path
+
+
+@pytest.mark.parametrize("keep", [0.25, 0.5, 0.9, 0.99])
+def test_truncated_jpeg_is_a_bad_frame_and_a_bad_crop(tmp_path, capfd, keep):
+    """Issue 12: a JPEG cut short decoded as 80% grey and was tracked; the crop loader refused
+    the same file. Now the one decoder refuses it for both, naming the file."""
+    from torchtrack.io.crops import load_crops, read_gray
+
+    good = _jpeg(tmp_path / "a.jpg")
+    data = good.read_bytes()
+    cut = tmp_path / "b.jpg"
+    cut.write_bytes(data[: int(len(data) * keep)])
+    src = FrameSource(tmp_path)
+    frames = list(src.items())
+    assert frames[0][1] is not None and frames[1][1] is None
+    assert src.n_bad == 1 and "b.jpg is truncated" in src.bad_frames[0].reason
+    with pytest.raises(DataError, match=r"b\.jpg is truncated"):
+        read_image(cut)
+    assert read_gray(cut) is None
+    crops = load_crops(tmp_path, (60, 80))
+    assert len(crops) == 1 and "truncated" in crops.skipped[0][1]
+    assert "JPEG" not in capfd.readouterr().err  # libjpeg's own warning does not leak
+
+
+def test_truncated_real_frame(data_dir, tmp_path):
+    """A BoBoT frame cut to 25% of its bytes (the issue's case)."""
+    src = data_dir / "tracking" / "bobot_pedestrian" / "frames" / "img0002.jpg"
+    data = src.read_bytes()
+    (tmp_path / "img0002.jpg").write_bytes(data[: len(data) // 4])
+    (tmp_path / "img0003.jpg").write_bytes(data)
+    s = FrameSource(tmp_path)
+    assert [f is None for _, f in s.items()] == [True, False] and s.n_bad == 1
+
+
+def test_decoder_errors_name_the_file(tmp_path, capfd):
+    from torchtrack.io.video import decode_image, jpeg_is_truncated
+
+    png = tmp_path / "p.png"
+    assert cv2.imwrite(str(png), np.zeros((20, 20, 3), np.uint8) + 90)
+    data = png.read_bytes()
+    png.write_bytes(data[: len(data) // 2])
+    with pytest.raises(DataError, match=r"p\.png cannot be decoded"):
+        decode_image(png)
+    assert "libpng" not in capfd.readouterr().err  # captured into the message instead
+    (tmp_path / "e.jpg").write_bytes(b"")
+    with pytest.raises(DataError, match="is empty"):
+        decode_image(tmp_path / "e.jpg")
+    (tmp_path / "d.jpg").mkdir()
+    with pytest.raises(DataError, match="is a folder"):
+        decode_image(tmp_path / "d.jpg")
+    with pytest.raises(DataError, match="does not exist"):
+        decode_image(tmp_path / "missing.png")
+    good = _jpeg(tmp_path / "g.jpg").read_bytes()
+    assert not jpeg_is_truncated(good) and not jpeg_is_truncated(good + b"trailing")
+    assert jpeg_is_truncated(good[:-2]) and not jpeg_is_truncated(b"\x89PNG....")
+
+
+def test_native_output_is_captured(capfd):
+    import os
+
+    from torchtrack.io.video import native_output
+
+    with native_output() as log:
+        os.write(2, b"libfoo: warning\n")
+    assert log.text == "libfoo: warning\n" and log.first_line() == "libfoo: warning"
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "after\n"

@@ -59,3 +59,31 @@ def test_errors():
         classifier_confidence(ints, torch.ones((1, 2, 4)), pool, ens, torch.zeros((1, 3)).long())
     with pytest.raises(ConfigError, match="lambda must be > 0"):
         AdaptiveHaarObservation(pool, lam=0.0)
+
+
+def test_boxes_mostly_outside_the_frame_have_no_evidence():
+    """Features of a box outside the frame read the integral image's zero padding; the
+    observation gives such boxes confidence 0 (issue 12: a lost track kept confidence 0.85
+    outside the frame)."""
+    g = torch.Generator().manual_seed(1)
+    frame = torch.randint(0, 256, (1, 3, 40, 60), dtype=torch.uint8, generator=g)
+    ints = channel_integrals(frame)
+    ens = _ensembles(1)
+    obs = AdaptiveHaarObservation(klein_pool())
+    boxes = torch.tensor(
+        [
+            [
+                [10.0, 10.0, 20.0, 20.0],
+                [50.0, 10.0, 20.0, 20.0],
+                [55.0, 10.0, 20.0, 20.0],
+                [500.0, 10.0, 20.0, 20.0],
+                [-19.0, -19.0, 20.0, 20.0],
+            ]
+        ]
+    )
+    model = torch.zeros((1, 5), dtype=torch.int64)
+    conf = obs.confidence(ints, boxes, ens, model)
+    raw = classifier_confidence(ints, boxes, obs.pool, ens, model)
+    assert bool((raw > 0).all())  # the classifier alone gives every box some confidence
+    torch.testing.assert_close(conf[0, :2], raw[0, :2])  # inside; exactly half inside
+    assert conf[0, 2:].tolist() == [0.0, 0.0, 0.0]

@@ -160,3 +160,108 @@ def test_a_broken_tracker_module_only_warns(monkeypatch):
     with pytest.warns(RuntimeWarning, match=r"tracker module torchtrack\.no_such_mod could not"):
         names = tracker_names()
     assert "mil" in names and "camshift" in names
+
+
+# ------------------------------------------------- the one visibility rule (issue 12)
+def test_a_box_mostly_outside_the_frame_is_never_visible():
+    """Whatever a tracker believes, a box with less than half of its area inside the frame
+    (or a non-finite box) is reported not visible."""
+    t = Shift(dx=5)  # 20 x 30 frame, the box moves right 5 px a frame and always says visible
+    st = t.init(FRAME, torch.tensor([[10.0, 5.0, 10.0, 10.0], [0.0, 0.0, 4.0, 4.0]]))
+    assert st.visible.tolist() == [True, True]
+    seen = []
+    for _ in range(6):
+        st = t.update(FRAME)
+        seen.append(st.visible.tolist())
+    # box 0 at x = 15, 20, 25 (half inside), 30 (outside), 35, 40; box 1 at x = 5 ... 30
+    assert [v[0] for v in seen] == [True, True, True, False, False, False]
+    assert [v[1] for v in seen] == [True, True, True, True, True, False]
+    t.boxes[0, 2] = float("nan")
+    assert t.update(FRAME).visible.tolist() == [False, False]
+
+
+def test_init_box_mostly_outside_is_not_visible():
+    t = Shift()
+    st = t.init(FRAME, torch.tensor([27.0, 5.0, 10.0, 10.0]))  # 3 of 10 columns inside
+    assert st.visible.tolist() == [False]
+
+
+def _leaving_clip(data_dir, n=30, width=120):
+    """BoBoT frames 900.. seen through a 120-px window panning right at 4 px a frame, so the
+    walker (x ~ 140-190) leaves the view on the left after ~25 frames: real frames, a target
+    that really leaves. Returns the frames and the walker's box on the first one."""
+    from torchtrack.io.sequences import load_sequence
+
+    seq = load_sequence(data_dir / "tracking" / "bobot_pedestrian")[0]
+    src = seq.open("rgb")
+    frames = []
+    for i, fr in src.items():
+        if i >= 900 + n:
+            break
+        if i >= 900:
+            o = 80 + 4 * (i - 900)
+            frames.append(fr[:, :, o : o + width].contiguous())
+    src.close()
+    box = seq.boxes[900].clone()
+    box[0] -= 80
+    return frames, box
+
+
+LEAVING_TRACKERS = [
+    ("detector", {"n_particles": 200}),
+    ("adaptive-haar", {"adapt": "global", "n_particles": 500}),
+    ("adaptive-haar", {"adapt": "none", "n_particles": 500}),
+    ("adaptive-haar", {"adapt": "per-particle", "n_particles": 200}),
+    ("histogram", {"n_particles": 500}),
+    ("template", {}),
+    ("cotrain", {}),
+    ("fused", {}),
+    ("mil", {}),
+    ("camshift", {}),
+]
+
+
+@pytest.mark.parametrize("name, params", LEAVING_TRACKERS, ids=lambda v: str(v))
+def test_a_target_that_leaves_is_never_visible_outside_the_frame(
+    data_dir, one_thread, name, params
+):
+    """Every tracker on a walker who leaves the view: no row reports visible with the box
+    mostly outside the frame, and the box stays near the frame (it does not run away)."""
+    from torchtrack.boxes import inside_fraction
+
+    frames, box = _leaving_clip(data_dir)
+    if base.tracker_info(name).accepts_generator:
+        params = {**params, "generator": torch.Generator().manual_seed(0)}
+    t = create_tracker(name, **params)
+    h, w = frames[0].shape[-2:]
+    st = t.init(frames[0], box)
+    for f in frames[1:]:
+        st = t.update(f)
+        frac = inside_fraction(st.box.double(), (h, w))
+        assert not bool((st.visible & ~(frac >= 0.5)).any()), (name, st.box.tolist())
+        cx = st.box[:, 0] + st.box[:, 2] / 2
+        assert bool(((cx >= -w) & (cx <= 2 * w)).all()), (name, st.box.tolist())
+
+
+@pytest.mark.slow
+def test_issue_12_bobot_case_lost_target_is_not_visible_outside(data_dir, one_thread):
+    """The issue's case: adaptive-haar, adapt=global, seed 0, the whole BoBoT sequence from
+    --box 107.93,46.553,55.69,156.017. Before: from frame 990 the box left the 320x240 frame
+    and ran away (x = 678 at the last frame) with visible=1. Now no visible row lies mostly
+    outside the frame and the box stays on it."""
+    from torchtrack.boxes import inside_fraction
+    from torchtrack.io.video import open_source
+
+    t = create_tracker("adaptive-haar", adapt="global", generator=torch.Generator().manual_seed(0))
+    src = open_source(data_dir / "tracking" / "bobot_pedestrian" / "frames")
+    rows = []
+    for i, f in src.items():
+        st = t.init(f, torch.tensor([107.93, 46.553, 55.69, 156.017])) if i == 0 else t.update(f)
+        rows.append((st.box[0].clone(), bool(st.visible[0])))
+    assert len(rows) == 1017
+    boxes = torch.stack([b for b, _ in rows]).double()
+    visible = torch.tensor([v for _, v in rows])
+    frac = inside_fraction(boxes, (240, 320))
+    assert not bool((visible & (frac < 0.5)).any())
+    cx, cy = boxes[:, 0] + boxes[:, 2] / 2, boxes[:, 1] + boxes[:, 3] / 2
+    assert bool(((cx >= 0) & (cx <= 320) & (cy >= 0) & (cy <= 240)).all())

@@ -8,14 +8,53 @@ happen inside ``func`` so that ``--help`` stays fast.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
+import signal
 import sys
 
 from torchtrack import __version__
 from torchtrack.errors import TorchTrackError
 
 # Subcommand modules, in the order --help lists them.
-COMMANDS: list[str] = ["eval", "train", "calibrate", "track", "detect"]
+COMMANDS: list[str] = ["eval", "train", "calibrate", "track", "detect", "sign"]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where SIGINT would raise :class:`KeyboardInterrupt`, so every command
+    ends a terminated run exactly like an interrupted one (results so far kept and finished,
+    temporary files removed); the exit code is 143 instead of 130."""
+
+    exit_code = 128 + signal.SIGTERM
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """Turn SIGTERM into :class:`Terminated` while a command runs (main thread only)."""
+    try:
+        old = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _close_progress_bars() -> None:
+    """Close open tqdm bars so an error message starts on a line of its own."""
+    tqdm_mod = sys.modules.get("tqdm")
+    if tqdm_mod is None:
+        return
+    for bar in list(getattr(tqdm_mod.tqdm, "_instances", ())):
+        with contextlib.suppress(Exception):
+            bar.close()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,16 +74,25 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
-        parser.print_help()
+        parser.print_help(sys.stderr)
         return 2
+    # OpenCV reads its log level once, at import: warnings it would print before our own
+    # clean error message are noise (errors still show).
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    from torchtrack.cli._common import trust_scope
+
     try:
-        return int(args.func(args) or 0)
+        with _sigterm_as_interrupt(), trust_scope(args):
+            return int(args.func(args) or 0)
     except TorchTrackError as exc:
+        _close_progress_bars()
         print(f"torchtrack {args.command}: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        _close_progress_bars()
+        code = getattr(exc, "exit_code", 130)
+        print("terminated" if code != 130 else "interrupted", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

@@ -47,6 +47,8 @@ JSON_VERSION = 1
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_out, add_progress, add_trust
+
     p = subparsers.add_parser(
         "calibrate",
         help="fit Platt / isotonic calibration for a detector or a CSV of scores",
@@ -74,14 +76,24 @@ def register(subparsers) -> None:
     p.add_argument("--scores", metavar="CSV", help="CSV of score,label rows instead of a model")
     p.add_argument("--method", choices=("platt", "isotonic"), default="platt")
     p.add_argument("--json", metavar="OUT", help="write the calibration to this JSON file")
-    p.add_argument(
-        "-o", "--output", metavar="MODEL", help="write the calibrated model here (default: MODEL)"
-    )
+    add_out(p, "MODEL", "write the calibrated model here (default: MODEL itself)")
     p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
     p.add_argument("--bins", type=int, default=15, help="ECE / diagram bins (default 15)")
     p.add_argument("--seed", type=int, default=0, help="seed of the CV folds (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--min-per-class",
+        type=int,
+        default=10,
+        metavar="N",
+        help="fewest positive and negative samples to calibrate on (default 10; Platt's two "
+        "parameters from fewer are noise)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="calibrate even below --min-per-class samples"
+    )
+    add_progress(p)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
@@ -243,6 +255,7 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
+    from torchtrack.cli._common import show_progress
     from torchtrack.errors import ConfigError
     from torchtrack.io.atomic import write_text_atomic
     from torchtrack.learn import (
@@ -257,10 +270,20 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give either a MODEL (with --pos and --neg) or --scores CSV, not both")
     if args.bins < 1:
         raise ConfigError(f"--bins must be >= 1, got {args.bins}")
+    if args.min_per_class < 1:
+        raise ConfigError(f"--min-per-class must be >= 1, got {args.min_per_class}")
+    from torchtrack.cli._common import check_distinct, check_output_file
+
+    check_output_file(args.json, "--json")
+    check_output_file(args.plot, "--plot", (".png", ".pdf", ".svg"))
+    check_output_file(args.out, "--out")
+    check_distinct({"--json": args.json, "--plot": args.plot, "--out": args.out})
+    check_distinct({"--json": args.json, "--plot": args.plot, "MODEL": args.model})
+    check_distinct({"--json": args.json, "--plot": args.plot, "--scores": args.scores})
     det = None
     if args.scores is not None:
-        if args.pos or args.neg or args.output:
-            raise ConfigError("--pos / --neg / --output need a MODEL, not --scores")
+        if args.pos or args.neg or args.out:
+            raise ConfigError("--pos / --neg / --out need a MODEL, not --scores")
         if not args.json:
             raise ConfigError("--scores needs --json OUT to write the calibration to")
         s, labels = read_scores_csv(args.scores)
@@ -280,7 +303,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--region and --crop-size go together")
         opts = {
             "strict": args.strict,
-            "progress": not args.quiet,
+            "progress": show_progress(args),
             "region": tuple(args.region) if args.region else None,
             "crop_size": tuple(args.crop_size) if args.crop_size else None,
         }
@@ -298,6 +321,16 @@ def run(args: argparse.Namespace) -> int:
         source["skipped_files"] = sk_pos + sk_neg
 
     n_pos, n_neg = int(y01.sum()), int((1 - y01).sum())
+    if min(n_pos, n_neg) < args.min_per_class:
+        from torchtrack.errors import DataError
+
+        msg = (
+            f"{n_pos} positive and {n_neg} negative samples: fewer than --min-per-class "
+            f"{args.min_per_class} in a class"
+        )
+        if not args.force:
+            raise DataError(f"too little data to calibrate: {msg} (--force calibrates anyway)")
+        print(f"warning (--force): {msg}", file=sys.stderr)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
         cal = make_calibrator(args.method).fit(s, y01)
@@ -334,7 +367,15 @@ def run(args: argparse.Namespace) -> int:
         write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.json}")
     elif det is not None:
-        out = args.output or args.model
+        if args.method == "platt" and not cal.a_ < 0:
+            from torchtrack.errors import DataError
+
+            raise DataError(
+                f"the Platt fit gives a probability that falls as the model's margin rises "
+                f"(A = {cal.a_:.4g} >= 0): on these crops the model scores the negatives higher; "
+                "are --pos and --neg swapped, or is it the wrong model? Nothing was written"
+            )
+        out = args.out or args.model
         new = det.with_calibrator(cal)
         new.summary = {**det.summary, "recalibration": record}
         save_detector(out, new)

@@ -26,9 +26,8 @@ from pathlib import Path
 _EPILOG = """\
 examples:
   torchtrack detect pedestrian street.jpg
-  torchtrack detect vehicle photos/ -o cars.jsonl --annotate annotated/
-  torchtrack detect pedestrian "$(python -c 'import torchtrack.data as d; print(d.demo_clip_path())')" \\
-      --min-scale 0.35 --threshold 0.9 --video demo_detections.mp4
+  torchtrack detect vehicle photos/ --out cars.jsonl --annotate annotated/
+  torchtrack detect pedestrian demo --min-scale 0.35 --threshold 0.9 --video demo_detections.mp4
   torchtrack detect my_model.safetensors clip.avi --stride 0.05 --scale-step 1.1
 
 MODEL is a model file or a bundled name (pedestrian, vehicle). Objects smaller than the model
@@ -38,6 +37,8 @@ Unreadable images in a folder are skipped and listed on stderr (--strict: fail i
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_out, add_progress, add_threads, add_trust
+
     p = subparsers.add_parser(
         "detect",
         help="detect objects in an image, a folder of images or a video (JSON lines)",
@@ -51,10 +52,12 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("model", metavar="MODEL", help="model file or bundled name")
-    p.add_argument("source", metavar="SOURCE", help="image file, folder of images or video file")
     p.add_argument(
-        "-o", "--output", metavar="JSONL", help="write the JSON lines here (default: stdout)"
+        "source",
+        metavar="SOURCE",
+        help="image file, folder of images, video file or 'demo' (the bundled clip)",
     )
+    add_out(p, "JSONL", "write the JSON lines here (default: stdout)")
     p.add_argument(
         "--threshold",
         type=float,
@@ -82,7 +85,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
-    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    add_progress(p)
+    add_threads(p, default=2)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
@@ -103,13 +108,21 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.video is not None and Path(args.video).suffix.lower() != ".mp4":
         raise ConfigError(f"--video writes MPEG-4 (mp4v): give a .mp4 path, got {args.video!r}")
+    from torchtrack.cli._common import check_distinct, check_output_dir, check_output_file
+
+    check_output_file(args.out, "--out")
+    check_output_file(args.video, "--video", (".mp4",))
+    check_output_dir(args.annotate, "--annotate")
+    source = args.source if Path(args.source).is_file() else None
+    check_distinct({"SOURCE": source, "--out": args.out, "--video": args.video})
 
 
 def _open(source: str):
+    from torchtrack.cli.track import resolve_source
     from torchtrack.errors import VideoError
     from torchtrack.io.video import IMAGE_EXTENSIONS, open_source
 
-    p = Path(source)
+    p = Path(resolve_source(source))
     if not p.exists():
         raise VideoError(f"source {source!r} does not exist (give an image, a folder or a video)")
     if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS:
@@ -147,9 +160,7 @@ class _Writers:
     def __init__(self, annotate: str | None, video: str | None, fps: float | None) -> None:
         import contextlib
 
-        self.dir = Path(annotate) if annotate else None
-        if self.dir is not None:
-            self.dir.mkdir(parents=True, exist_ok=True)
+        self.dir = Path(annotate) if annotate else None  # made at the first frame written
         self.video_path = video
         self.fps = fps or 10.0
         self._stack = contextlib.ExitStack()
@@ -171,6 +182,7 @@ class _Writers:
         from torchtrack.io.atomic import atomic_path
 
         if self.dir is not None:
+            self.dir.mkdir(exist_ok=True)
             stem = Path(name).stem if name else f"frame_{index:06d}"
             with atomic_path(self.dir / f"{stem}.png") as tmp:
                 if not cv2.imwrite(str(tmp), img):
@@ -178,12 +190,20 @@ class _Writers:
         if self._tmp is not None:
             h, w = img.shape[:2]
             if self._writer is None:
+                from torchtrack.io.video import native_output
+
                 self._size = (w, h)
-                self._writer = cv2.VideoWriter(
-                    str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h)
-                )
-                if not self._writer.isOpened():
-                    raise VideoError(f"OpenCV cannot write an mp4v video to {self.video_path}")
+                with native_output() as log:
+                    self._writer = cv2.VideoWriter(
+                        str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h)
+                    )
+                    opened = self._writer.isOpened()
+                if not opened:
+                    detail = log.first_line()
+                    raise VideoError(
+                        f"OpenCV cannot write an mp4v video to {self.video_path}"
+                        + (f" ({detail})" if detail else "")
+                    )
             if (w, h) != self._size:  # a video has one frame size: pad or crop to the first
                 canvas = cv2.copyMakeBorder(
                     img[: self._size[1], : self._size[0]],
@@ -209,12 +229,14 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
+    from torchtrack.cli._common import apply_threads, show_progress
     from torchtrack.detect.bundled import load_model
     from torchtrack.detect.scan import scan_batch
     from torchtrack.errors import DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
 
     _check_args(args)
+    apply_threads(args)
     det = load_model(args.model)
     if det.calibrator is None:
         raise NotFittedError(
@@ -236,9 +258,15 @@ def run(args: argparse.Namespace) -> int:
     total = len(src) or None
     if args.max_frames is not None and total is not None:
         total = min(total, args.max_frames)
-    out_cm = atomic_write(args.output) if args.output else contextlib.nullcontext(sys.stdout)
+    out_cm = atomic_write(args.out) if args.out else contextlib.nullcontext(sys.stdout)
     with src, out_cm as out, _Writers(args.annotate, args.video, fps) as writers:
-        bar = tqdm(total=total, unit="frame", disable=args.quiet, desc="detect", file=sys.stderr)
+        bar = tqdm(
+            total=total,
+            unit="frame",
+            disable=not show_progress(args),
+            desc="detect",
+            file=sys.stderr,
+        )
         pending: list[tuple[int, torch.Tensor]] = []
 
         def flush() -> None:
@@ -276,24 +304,28 @@ def run(args: argparse.Namespace) -> int:
             pending.clear()
 
         seen = 0
-        for i, frame in src.items():
-            if args.max_frames is not None and seen >= args.max_frames:
-                break
-            seen += 1
-            if frame is None:
-                reason = src.bad_frames[-1].reason if src.bad_frames else "unreadable"
-                if args.strict:
-                    raise DataError(f"{reason} (--strict)")
-                skipped.append((i, reason))
-                bar.update(1)
-                continue
-            if pending and pending[0][1].shape != frame.shape:
-                flush()
-            pending.append((i, frame))
-            if len(pending) >= args.batch:
-                flush()
-        flush()
-        bar.close()
+        try:
+            for i, frame in src.items():
+                if args.max_frames is not None and seen >= args.max_frames:
+                    break
+                seen += 1
+                if frame is None:
+                    reason = src.bad_frames[-1].reason if src.bad_frames else "unreadable"
+                    if args.strict:
+                        raise DataError(f"{reason} (--strict)")
+                    skipped.append((i, reason))
+                    bar.update(1)
+                    continue
+                if pending and pending[0][1].shape != frame.shape:
+                    flush()
+                pending.append((i, frame))
+                if len(pending) >= args.batch:
+                    flush()
+            flush()
+        finally:
+            bar.close()
+        if src.ended_early and args.strict:
+            raise DataError(f"{src.bad_frames[-1].reason} in {args.source} (--strict)")
         if n_frames == 0:
             # nothing was written: leave no empty output behind
             detail = "; ".join(r for _, r in skipped[:3])
@@ -301,6 +333,12 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         for i, reason in skipped:
             print(f"skipped frame {i}: {reason}", file=sys.stderr)
+        if src.ended_early:
+            print(
+                f"warning: {src.bad_frames[-1].reason}: {args.source} ended early (truncated "
+                "or corrupt video)",
+                file=sys.stderr,
+            )
         rate = n_det / n_frames if n_frames else math.nan
         print(
             f"{n_frames} frame(s), {n_det} detection(s) ({rate:.2f} per frame) with P >= "

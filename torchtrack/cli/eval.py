@@ -1,9 +1,13 @@
-"""``torchtrack eval``: run trackers over tracking sequences and score them.
+"""``torchtrack eval``: run trackers over tracking sequences and score them, or score
+multi-target tracking results (MOTChallenge files) with HOTA / MOTA / IDF1.
 
-Example::
+Examples::
 
     torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
         --out runs/eval --plots --jobs 2
+    torchtrack eval --mot ../shared/data/mot/TUD-Stadtmitte --results tud.txt
+    torchtrack eval --mot vtest.avi --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt \\
+        --results pets.txt -o runs/mot
 """
 
 from __future__ import annotations
@@ -12,16 +16,24 @@ import argparse
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_progress, add_trust
+
     p = subparsers.add_parser(
         "eval",
-        help="evaluate trackers on tracking sequences (OTB / BoBoT / VOT / CSV)",
+        help="evaluate trackers on tracking sequences (OTB / BoBoT / VOT / CSV), or score "
+        "multi-target results on MOTChallenge sequences (--mot)",
         description=(
-            "Run every tracker on every sequence with the same initialisation (the first "
-            "ground-truth box) and write per-sequence and overall JSON, a markdown table and, "
-            "with --plots, success / precision plots. A tracker that raises on a sequence is "
-            "recorded as failed there; the run goes on. Exit status: 0, or 1 when no run "
-            "succeeded."
+            "Single target (--sequences, --trackers): run every tracker on every sequence with "
+            "the same initialisation (the first ground-truth box) and write per-sequence and "
+            "overall JSON, a markdown table and, with --plots, success / precision plots. A "
+            "tracker that raises on a sequence is recorded as failed there; the run goes on. "
+            "Exit status: 0, or 1 when no run succeeded.\n\n"
+            "Multi-target (--mot, --results): score MOTChallenge results files with TrackEval's "
+            "HOTA, CLEAR (MOTA, MOTP, ID switches, FP, FN, fragmentations) and Identity (IDF1) "
+            "metrics, MOT15 conventions (GT rows with conf 0 ignored). Prints a table; with "
+            "-o/--out also writes results.json and results.md."
         ),
+        epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
@@ -38,7 +50,45 @@ def register(subparsers) -> None:
         help="tracker names, optionally with parameters: name:key=value,key=value "
         "(see --list-trackers)",
     )
-    p.add_argument("--out", metavar="DIR", help="output folder")
+    mot = p.add_argument_group("multi-target (MOTChallenge) scoring")
+    mot.add_argument(
+        "--mot",
+        nargs="+",
+        metavar="SEQ",
+        help="MOTChallenge sequence folders (seqinfo.ini, gt/gt.txt, img1/), folders holding "
+        "them (e.g. MOT15/train), or videos whose ground truth --gt gives",
+    )
+    mot.add_argument(
+        "--results",
+        nargs="+",
+        metavar="FILE_OR_DIR",
+        help="one per tracker: a MOT results file (one sequence) or a folder with "
+        "<sequence name>.txt per sequence",
+    )
+    mot.add_argument(
+        "--public-detections",
+        action="store_true",
+        help="with --mot and --trackers multi...: the tracker takes each sequence's "
+        "det/det.txt instead of scanning (scores relative to the file's best)",
+    )
+    mot.add_argument(
+        "--gt",
+        nargs="+",
+        metavar="FILE",
+        default=[],
+        help="ground-truth file of each video in --mot, in order",
+    )
+    mot.add_argument(
+        "--gt-scale",
+        metavar="S",
+        default="auto",
+        help="multiply the ground-truth boxes by S (e.g. 0.625: PETS09-S2L1's 768x576 GT on the "
+        "480x360 video); default 'auto': for a video, its width over the imWidth of the "
+        "seqinfo.ini beside the GT, else 1",
+    )
+    from torchtrack.cli._common import add_out
+
+    add_out(p, "DIR", "output folder (required with --sequences; optional with --mot)")
     p.add_argument("--plots", action="store_true", help="write success / precision PNG plots")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument(
@@ -74,14 +124,32 @@ def register(subparsers) -> None:
         "repeatable; also imported by --jobs workers",
     )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(p)
+    add_trust(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
     p.set_defaults(func=run)
+
+
+_EPILOG = """\
+examples:
+  torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift --out runs/eval
+  torchtrack eval --mot ../shared/data/mot/TUD-Stadtmitte --results tud.txt
+  torchtrack eval --mot MOT15/train --results runs/mine runs/other -o runs/mot
+      two trackers' result folders (<sequence name>.txt each) on every MOT15 training sequence
+  torchtrack eval --mot vtest.avi --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt --results pets.txt
+      a video and its MOT ground truth; the GT scale (x0.625) comes from its seqinfo.ini
+
+MOT results files: frame,id,x,y,w,h,conf[,...] per line, frames and pixels numbered from 1, in
+the video's pixels (`torchtrack track --mot` writes them). A file with no rows scores as an
+empty tracker. Malformed rows, rows beyond the sequence's frames and results that do not match
+the sequences' names are errors naming the file and line.
+"""
 
 
 def run(args: argparse.Namespace) -> int:
     import importlib
 
+    from torchtrack.cli._common import show_progress
     from torchtrack.errors import ConfigError
     from torchtrack.track.base import available_trackers, tracker_info, tracker_names
 
@@ -97,11 +165,20 @@ def run(args: argparse.Namespace) -> int:
             note = "" if n in avail else f"  [unavailable: needs {info.requirement}]"
             print(f"{n:12s} {info.description}{note}")
         return 0
+    if args.mot or args.results:
+        return run_mot(args)
+    if args.gt or args.gt_scale != "auto":
+        raise ConfigError("--gt and --gt-scale go with --mot")
     missing = [f"--{k}" for k in ("sequences", "trackers", "out") if not getattr(args, k)]
     if missing:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
+    from torchtrack.cli._common import check_output_dir
+
+    check_output_dir(args.out, "--out")
 
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate
@@ -122,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
         reinit=args.reinit,
         invisible=args.invisible,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=show_progress(args),
         command=command,
         modules=args.modules,
     )
@@ -135,6 +212,181 @@ def run(args: argparse.Namespace) -> int:
         if not r["error"]
     )
     return 0 if n_ok else 1
+
+
+def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto") -> list:
+    """The sequences of ``--mot`` / ``--gt`` / ``--gt-scale``: MOTChallenge folders (or folders
+    holding them) and videos, each video taking the next ``--gt`` file.
+
+    Raises:
+        ConfigError: a bad scale, ``--gt`` files that do not pair with the videos, a folder
+            without MOTChallenge sequences.
+    """
+    import math
+    from pathlib import Path
+
+    from torchtrack.errors import ConfigError
+    from torchtrack.io.mot import find_mot_sequences, load_mot_sequence
+    from torchtrack.io.video import VIDEO_EXTENSIONS
+
+    scale = None
+    if gt_scale != "auto":
+        try:
+            scale = float(gt_scale)
+        except ValueError:
+            scale = math.nan
+        if not (math.isfinite(scale) and scale > 0):
+            raise ConfigError(f"--gt-scale must be a positive number or 'auto', got {gt_scale!r}")
+    videos = [p for p in paths if Path(p).suffix.lower() in VIDEO_EXTENSIONS]
+    if len(gts) != len(videos):
+        raise ConfigError(
+            f"--gt gives {len(gts)} file(s) for {len(videos)} video(s) in --mot: one ground-truth "
+            "file per video, in order (MOTChallenge folders carry their own gt/gt.txt)"
+        )
+    gt_of = dict(zip(videos, gts, strict=True))
+    seqs = []
+    for p in paths:
+        if p in gt_of:
+            seqs.append(load_mot_sequence(p, gt=gt_of[p], scale=scale))
+            continue
+        found = find_mot_sequences(p) if Path(p).is_dir() else []
+        if Path(p).is_dir() and not found:
+            raise ConfigError(
+                f"{p} holds no MOTChallenge sequence (a folder with gt/gt.txt and seqinfo.ini or "
+                "img1/, or a folder of such folders)"
+            )
+        for d in found or [p]:
+            seqs.append(load_mot_sequence(d, scale=scale))
+    return seqs
+
+
+def run_mot(args: argparse.Namespace) -> int:
+    """``torchtrack eval --mot SEQ ... --results FILE_OR_DIR ...``: score MOT results files."""
+    from torchtrack.errors import ConfigError
+
+    if args.mot and args.trackers and not args.results:
+        return run_mot_trackers(args)
+    if args.public_detections:
+        raise ConfigError("--public-detections goes with --mot SEQ ... --trackers multi")
+    if not args.mot or not args.results:
+        raise ConfigError(
+            "MOT scoring needs --mot SEQ ... and either --results FILE_OR_DIR ... (score "
+            "files) or --trackers multi... (run the multi-target tracker, then score)"
+        )
+    clash = [
+        flag
+        for flag, used in (
+            ("--sequences", args.sequences),
+            ("--trackers", args.trackers),
+            ("--plots", args.plots),
+            ("--reinit", args.reinit),
+            ("--max-frames", args.max_frames),
+        )
+        if used
+    ]
+    if clash:
+        raise ConfigError(
+            f"{', '.join(clash)} do(es) not apply to --mot, which scores existing results files "
+            "(give --results)"
+        )
+    from torchtrack.eval.mot import evaluate_mot, mot_table
+
+    seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
+    summary = evaluate_mot(seqs, args.results, args.out, command=_mot_command_line(args))
+    print(mot_table(summary))
+    if args.out:
+        print(f"results: {args.out}/results.json, {args.out}/results.md")
+    return 0
+
+
+def run_mot_trackers(args: argparse.Namespace) -> int:
+    """``torchtrack eval --mot SEQ ... --trackers multi[:key=value,...] ... -o DIR``: run the
+    multi-target tracker on every sequence (``DIR/<tracker>/<sequence>.txt``), then score."""
+    import dataclasses
+    from pathlib import Path
+
+    import torch
+
+    from torchtrack.errors import ConfigError
+    from torchtrack.eval.mot import evaluate_mot, mot_table
+    from torchtrack.io.mot import write_mot
+    from torchtrack.track.base import parse_tracker_spec
+    from torchtrack.track.multi import MultiTargetTracker, score_probabilities, track_sequence
+
+    if not args.out:
+        raise ConfigError("running trackers with --mot needs -o/--out DIR for their results")
+    clash = [f for f, used in (("--sequences", args.sequences), ("--plots", args.plots),
+                               ("--reinit", args.reinit)) if used]  # fmt: skip
+    if clash:
+        raise ConfigError(f"{', '.join(clash)} do(es) not apply to --mot")
+    specs = []
+    for spec in args.trackers:
+        name, params = parse_tracker_spec(spec)
+        if name != "multi":
+            raise ConfigError(
+                f"--mot runs the multi-target tracker ('multi' or 'multi:key=value,...'), got "
+                f"{spec!r}"
+            )
+        specs.append((spec, params))
+    labels = [spec.replace(":", "_").replace(",", "_").replace("=", "-") for spec, _ in specs]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"--trackers given twice: {args.trackers}")
+    seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
+    full = {s.name: s for s in seqs}
+    n = args.max_frames
+    if n is not None:
+        if n < 2:
+            raise ConfigError(f"--max-frames must be >= 2, got {n}")
+        seqs = [
+            dataclasses.replace(s, n_frames=min(n, s.n_frames), gt=s.gt.select(s.gt.frames < n))
+            for s in seqs
+        ]
+    for (spec, params), label in zip(specs, labels, strict=True):
+        for seq in seqs:
+            dets = None
+            if args.public_detections:
+                d = full[seq.name].detections()
+                d = d.select(d.frames < seq.n_frames)
+                dets = dataclasses.replace(d, conf=score_probabilities(
+                    torch.from_numpy(d.conf)).numpy())  # fmt: skip
+            mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
+            with seq.open() as src:
+                rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)
+            write_mot(Path(args.out) / label / f"{seq.name}.txt", rows)
+            print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
+    summary = evaluate_mot(
+        seqs,
+        [Path(args.out) / label for label in labels],
+        args.out,
+        labels=labels,
+        command=_mot_command_line(args),
+    )
+    print(mot_table(summary))
+    print(f"results: {args.out}/results.json, {args.out}/results.md")
+    return 0
+
+
+def _mot_command_line(args: argparse.Namespace) -> str:
+    import shlex
+
+    parts = ["torchtrack", "eval", "--mot", *args.mot]
+    if args.gt:
+        parts += ["--gt", *args.gt]
+    if args.gt_scale != "auto":
+        parts += ["--gt-scale", args.gt_scale]
+    if args.results:
+        parts += ["--results", *args.results]
+    if args.trackers:
+        parts += ["--trackers", *args.trackers]
+    if args.public_detections:
+        parts.append("--public-detections")
+    if args.max_frames:
+        parts += ["--max-frames", str(args.max_frames)]
+    if args.seed:
+        parts += ["--seed", str(args.seed)]
+    if args.out:
+        parts += ["--out", args.out]
+    return " ".join(shlex.quote(str(p)) for p in parts)
 
 
 def _command_line(args: argparse.Namespace) -> str:

@@ -1,57 +1,71 @@
-"""``torchtrack track``: track objects in a video, a frame folder or a camera.
+"""``torchtrack track``: detect and track every target of a video, or follow one target.
 
 Examples::
 
-    torchtrack track demo --video tracked.mp4          # bundled clip, bundled pedestrian model
-    torchtrack track clip.mp4 --box 120,40,56,156 --out boxes.csv
-    torchtrack track frames/ --tracker histogram --box 120,40,56,156 --video out.mp4 --particles
-    torchtrack track 0 --detect vehicle --max-frames 500          # camera 0, scan for a car
+    torchtrack track demo --video tracked.mp4            # every pedestrian of the bundled clip
+    torchtrack track clip.mp4 --detect vehicle --mot cars.txt --out cars.csv
+    torchtrack track TUD-Stadtmitte/img1 --detections TUD-Stadtmitte/det/det.txt --mot out.txt
+    torchtrack track clip.mp4 --box 120,40,56,156 --out boxes.csv     # one target
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 _EPILOG = """\
 examples:
   torchtrack track demo --video tracked.mp4
-      the bundled demo clip, the target found by the bundled pedestrian detector
+      every pedestrian of the bundled demo clip, each identity in its own colour with a trail
+  torchtrack track clip.mp4 --detect vehicle --out cars.csv --mot cars.txt --scan-every 2
+      every car, found by the bundled vehicle detector on every second frame
+  torchtrack track frames/ --detections det.txt --mot tracks.txt
+      public detections (MOTChallenge det.txt) instead of our scan, through our tracker
   torchtrack track clip.mp4 --box 120,40,56,156 --out boxes.csv --video annotated.mp4
-      track the box given on the first frame with the calibrated-detector tracker
-  torchtrack track frames/ --tracker histogram --box 120,40,56,156 --video out.mp4 --particles
-      colour-histogram particle filter, particles drawn in the video
-  torchtrack track clip.mp4 --detect vehicle --tracker mil
-      find the first frame's best car with the bundled vehicle detector, then track it with MIL
+      one target, given on the first frame, with the calibrated-detector tracker
+  torchtrack track frames/ --box 120,40,56,156 --tracker histogram --video out.mp4 --particles
   torchtrack track clip.mp4 --box 10,20,40,80 --tracker adaptive-haar --adapt global
-  torchtrack track clip.mp4 --box 10,20,40,80 --tracker detector:n_particles=500,model=my.safetensors
+  torchtrack track clip.mp4 --detect vehicle --tracker mil
+      find the first frame's best car, then follow that one car with MIL
 
-initialisation:
-  --box x,y,w,h is the target on the first readable frame (pixels, top-left corner, 0-based).
-  A box of zero size, with a non-number, or entirely outside the frame is an error (BoxError);
-  a box that only sticks out of the frame is clipped to it, with a warning. Without --box the
-  first frame is scanned with the --detect model (default: the bundled pedestrian model): the
-  detector tracker initialises its particles from the scan (Chateau et al. sec. 4.2), other
-  trackers start from the best detection.
+modes:
+  Without --box (and with --tracker multi, the default then), every target is detected and
+  tracked: the --detect model (default: the bundled pedestrian model) scans every --scan-every
+  frames, all targets share one batched particle filter whose likelihood is the detector's
+  calibrated probability, detections are assigned to targets optimally, new targets are
+  confirmed over a few scans and end when lost or out of the frame (at most --max-targets).
+  Options of the multi-target tracker: --tracker multi:key=value,... or --config
+  configs/trackers/multi.toml. With --box x,y,w,h (pixels, top-left corner, 0-based, on the first
+  readable frame) one target is followed by --tracker (default: detector); a box sticking out of
+  the frame is clipped with a warning, one entirely outside is an error.
 
-output:
-  --out writes a CSV with the header frame,x,y,w,h,confidence,visible and one row per frame
-  of the source (a column 'target' after 'frame' when several targets are tracked). Rows are
-  flushed as they are produced into OUT.part next to OUT; at the end (also after an error or
-  Ctrl-C) the file is fsynced and renamed to OUT, so OUT is never half-written and an early end
-  keeps the rows so far. Unreadable frames get the previous box with visible=0 and are counted.
-  A target the tracker has lost (left the frame, occluded) is written with visible=0.
+outputs:
+  --out CSV: multi-target: frame,target,x,y,w,h,confidence,detected (one row per reported
+  target and frame; frame 0-based, target the identity, detected 1 when a detection was matched
+  on that frame); one target: frame,x,y,w,h,confidence,visible (one row per frame; unreadable
+  frames keep the previous box with visible=0; a lost target, e.g. one that left the frame, is
+  written with visible=0). --mot TXT: MOTChallenge results, frame,id,x,y,w,h,conf,-1,-1,-1
+  (frames and pixels 1-based). --video FILE: annotated video (.mp4 or .avi). Boxes are the
+  object's box (the person or car), not the detector window. Rows stream into OUT.part and
+  are renamed to OUT at the end (also after an error, Ctrl-C or SIGTERM, keeping the rows so
+  far), so OUT is never half-written; a run that fails before its first tracked frame leaves no
+  output, and output paths are checked before any work. Unreadable frames (also truncated
+  JPEGs) are counted; a box less than half inside the frame is never visible.
 """
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_progress, add_threads, add_trust
+
     p = subparsers.add_parser(
         "track",
-        help="track objects in a video, a frame folder or a camera",
+        help="detect and track every target of a video, or follow one given target",
         description=(
-            "Track a target through SOURCE (a video file, a folder of frames, a camera index, "
-            "or 'demo' for the bundled clip) with any registered tracker (--tracker; "
-            "see `torchtrack eval --list-trackers`). Writes boxes as CSV and/or an annotated "
-            "video, with a progress bar and a final frames-per-second line."
+            "Detect and track every pedestrian or vehicle of SOURCE (a video file, a folder "
+            "of frames, a camera index, or 'demo' for the bundled clip) with stable "
+            "identities, or follow one target given with --box with any registered tracker "
+            "(see `torchtrack eval --list-trackers`). Writes a CSV, a MOTChallenge file and/or "
+            "an annotated video, with a progress bar and a final frames-per-second line."
         ),
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -61,18 +75,19 @@ def register(subparsers) -> None:
         metavar="SOURCE",
         help="video file, frame folder, camera index (0, 1, ...) or 'demo' (the bundled clip)",
     )
-    p.add_argument("--box", metavar="X,Y,W,H", help="target box on the first frame (pixels)")
+    p.add_argument("--box", metavar="X,Y,W,H", help="follow this one target (first-frame box)")
     p.add_argument(
         "--detect",
         metavar="MODEL",
-        help="detector for initialisation without --box and for the detector tracker: a "
-        "bundled name (pedestrian, vehicle) or a model file (default: pedestrian)",
+        help="the detector: a bundled name (pedestrian, vehicle) or a model file (default: "
+        "pedestrian)",
     )
     p.add_argument(
         "--tracker",
-        default="detector",
+        default=None,
         metavar="NAME",
-        help="tracker name, optionally with parameters name:key=value,... (default: detector)",
+        help="tracker, optionally with parameters name:key=value,... (default: multi without "
+        "--box, detector with --box)",
     )
     p.add_argument(
         "--adapt",
@@ -80,7 +95,36 @@ def register(subparsers) -> None:
         help="adaptation mode, passed to trackers that accept it (e.g. adaptive-haar)",
     )
     p.add_argument("--config", metavar="FILE", help="tracker config TOML (configs/trackers/)")
-    p.add_argument("--out", metavar="CSV", help="write boxes to this CSV file")
+    p.add_argument(
+        "--scan-every",
+        type=int,
+        metavar="K",
+        help="multi-target: scan for detections every K-th frame (default: the config's, 1)",
+    )
+    p.add_argument(
+        "--max-targets", type=int, metavar="N", help="multi-target: at most N targets at once"
+    )
+    p.add_argument(
+        "--detections",
+        metavar="TXT",
+        help="multi-target: detections from this MOTChallenge file (frame,-1,x,y,w,h,score,...) "
+        "instead of scanning",
+    )
+    p.add_argument(
+        "--det-calibration",
+        metavar="JSON",
+        help="map the scores of --detections to probabilities with this calibration (from "
+        "`torchtrack calibrate --scores ... --json`); without it scores in [0, 1] are taken as "
+        "probabilities and other scores are divided by the file's highest score",
+    )
+    p.add_argument(
+        "--det-min-score",
+        type=float,
+        metavar="S",
+        help="drop --detections scoring below S (in the file's own units)",
+    )
+    p.add_argument("-o", "--out", metavar="CSV", help="write boxes to this CSV file")
+    p.add_argument("--mot", metavar="TXT", help="write the tracks in MOTChallenge format")
     p.add_argument("--video", metavar="FILE", help="write an annotated video (.mp4 / .avi)")
     p.add_argument("--particles", action="store_true", help="draw particles in --video")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
@@ -91,43 +135,163 @@ def register(subparsers) -> None:
         help="frame colour mode given to the tracker (default rgb; gray frames are replicated)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of trackers that take a generator")
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        metavar="N",
-        help="torch threads (default 1: the per-frame work is small and extra threads mostly "
-        "wait on each other)",
-    )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_threads(p, default=1)
+    add_progress(p)
+    add_trust(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``torchtrack track`` (returns the exit code)."""
-    import sys
-    import time
+    check_args(args)
+    summary = track_source(args, args.source, out=args.out, video=args.video, mot=args.mot)
+    print(summary.line())
+    for path in (args.out, args.mot, args.video):
+        if path:
+            print(f"wrote {path}")
+    return summary.status
 
-    from torchtrack.errors import ConfigError, TrackerError
-    from torchtrack.io.video import open_source
+
+def is_multi(args: argparse.Namespace) -> bool:
+    """Whether the options ask for multi-target tracking (no --box, --tracker multi or none)."""
+    name = (args.tracker or "").partition(":")[0].strip()
+    return args.box is None and name in ("", "multi")
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Validate the options of one ``torchtrack track`` run before any work
+    (:class:`ConfigError` naming the option)."""
+    from torchtrack.cli._common import apply_threads
+    from torchtrack.errors import ConfigError
 
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.particles and not args.video:
         raise ConfigError("--particles draws into the annotated video: give --video FILE too")
-    if args.threads < 1:
-        raise ConfigError(f"--threads must be >= 1, got {args.threads}")
-    import torch
+    multi = is_multi(args)
+    only_multi = {
+        "--scan-every": args.scan_every,
+        "--max-targets": args.max_targets,
+        "--detections": args.detections,
+        "--det-calibration": args.det_calibration,
+        "--det-min-score": args.det_min_score,
+        "--mot": args.mot,
+    }
+    if not multi:
+        given = [k for k, v in only_multi.items() if v is not None]
+        if given:
+            why = "with --box" if args.box is not None else f"with --tracker {args.tracker}"
+            raise ConfigError(
+                f"{', '.join(given)} belong(s) to multi-target tracking (no --box, --tracker "
+                f"multi), not to single-target tracking {why}"
+            )
+    if args.scan_every is not None and args.scan_every < 1:
+        raise ConfigError(
+            f"--scan-every must be >= 1 (scan every K-th frame), got {args.scan_every}"
+        )
+    if args.max_targets is not None and args.max_targets < 1:
+        raise ConfigError(f"--max-targets must be >= 1, got {args.max_targets}")
+    if (args.det_calibration or args.det_min_score is not None) and not args.detections:
+        raise ConfigError("--det-calibration and --det-min-score apply to --detections FILE")
+    if args.adapt is not None and multi:
+        raise ConfigError("--adapt is an option of single-target trackers (give --box)")
+    check_track_outputs(args, args.source, args.out, args.video, args.mot)
+    apply_threads(args)
 
-    torch.set_num_threads(args.threads)
+
+def check_track_outputs(args: argparse.Namespace, source: str, out, video, mot=None) -> None:
+    """The output paths of one tracked ``source`` (:func:`torchtrack.cli._common` checks),
+    before any work: files in existing, writable folders, not folders, the video a .mp4 /
+    .avi, no two the same file and none the source itself."""
+    import os
+
+    from torchtrack.cli._common import check_distinct, check_output_file
+
+    check_output_file(out, "--out")
+    check_output_file(mot, "--mot")
+    check_output_file(video, "--video", (".mp4", ".avi"))
+    src = source if isinstance(source, str) and os.path.isfile(source) else None
+    check_distinct({"SOURCE": src, "--out": out, "--mot": mot, "--video": video})
+
+
+@dataclass
+class TrackSummary:
+    """What one tracked source gave: frames tracked, unreadable frames, timings, exit status,
+    and for multi-target runs the number of identities."""
+
+    source: str
+    frames: int
+    unreadable: int
+    seconds: float
+    tracker_seconds: float
+    ended_early: bool
+    status: int
+    identities: int | None = None
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.tracker_seconds if self.tracker_seconds > 0 else float("inf")
+
+    def line(self) -> str:
+        who = "" if self.identities is None else f"; {self.identities} target(s)"
+        return (
+            f"tracked {self.frames} frames in {self.seconds:.1f} s: {self.fps:.1f} fps (tracker "
+            f"only), {self.frames / max(self.seconds, 1e-9):.1f} fps overall; {self.unreadable} "
+            "unreadable frame(s)" + (" (the video ended early)" if self.ended_early else "") + who
+        )
+
+
+def track_source(
+    args: argparse.Namespace,
+    source: str,
+    *,
+    out: str | None,
+    video: str | None,
+    mot: str | None = None,
+) -> TrackSummary:
+    """Track one ``source`` with the options of ``args`` (the parsed ``torchtrack track``
+    namespace, checked by :func:`check_args`; ``args.source``, ``args.out``, ``args.mot`` and
+    ``args.video`` are not read), writing the CSV to ``out``, the MOTChallenge file to ``mot``
+    and the annotated video to ``video`` (any may be ``None``).
+
+    Raises:
+        TorchTrackError: bad options, an unreadable source or a tracker failure.
+    """
+    from torchtrack.io.video import open_source
+
+    if is_multi(args):
+        mt = build_multi(args)
+        src = open_source(resolve_source(source), color=args.color)
+        return _run_multi(args, mt, src, source, out=out, video=video, mot=mot)
     box = parse_box(args.box) if args.box is not None else None
     tracker = build_tracker(args, auto=box is None)
-    src = open_source(resolve_source(args.source), color=args.color)
-    csv = BoxWriter(args.out) if args.out else None
-    video = None
+    src = open_source(resolve_source(source), color=args.color)
+    return _run_single(args, tracker, box, src, source, out=out, video=video)
+
+
+def _finish(writers, ok: bool) -> None:
+    for w in writers:
+        if w is None:
+            continue
+        if ok:
+            w.close()
+        else:
+            w.discard()
+
+
+def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
+    import sys
+    import time
+
+    from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
+    from torchtrack.errors import TrackerError
+
+    csv = BoxWriter(out) if out else None
+    vid = VideoOut(video, src.fps) if video else None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
     last = None
     status = 0
+    pending_bad: list[int] = []  # unreadable frames before the first tracked one
     progress = _progress(src, args)
     try:
         for i, frame in src.items():
@@ -135,55 +299,206 @@ def run(args: argparse.Namespace) -> int:
                 break
             progress.update(1)
             if frame is None:
-                if csv is not None:
+                if csv is not None and last is not None:
                     csv.write_bad(i, last)
+                elif last is None:
+                    pending_bad.append(i)
                 continue
+            t1 = time.perf_counter()
             if last is None:
-                t1 = time.perf_counter()
                 if box is not None:
-                    init_box = _checked_box(box, frame)
-                    state = tracker.init(frame, init_box)
+                    state = tracker.init(frame, _checked_box(box, frame))
                 elif getattr(tracker, "auto_init", False):
                     state = tracker.init(frame, None)
                 else:
                     state = tracker.init(frame, detect_box(args.detect, frame))
-                t_track += time.perf_counter() - t1
             else:
-                t1 = time.perf_counter()
                 state = tracker.update(frame)
-                t_track += time.perf_counter() - t1
+            t_track += time.perf_counter() - t1
+            if last is None and csv is not None:
+                for j in pending_bad:  # frames before the first readable one: no box yet
+                    csv.write_state(j, _nan_state(state))
             n_frames += 1
             last = state
             if csv is not None:
-                csv.write(i, state)
-            if args.video:
-                if video is None:
-                    video = _open_video(args.video, frame, src.fps)
-                video.write(draw(frame, state, tracker if args.particles else None))
-    except KeyboardInterrupt:
-        status = 130
-        print("interrupted: keeping the results so far", file=sys.stderr)
+                csv.write_state(i, state)
+            if vid is not None:
+                vid.write(draw(frame, state, tracker if args.particles else None))
+    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
+        status = getattr(exc, "exit_code", 130)
+        what = "interrupted" if status == 130 else "terminated"
+        print(f"{what}: keeping the results so far", file=sys.stderr)
     finally:
         progress.close()
-        if csv is not None:
-            csv.close()
-        if video is not None:
-            video.release()
+        _finish((csv, vid), ok=last is not None)
         src.close()
-    elapsed = time.perf_counter() - t0
     if last is None and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
-    n_bad = src.n_bad
-    fps = n_frames / t_track if t_track > 0 else float("inf")
-    print(
-        f"tracked {n_frames} frames in {elapsed:.1f} s: {fps:.1f} fps (tracker only), "
-        f"{n_frames / max(elapsed, 1e-9):.1f} fps overall; {n_bad} unreadable frame(s)"
-        + (" (the video ended early)" if src.ended_early else "")
+    return TrackSummary(
+        source=str(source),
+        frames=n_frames,
+        unreadable=src.n_bad,
+        seconds=time.perf_counter() - t0,
+        tracker_seconds=t_track,
+        ended_early=bool(src.ended_early),
+        status=status,
     )
-    for path in (args.out, args.video):
-        if path:
-            print(f"wrote {path}")
-    return status
+
+
+def _nan_state(state):
+    import dataclasses
+
+    import torch
+
+    return dataclasses.replace(
+        state,
+        box=torch.full_like(state.box, float("nan")),
+        confidence=torch.zeros_like(state.confidence),
+        visible=torch.zeros_like(state.visible),
+    )
+
+
+def build_multi(args: argparse.Namespace):
+    """The :class:`~torchtrack.track.multi.MultiTargetTracker` of the options (``--detect``,
+    ``--config``, ``--tracker multi:key=value``, ``--scan-every``, ``--max-targets``,
+    ``--seed``)."""
+    import torch
+
+    from torchtrack.track.base import parse_tracker_spec
+    from torchtrack.track.multi import MultiTargetTracker
+
+    params: dict = {}
+    if args.tracker:
+        _, params = parse_tracker_spec(args.tracker)
+    if args.scan_every is not None:
+        params["scan_every"] = args.scan_every
+    if args.max_targets is not None:
+        params["max_targets"] = args.max_targets
+    if args.detect is not None:
+        params["model"] = args.detect
+    return MultiTargetTracker(
+        config=args.config,
+        generator=torch.Generator().manual_seed(args.seed),
+        **params,
+    )
+
+
+def external_detections(args: argparse.Namespace, n_frames: int | None):
+    """The ``--detections`` file as a per-frame lookup ``frame -> (boxes, probabilities)``
+    (see ``--det-calibration`` / ``--det-min-score`` for the scores)."""
+    import json
+
+    import numpy as np
+    import torch
+
+    from torchtrack.errors import ConfigError, ModelFormatError
+    from torchtrack.io.mot import read_mot
+
+    rows = read_mot(args.detections, n_frames=n_frames, kind="det")
+    if args.det_min_score is not None:
+        rows = rows.select(rows.conf >= args.det_min_score)
+    score = torch.from_numpy(rows.conf.astype(np.float64))
+    if args.det_calibration:
+        from torchtrack.learn import calibrator_from_dict
+
+        try:
+            with open(args.det_calibration, encoding="utf-8") as f:
+                doc = json.load(f)
+            cal = calibrator_from_dict(doc)
+        except OSError as exc:
+            raise ConfigError(
+                f"--det-calibration {args.det_calibration!r} cannot be read: {exc}"
+            ) from None
+        except (json.JSONDecodeError, ModelFormatError) as exc:
+            raise ConfigError(
+                f"--det-calibration {args.det_calibration!r} is not a calibration JSON "
+                f"written by `torchtrack calibrate --json` ({exc})"
+            ) from None
+        prob = cal.predict_proba(score).to(torch.float64)
+    else:
+        from torchtrack.track.multi import score_probabilities
+
+        prob = score_probabilities(score)
+    boxes = torch.from_numpy(rows.boxes)
+    frames = rows.frames
+    order = np.argsort(frames, kind="stable")
+    uniq, starts = np.unique(frames[order], return_index=True)
+    ends = np.append(starts[1:], len(order)) if len(starts) else starts
+    table = {
+        int(f): (boxes[order[a:b]], prob[order[a:b]])
+        for f, a, b in zip(uniq.tolist(), starts.tolist(), ends.tolist(), strict=True)
+    }
+    empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    return lambda i: table.get(i, empty)
+
+
+def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
+    import sys
+    import time
+
+    from torchtrack.cli._track_io import (
+        MotStreamWriter,
+        MultiCsvWriter,
+        Trails,
+        VideoOut,
+        draw_multi,
+    )
+    from torchtrack.errors import TrackerError
+
+    dets = external_detections(args, len(src) or None) if args.detections else None
+    csv = MultiCsvWriter(out) if out else None
+    motw = MotStreamWriter(mot) if mot else None
+    vid = VideoOut(video, src.fps) if video else None
+    trails = Trails() if vid is not None else None
+    n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
+    status = 0
+    seen: set[int] = set()
+    progress = _progress(src, args)
+    try:
+        for i, frame in src.items():
+            if args.max_frames is not None and i >= args.max_frames:
+                break
+            progress.update(1)
+            if frame is None:
+                continue
+            t1 = time.perf_counter()
+            res = mt.update(frame, dets(i) if dets is not None else None)
+            t_track += time.perf_counter() - t1
+            n_frames += 1
+            seen.update(res.ids.tolist())
+            if csv is not None:
+                csv.write_targets(i, res)
+            if motw is not None:
+                motw.write_targets(i, res)
+            if vid is not None:
+                trails.add(i, res)
+                parts = mt.particle_boxes() if args.particles else None
+                vid.write(draw_multi(frame, res, trails, parts))
+    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
+        status = getattr(exc, "exit_code", 130)
+        what = "interrupted" if status == 130 else "terminated"
+        print(f"{what}: keeping the results so far", file=sys.stderr)
+    finally:
+        progress.close()
+        _finish((csv, motw, vid), ok=n_frames > 0)
+        src.close()
+    if n_frames == 0 and status == 0:
+        raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
+    if not seen and status == 0:
+        print(
+            f"no {mt.detector.name!r} target was found in {source} (empty tracks written)",
+            file=sys.stderr,
+        )
+    return TrackSummary(
+        source=str(source),
+        frames=n_frames,
+        unreadable=src.n_bad,
+        seconds=time.perf_counter() - t0,
+        tracker_seconds=t_track,
+        ended_early=bool(src.ended_early),
+        status=status,
+        identities=len(seen),
+    )
 
 
 def parse_box(text: str):
@@ -249,7 +564,7 @@ def build_tracker(args: argparse.Namespace, auto: bool):
     from torchtrack.errors import ConfigError
     from torchtrack.track.base import create_tracker, parse_tracker_spec, tracker_info
 
-    name, params = parse_tracker_spec(args.tracker)
+    name, params = parse_tracker_spec(args.tracker or "detector")
     info = tracker_info(name)
     try:
         accepted = set(inspect.signature(info.factory).parameters)
@@ -294,129 +609,12 @@ def detect_box(model, frame):
     return boxes[0].double()
 
 
-class BoxWriter:
-    """CSV of per-frame boxes, flushed row by row into ``PATH.part`` and renamed to ``PATH``
-    (after an fsync) by :meth:`close`."""
-
-    def __init__(self, path: str) -> None:
-        import os
-
-        self.path = path
-        folder = os.path.dirname(os.path.abspath(path))
-        if not os.path.isdir(folder):
-            from torchtrack.errors import ConfigError
-
-            raise ConfigError(f"--out folder {folder!r} does not exist")
-        self.part = path + ".part"
-        self._f = open(self.part, "w", encoding="utf-8", newline="")
-        self._multi: bool | None = None
-
-    def _header(self, b: int) -> None:
-        if self._multi is None:
-            self._multi = b > 1
-            cols = "frame,target," if self._multi else "frame,"
-            self._f.write(cols + "x,y,w,h,confidence,visible\n")
-
-    def write(self, i: int, state) -> None:
-        box = state.box.tolist()
-        conf = state.confidence.tolist()
-        vis = state.visible.tolist()
-        self._header(len(box))
-        for t, (b, c, v) in enumerate(zip(box, conf, vis, strict=True)):
-            lead = f"{i},{t}," if self._multi else f"{i},"
-            self._f.write(
-                lead + ",".join(f"{x:.2f}" for x in b) + f",{float(c):.4f},{int(bool(v))}\n"
-            )
-        self._f.flush()
-
-    def write_bad(self, i: int, last) -> None:
-        """Row(s) for an unreadable frame: the previous box, confidence 0, not visible."""
-        if last is None:
-            self._header(1)
-            lead = f"{i},0," if self._multi else f"{i},"
-            self._f.write(lead + "nan,nan,nan,nan,0.0000,0\n")
-            self._f.flush()
-            return
-        import dataclasses
-
-        import torch
-
-        self.write(
-            i,
-            dataclasses.replace(
-                last,
-                confidence=torch.zeros_like(last.confidence),
-                visible=torch.zeros_like(last.visible),
-            ),
-        )
-
-    def close(self) -> None:
-        import os
-
-        if self._f.closed:
-            return
-        self._header(1)
-        self._f.flush()
-        os.fsync(self._f.fileno())
-        self._f.close()
-        os.replace(self.part, self.path)
-
-
 def _progress(src, args):
     from tqdm import tqdm
+
+    from torchtrack.cli._common import show_progress
 
     total = len(src) or None
     if args.max_frames is not None:
         total = min(total, args.max_frames) if total else args.max_frames
-    return tqdm(total=total, unit="frame", disable=args.no_progress, leave=False)
-
-
-def _open_video(path: str, frame, fps: float | None):
-    import os
-
-    import cv2
-
-    from torchtrack.errors import VideoError
-
-    h, w = int(frame.shape[-2]), int(frame.shape[-1])
-    ext = os.path.splitext(path)[1].lower()
-    fourcc = cv2.VideoWriter_fourcc(*("MJPG" if ext == ".avi" else "mp4v"))
-    writer = cv2.VideoWriter(path, fourcc, float(fps or 25.0), (w, h))
-    if not writer.isOpened():
-        raise VideoError(f"cannot write video {path!r} (use .mp4 or .avi)")
-    return writer
-
-
-#: BGR colours: a visible target, a lost one, particles.
-_GREEN, _RED, _PARTICLE = (60, 220, 60), (40, 40, 230), (230, 200, 40)
-
-
-def draw(frame, state, tracker=None, max_particles: int = 200):
-    """An annotated BGR image ``(H, W, 3)`` of ``frame (C, H, W)``: each target's box (green
-    when visible, red when lost) with its confidence, and, given a ``tracker`` with
-    ``particle_boxes()``, the centres of up to ``max_particles`` particles per target."""
-    import cv2
-
-    from torchtrack.io.video import to_numpy_bgr
-
-    img = to_numpy_bgr(frame).copy()
-    if tracker is not None and hasattr(tracker, "particle_boxes"):
-        pb = tracker.particle_boxes()
-        step = max(1, pb.shape[1] // max_particles)
-        centres = (pb[:, ::step, :2] + pb[:, ::step, 2:] / 2).round().long().tolist()
-        for row in centres:
-            for cx, cy in row:
-                cv2.circle(img, (cx, cy), 1, _PARTICLE, -1, lineType=cv2.LINE_AA)
-    for b, c, v in zip(
-        state.box.tolist(), state.confidence.tolist(), state.visible.tolist(), strict=True
-    ):
-        if any(t != t for t in b):  # NaN box: nothing to draw
-            continue
-        x, y, w, h = (round(t) for t in b)
-        col = _GREEN if v else _RED
-        cv2.rectangle(img, (x, y), (x + w, y + h), col, 2, lineType=cv2.LINE_AA)
-        label = f"{float(c):.2f}" + ("" if v else " lost")
-        cv2.putText(
-            img, label, (x, max(12, y - 4)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, col, 1, cv2.LINE_AA
-        )
-    return img
+    return tqdm(total=total, unit="frame", disable=not show_progress(args), leave=False)

@@ -33,6 +33,8 @@ Names listed in files given to --exclude (a held-out test split) are never read.
 
 
 def register(subparsers) -> None:
+    from torchtrack.cli._common import add_out, add_progress
+
     p = subparsers.add_parser(
         "train",
         help="train a calibrated class detector from positive and negative crops",
@@ -46,7 +48,7 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--config", metavar="TOML", help="training config (see configs/*.toml)")
-    p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model file to write")
+    add_out(p, "MODEL", "model file to write", required=True)
     p.add_argument("--pos", nargs="+", metavar="DIR", help="folders of positive crops")
     p.add_argument("--neg", nargs="+", metavar="DIR", help="folders of negative crops")
     p.add_argument(
@@ -69,7 +71,14 @@ def register(subparsers) -> None:
     p.add_argument("--mirror", action="store_true", help="add mirror images of the positives")
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="train even on too little data (fewer than learn.min_train_per_class = 20 training "
+        "or learn.min_calibration_per_class = 10 calibration crops per class, mostly flat "
+        "positives); the reasons are recorded in the model",
+    )
+    add_progress(p)
     p.set_defaults(func=run)
 
 
@@ -103,11 +112,13 @@ def _overrides(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from torchtrack.cli._common import check_output_file, show_progress
     from torchtrack.detect.config import TrainConfig, apply_override, load_train_config
     from torchtrack.detect.model_file import save_detector
     from torchtrack.detect.training import train_detector
     from torchtrack.errors import ConfigError
 
+    check_output_file(args.out, "--out")  # before the training, not after it
     overrides = _overrides(args)
     if args.config:
         cfg = load_train_config(args.config, overrides)
@@ -124,8 +135,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(line, file=sys.stderr, flush=True)
 
-    det = train_detector(cfg, progress=not args.quiet, log=log)
-    path = save_detector(args.output, det)
+    det = train_detector(cfg, progress=show_progress(args), log=log, force=args.force)
+    path = save_detector(args.out, det)
     held = det.summary["held_out"]
     print(
         f"wrote {path}: {det.feature_index.numel()} features, {cfg.learn.classifier}, "

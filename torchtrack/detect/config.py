@@ -148,6 +148,11 @@ class LearnConfig:
         svm_kernel, svm_c: SVM kernel (``"rbf"`` / ``"linear"``) and C.
         calibration: ``"platt"`` (paper eq. 5-8) or ``"isotonic"``.
         calibration_fraction: share of the training crops held out for calibration (paper: 0.3).
+        min_train_per_class: fewest training crops per class (after the hold-out, mirror images
+            included) a run accepts without ``force``: boosting picks ``n_features`` thresholds
+            from these crops, and with a handful of them it only memorises them.
+        min_calibration_per_class: fewest held-out crops per class for the calibration fit:
+            Platt's two parameters (and the held-out detection rate) from fewer are noise.
     """
 
     n_features: int = 40
@@ -164,6 +169,8 @@ class LearnConfig:
     svm_c: float = 1.0
     calibration: str = "platt"
     calibration_fraction: float = 0.3
+    min_train_per_class: int = 20
+    min_calibration_per_class: int = 10
 
 
 @dataclass
@@ -312,6 +319,10 @@ class TrainConfig:
             )
         if not _posint(lr.n_features):
             raise ConfigError(f"learn.n_features must be a positive integer, got {lr.n_features!r}")
+        for k in ("min_train_per_class", "min_calibration_per_class"):
+            v = getattr(lr, k)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ConfigError(f"learn.{k} must be an integer >= 1, got {v!r}")
         if lr.n_estimators is not None and not _posint(lr.n_estimators):
             raise ConfigError(
                 f"learn.n_estimators must be a positive integer, got {lr.n_estimators!r}"

@@ -18,6 +18,14 @@ Steps of the Haar path:
    the training negatives, go back to 3.
 5. Fit the calibrator (Platt or isotonic) on the held-out margins; record counts, the split and
    the held-out metrics in the detector's summary.
+
+**Too little data is refused** (:func:`check_data_sizes`), before any feature is computed:
+fewer than ``learn.min_train_per_class`` training crops (default 20) or
+``learn.min_calibration_per_class`` held-out crops (default 10) in a class, or positives of
+which more than half are flat (no contrast: every Haar feature is 0 on them). ``force=True``
+(``torchtrack train --force``) trains anyway and records the reasons in the summary
+(``forced``). A calibration whose probability falls as the margin rises (the classifier is
+worse than chance on the held-out crops) is always refused: such a model cannot be saved.
 """
 
 from __future__ import annotations
@@ -51,6 +59,7 @@ from torchtrack.io.crops import (
 
 __all__ = [
     "TrainingData",
+    "check_data_sizes",
     "group_split",
     "load_training_data",
     "mine_hard_negatives",
@@ -226,6 +235,41 @@ def portable_config(cfg: TrainConfig) -> dict[str, Any]:
     return out
 
 
+def check_data_sizes(
+    cfg: TrainConfig,
+    pos_train: torch.Tensor,
+    neg_train: torch.Tensor,
+    pos_cal: torch.Tensor,
+    neg_cal: torch.Tensor,
+) -> list[str]:
+    """Why the data are too few (or unusable) to train on: an empty list when they are fine.
+
+    Args:
+        cfg: the training config (its ``learn.min_*`` minimums and ``features.min_std``).
+        pos_train, neg_train, pos_cal, neg_cal: ``(n, 1, H, W)`` uint8 crops of each part.
+    """
+    lr = cfg.learn
+    why = []
+    for what, n, lo in (
+        ("positive training crops", pos_train.shape[0], lr.min_train_per_class),
+        ("negative training crops", neg_train.shape[0], lr.min_train_per_class),
+        ("positive calibration crops", pos_cal.shape[0], lr.min_calibration_per_class),
+        ("negative calibration crops", neg_cal.shape[0], lr.min_calibration_per_class),
+    ):
+        if n < lo:
+            why.append(f"{n} {what}, fewer than the minimum {lo}")
+    pos = torch.cat((pos_train, pos_cal))
+    if pos.shape[0]:
+        std = pos.flatten(1).to(torch.float32).std(1, unbiased=False)
+        flat = int((std < cfg.features.min_std).sum())
+        if 2 * flat > pos.shape[0]:
+            why.append(
+                f"{flat} of {pos.shape[0]} positive crops are flat (intensity std below "
+                f"{cfg.features.min_std}): every Haar feature is 0 on them"
+            )
+    return why
+
+
 def _whole_boxes(n: int, window: tuple[int, int]) -> torch.Tensor:
     return torch.tensor([0.0, 0.0, float(window[1]), float(window[0])]).expand(n, 1, 4)
 
@@ -305,6 +349,7 @@ def train_detector(
     *,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
+    force: bool = False,
 ) -> Detector:
     """Train, mine and calibrate a detector as configured (see the module notes).
 
@@ -312,13 +357,17 @@ def train_detector(
         cfg: a validated :class:`~torchtrack.detect.config.TrainConfig`.
         progress: show progress bars.
         log: called with one line per step (default: silent).
+        force: train even on too little data (:func:`check_data_sizes`; the reasons are
+            logged and recorded in the summary as ``forced``).
 
     Returns:
         a calibrated :class:`Detector` whose ``summary`` records data counts, the held-out
         split, timings and held-out metrics.
 
     Raises:
-        DataError / ConfigError: unusable data or configuration.
+        DataError: unusable or too little data (without ``force``), or a calibration whose
+            probability falls as the margin rises.
+        ConfigError: an invalid configuration.
     """
     from torchtrack.learn import calibration_metrics, make_calibrator
 
@@ -359,6 +408,16 @@ def train_detector(
         f"split: train {pos_tr.shape[0]} pos / {neg_tr.shape[0]} neg, calibration "
         f"{pos_ca.shape[0]} pos / {neg_ca.shape[0]} neg"
     )
+    too_little = check_data_sizes(cfg, pos_tr, neg_tr, pos_ca, neg_ca)
+    if too_little and not force:
+        raise DataError(
+            "too little data to train a detector: "
+            + "; ".join(too_little)
+            + f" (calibration hold-out {frac:.0%}). Add crops, lower learn.min_train_per_class / "
+            "learn.min_calibration_per_class, or train anyway with --force (force=True)"
+        )
+    for line in too_little:
+        log(f"  warning (forced): {line}")
     log(f"bank: {len(bank)} Haar features on a {window[0]}x{window[1]} window, sizes {bank.sizes}")
     rounds = []
     hard_sources: list[str] = []
@@ -388,6 +447,13 @@ def train_detector(
         )
         log(f"  held-out: detection rate {dr:.3f} at FPR {fpr:.4f}, AUC {roc_auc(m_ca, y_ca):.4f}")
     calibrator = make_calibrator(cfg.learn.calibration).fit(m_ca.double(), y_ca.long())
+    if cfg.learn.calibration == "platt" and not calibrator.a_ < 0:
+        raise DataError(
+            f"the Platt fit on the {m_ca.numel()} held-out crops gives a probability that does not "
+            f"rise with the classifier's margin (slope a = {calibrator.a_:.4g} >= 0): the "
+            "classifier is no better than chance on data it was not trained on; add data or "
+            "check the positive and negative folders"
+        )
     p_ca_prob = calibrator.predict_proba(m_ca.double())
     cal_metrics = calibration_metrics(p_ca_prob, y_ca.long())
     summary: dict[str, Any] = {
@@ -416,6 +482,8 @@ def train_detector(
         },
         "train_seconds": time.perf_counter() - t_start,
     }
+    if too_little:
+        summary["forced"] = too_little
     log(
         f"calibration ({cfg.learn.calibration}): NLL {cal_metrics['nll']:.4f}, "
         f"ECE {cal_metrics['ece']:.4f} on {m_ca.numel()} held-out crops"

@@ -96,7 +96,9 @@ def chateau_states(
 
 
 def fit_chateau_dynamics(
-    tracks: list[torch.Tensor], window: tuple[float, float] | None = None
+    tracks: list[torch.Tensor],
+    window: tuple[float, float] | None = None,
+    structure: str = "free",
 ) -> ChateauFit:
     """Fit A, B, Sigma of eq. (4) by least squares over all tracks.
 
@@ -104,6 +106,13 @@ def fit_chateau_dynamics(
         tracks: list of ``(T_i, 4)`` box tracks (x, y, w, h; NaN rows = target absent; a
             transition touching an absent frame is skipped).
         window: reference window for the scale (see module docstring).
+        structure: ``"free"``: the three free rows of A by least squares (eq. 4 as in the
+            paper); ``"constant_velocity"``: A fixed to constant velocity on c and a random
+            walk on s (:func:`~torchtrack.filter.motion.default_chateau_A`), only Sigma fitted
+            from its residuals. Annotation jitter of single-frame labels biases a free fit
+            towards damped or even reversed velocities (the noise of ``c_t - c_{t-1}`` is
+            anti-correlated from frame to frame); the fixed structure keeps the motion of a
+            walking person and learns only how much it varies.
 
     Returns:
         ChateauFit.
@@ -126,8 +135,25 @@ def fit_chateau_dynamics(
             f"fit_chateau_dynamics needs at least 12 transitions (three consecutive annotated "
             f"frames each), got {m}"
         )
+    if structure not in ("free", "constant_velocity"):
+        raise ConfigError(f"structure must be 'free' or 'constant_velocity', got {structure!r}")
     x = torch.cat(xs)
     y = torch.cat(ys)
+    if structure == "constant_velocity":
+        from torchtrack.filter.motion import default_chateau_A
+
+        a = default_chateau_A()
+        resid = y - x @ a[_FREE].T
+        sigma = resid.T @ resid / m
+        return ChateauFit(
+            A=a,
+            B=default_chateau_B(),
+            Sigma=0.5 * (sigma + sigma.T),
+            n_transitions=m,
+            n_tracks=used,
+            rms=resid.square().mean(0).sqrt(),
+            A_stderr=torch.zeros(6, 6, dtype=torch.float64),
+        )
     # Column scaling: positions (hundreds of pixels) and scales (~1) differ by orders of
     # magnitude; scaling the regressors keeps the least-squares problem well conditioned.
     col = x.abs().amax(0).clamp_min(1e-12)

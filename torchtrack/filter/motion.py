@@ -7,6 +7,11 @@ Each model maps boxes to states and back and samples ``p(X_t | X_{t-1})``:
 * ``to_boxes(states (..., D)) -> (..., 4)``: boxes as x, y, w, h (top-left, 0-based pixels,
   the convention of ``torchtrack.boxes``).
 
+**Confinement.** ``confine(states, frame_size)`` keeps particles from running away once the
+target is lost: each box centre is clamped to the frame (``[0, W] x [0, H]``), the velocity
+along an axis where it was clamped is set to zero, and the box size to at most twice the
+frame's. Trackers apply it after every prediction; particles inside the frame are unchanged.
+
 Models (all states carry the box centre, so a change of size keeps the centre):
 
 * ``KleinAR``: Klein et al. sec. II-C eq. (1), first-order AR with velocity,
@@ -43,6 +48,25 @@ def _check_states(states: torch.Tensor, d: int, model: str) -> None:
     if not isinstance(states, torch.Tensor) or states.ndim != 3 or states.shape[2] != d:
         shape = tuple(states.shape) if isinstance(states, torch.Tensor) else type(states).__name__
         raise ShapeError(f"{model}: states must be (B, N, {d}), got {shape}")
+
+
+def _clamp_centre(out: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
+    """Clamp ``out[..., 0:2]`` (box centres) to the frame in place; ``(..., 2)`` bool: which
+    coordinates were moved."""
+    h, w = frame_size
+    c = out[..., 0:2]
+    lo = torch.zeros(2, dtype=out.dtype, device=out.device)
+    hi = torch.tensor([float(w), float(h)], dtype=out.dtype, device=out.device)
+    clamped = torch.minimum(torch.maximum(c, lo), hi)
+    moved = clamped != c  # NaN centres compare unequal: they are reset too
+    out[..., 0:2] = torch.where(torch.isfinite(clamped), clamped, hi / 2)
+    return moved
+
+
+def _clamp_size(out: torch.Tensor, frame_size: tuple[int, int], min_size: float) -> None:
+    h, w = frame_size
+    out[..., 2] = out[..., 2].clamp(min_size, 2.0 * w)
+    out[..., 3] = out[..., 3].clamp(min_size, 2.0 * h)
 
 
 def _positive(name: str, value: float) -> float:
@@ -110,6 +134,15 @@ class KleinAR:
         return out
 
     __call__ = predict
+
+    def confine(self, states: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
+        """States ``(B, N, 6)`` with centres clamped to the frame, the clamped axes' velocity
+        zeroed and sizes at most twice the frame's (see the module doc)."""
+        out = states.clone()
+        moved = _clamp_centre(out, frame_size)
+        out[..., 4:6] = torch.where(moved, torch.zeros_like(out[..., 4:6]), out[..., 4:6])
+        _clamp_size(out, frame_size, self.min_size)
+        return out
 
 
 class ChateauAR:
@@ -212,14 +245,39 @@ class ChateauAR:
         m = (self.B @ self._L).to(states)  # (6, K): B v with v = L z
         return v @ m.T
 
-    def predict(self, states: torch.Tensor, generator: GeneratorLike = None) -> torch.Tensor:
-        """Eq. (4): ``(B, N, 6) -> (B, N, 6)``."""
+    def predict(
+        self,
+        states: torch.Tensor,
+        generator: GeneratorLike = None,
+        noise_scale: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Eq. (4): ``(B, N, 6) -> (B, N, 6)``.
+
+        Args:
+            noise_scale: optional ``(B,)`` factor on the noise's standard deviation per row
+                (e.g. a multi-target tracker widens the search of a target that missed its
+                detections); ``None`` is eq. (4) as fitted.
+        """
         _check_states(states, 6, "ChateauAR")
-        out = states @ self.A.to(states).T + self._noise(states, generator)
+        noise = self._noise(states, generator)
+        if noise_scale is not None:
+            noise = noise * noise_scale.to(noise).reshape(-1, 1, 1)
+        out = states @ self.A.to(states).T + noise
         out[..., 4] = out[..., 4].clamp_min(self.min_scale)
         return out
 
     __call__ = predict
+
+    def confine(self, states: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
+        """States ``(B, N, 6)`` with ``c_t`` clamped to the frame, ``c_{t-1} = c_t`` on the
+        clamped axes (zero velocity) and the region at most twice the frame's size."""
+        h, w = frame_size
+        out = states.clone()
+        moved = _clamp_centre(out, frame_size)
+        out[..., 2:4] = torch.where(moved, out[..., 0:2], out[..., 2:4])
+        s_max = min(2.0 * w / self.window[0], 2.0 * h / self.window[1])
+        out[..., 4:6] = out[..., 4:6].clamp(self.min_scale, max(s_max, self.min_scale))
+        return out
 
 
 def default_chateau_A() -> torch.Tensor:
@@ -387,3 +445,12 @@ class BachooMotion:
         return torch.cat([c, wh, v, r], dim=2)
 
     __call__ = predict
+
+    def confine(self, states: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
+        """States ``(B, N, 7)`` with centres clamped to the frame, the clamped axes' velocity
+        zeroed and sizes at most twice the frame's (see the module doc)."""
+        out = states.clone()
+        moved = _clamp_centre(out, frame_size)
+        out[..., 4:6] = torch.where(moved, torch.zeros_like(out[..., 4:6]), out[..., 4:6])
+        _clamp_size(out, frame_size, self.min_size)
+        return out

@@ -86,35 +86,35 @@ class CropSet:
         )
 
 
-def read_gray(path: str | os.PathLike) -> np.ndarray | None:
-    """Decode an image file as ``(H, W)`` uint8 luma; ``None`` when it is not a decodable image."""
+def _decode(path: str | os.PathLike, colour: bool = False) -> tuple[np.ndarray | None, str]:
+    """``(image, "")`` or ``(None, why it cannot be used)``, through the one image decoder of
+    :mod:`torchtrack.io.video` (the frame reader uses the same one): ``(H, W)`` uint8 luma, or
+    with ``colour`` ``(H, W, 3)`` uint8 RGB (gray files replicated)."""
+    from torchtrack.io.video import decode_image
+
     try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError:
-        return None
-    if data.size == 0:
-        return None
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
-    if img is None or img.ndim != 2 or img.size == 0:
-        return None
-    return img
+        img = decode_image(path, cv2.IMREAD_COLOR if colour else cv2.IMREAD_GRAYSCALE)
+    except DataError as exc:
+        return None, str(exc)
+    if colour:
+        if img.ndim != 3 or img.shape[2] != 3:
+            return None, f"image {path} did not decode to three colour channels"
+        return np.ascontiguousarray(img[:, :, ::-1]), ""
+    if img.ndim != 2:
+        return None, f"image {path} did not decode to one gray channel"
+    return img, ""
+
+
+def read_gray(path: str | os.PathLike) -> np.ndarray | None:
+    """Decode an image file as ``(H, W)`` uint8 luma; ``None`` when it is not a decodable image
+    (missing, empty, truncated, corrupt)."""
+    return _decode(path, False)[0]
 
 
 def read_image(path: str | os.PathLike, colour: bool = False) -> np.ndarray | None:
     """Decode an image file as ``(H, W)`` uint8 luma, or with ``colour`` as ``(H, W, 3)`` uint8
     RGB (grayscale files replicated); ``None`` when it is not a decodable image."""
-    if not colour:
-        return read_gray(path)
-    try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError:
-        return None
-    if data.size == 0:
-        return None
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
-    if img is None or img.ndim != 3 or img.size == 0:
-        return None
-    return np.ascontiguousarray(img[:, :, ::-1])
+    return _decode(path, colour)[0]
 
 
 def list_image_files(folder: str | os.PathLike) -> tuple[list[Path], list[tuple[str, str]]]:
@@ -232,9 +232,9 @@ def load_crops(
         files_iter = files
     imgs, sources, resized = [], [], 0
     for p in files_iter:
-        img = read_image(p, colour)
+        img, why = _decode(p, colour)
         if img is None:
-            skipped.append((str(p), "cannot be decoded as an image"))
+            skipped.append((str(p), why))
             continue
         win, was_resized = _to_window(img, window, region, crop_size, keep_context)
         resized += was_resized
@@ -278,9 +278,9 @@ def load_images(
     """
     imgs, used, skipped = [], [], []
     for p in paths:
-        img = read_image(p, colour)
+        img, why = _decode(p, colour)
         if img is None:
-            skipped.append((str(p), "cannot be decoded as an image"))
+            skipped.append((str(p), why))
             continue
         imgs.append(img)
         used.append(str(p))

@@ -14,6 +14,14 @@ them, plain iteration skips them, and both record them in :attr:`FrameSource.bad
 A source that cannot be opened at all (missing file, empty folder, absent camera) raises
 :class:`~torchtrack.errors.VideoError`.
 
+**One image decoder.** Every image file torchtrack reads (frames here, training and
+calibration crops in :mod:`torchtrack.io.crops`) goes through :func:`decode_image`: the bytes
+are read once, a JPEG that lacks its end-of-image marker after its last scan is reported as
+truncated (libjpeg would fill the missing part with grey and only print a warning), and
+``cv2.imdecode`` decodes the rest. What the native decoders print (libjpeg, libpng, FFmpeg)
+is captured instead of reaching the terminal, and becomes part of the error message when the
+file cannot be used.
+
 Example::
 
     with open_source("clip.mp4") as src:
@@ -24,8 +32,11 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import tempfile
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,7 +52,10 @@ __all__ = [
     "VIDEO_EXTENSIONS",
     "BadFrame",
     "FrameSource",
+    "decode_image",
+    "jpeg_is_truncated",
     "list_image_files",
+    "native_output",
     "natural_key",
     "open_source",
     "read_image",
@@ -111,19 +125,115 @@ def _array_to_tensor(img: np.ndarray, color: str, *, bgr: bool = True) -> torch.
     return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
 
 
+class _NativeOutput:
+    """Text the native libraries wrote to stderr while captured (see :func:`native_output`)."""
+
+    text = ""
+
+    def first_line(self) -> str:
+        lines = [ln.strip() for ln in self.text.splitlines() if ln.strip()]
+        return lines[0] if lines else ""
+
+
+_capture_lock = threading.RLock()
+_capture_file = None
+
+
+@contextlib.contextmanager
+def native_output() -> Iterator[_NativeOutput]:
+    """Capture what native code (OpenCV, libjpeg, libpng, FFmpeg) writes to the process's
+    stderr (file descriptor 2) inside the block; the text is in the yielded object's ``text``
+    afterwards. Python-level output is flushed first and not captured. Where file descriptor 2
+    cannot be redirected, nothing is captured."""
+    global _capture_file
+    import sys
+
+    out = _NativeOutput()
+    with _capture_lock:
+        try:
+            sys.stderr.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+        try:
+            if _capture_file is None:
+                import atexit
+
+                _capture_file = tempfile.TemporaryFile()
+                atexit.register(_capture_file.close)
+            fd = _capture_file.fileno()
+            saved = os.dup(2)
+        except OSError:
+            yield out
+            return
+        try:
+            os.dup2(fd, 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+        finally:
+            os.close(saved)
+            size = os.lseek(fd, 0, os.SEEK_END)
+            if size:
+                os.lseek(fd, 0, os.SEEK_SET)
+                out.text = os.read(fd, min(size, 65536)).decode("utf-8", "replace")
+                os.ftruncate(fd, 0)
+            os.lseek(fd, 0, os.SEEK_SET)
+
+
+def jpeg_is_truncated(data: bytes) -> bool:
+    """Whether ``data`` is a JPEG cut short: it starts with the JPEG signature but has no
+    end-of-image marker (``FF D9``) after its last start-of-scan (``FF DA``). In entropy-coded
+    data a ``FF`` byte is always followed by ``00`` or a restart marker, so the end marker
+    cannot appear inside a scan."""
+    if data[:3] != b"\xff\xd8\xff":
+        return False
+    sos = data.rfind(b"\xff\xda")
+    return sos < 0 or data.find(b"\xff\xd9", sos + 2) < 0
+
+
+def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """The one image decoder (see the module doc): ``path`` -> the OpenCV array of
+    ``cv2.imdecode(..., flags)`` (BGR order, ``(H, W)`` or ``(H, W, C)``).
+
+    Raises:
+        DataError: the file is missing, not a file, empty, a truncated JPEG, or cannot be
+            decoded (the message names the file and gives the decoder's own complaint).
+    """
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"image {p} does not exist") from None
+    except IsADirectoryError:
+        raise DataError(f"image {p} is a folder, not an image file") from None
+    except OSError as exc:
+        raise DataError(f"image {p} cannot be read: {exc.strerror or exc}") from None
+    if not data:
+        raise DataError(f"image {p} is empty (0 bytes)")
+    if jpeg_is_truncated(data):
+        raise DataError(
+            f"image {p} is truncated: a JPEG of {len(data):,} bytes without its end-of-image "
+            "marker (the decoder would fill the missing part with grey)"
+        )
+    with native_output() as log:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if img is None or img.size == 0:
+        detail = log.first_line()
+        raise DataError(
+            f"image {p} cannot be decoded as an image" + (f" ({detail})" if detail else "")
+        )
+    return img
+
+
 def read_image(path: str | os.PathLike, color: str = "rgb") -> torch.Tensor:
     """Read one image file as a ``(C, H, W)`` uint8 RGB tensor (see the module doc for ``color``).
 
     Raises:
-        DataError: the file is missing, empty or cannot be decoded.
+        DataError: the file is missing, empty, truncated or cannot be decoded.
     """
     _check_color(color)
-    p = Path(path)
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED) if p.is_file() else None
-    if img is None:
-        reason = "does not exist" if not p.exists() else "cannot be decoded as an image"
-        raise DataError(f"image {p} {reason}")
-    return _array_to_tensor(img, color)
+    return _array_to_tensor(decode_image(path), color)
 
 
 def to_numpy_bgr(frame: torch.Tensor) -> np.ndarray:
@@ -189,9 +299,15 @@ class FrameSource:
                 self._files = list_image_files(p)
             elif p.is_file():
                 self.kind = "video"
-                self._cap = cv2.VideoCapture(str(p))
-                if not self._cap.isOpened():
-                    raise VideoError(f"video file {p} cannot be opened (unknown or broken format)")
+                with native_output() as log:
+                    self._cap = cv2.VideoCapture(str(p))
+                    opened = self._cap.isOpened()
+                if not opened:
+                    detail = log.first_line()
+                    raise VideoError(
+                        f"video file {p} cannot be opened (unknown or broken format"
+                        + (f": {detail})" if detail else ")")
+                    )
             else:
                 raise VideoError(f"video source {p} does not exist")
 
@@ -241,7 +357,8 @@ class FrameSource:
         expected = len(self) if self.kind == "video" else 0
         i = 0
         while True:
-            ok, img = self._cap.read()
+            with native_output():
+                ok, img = self._cap.read()
             if not ok or img is None:
                 if expected and i < expected:
                     # OpenCV cannot tell a corrupt frame from the end of the stream.

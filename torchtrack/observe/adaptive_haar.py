@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import torch
 
+from torchtrack.boxes import inside_fraction
 from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.features.centre_surround import (
     CentreSurroundPool,
@@ -24,7 +25,10 @@ from torchtrack.features.centre_surround import (
 )
 from torchtrack.learn.online_gentle import StumpEnsemble
 
-__all__ = ["AdaptiveHaarObservation", "classifier_confidence"]
+__all__ = ["MIN_INSIDE", "AdaptiveHaarObservation", "classifier_confidence"]
+
+#: boxes with less of their area inside the frame get confidence 0
+MIN_INSIDE = 0.5
 
 
 def classifier_confidence(
@@ -85,8 +89,13 @@ class AdaptiveHaarObservation:
     def confidence(
         self, ints: ChannelIntegrals, boxes: torch.Tensor, ens: StumpEnsemble, model: torch.Tensor
     ) -> torch.Tensor:
-        """``(B, N)`` classifier confidences, see :func:`classifier_confidence`."""
-        return classifier_confidence(ints, boxes, self.pool, ens, model)
+        """``(B, N)`` classifier confidences (see :func:`classifier_confidence`); 0 for a box
+        with less than half of its area inside the frame: the features of the part outside
+        read the zero padding of the integral image, which is no evidence of the target (a
+        classifier adapted on such boxes kept a lost track "visible" outside the frame)."""
+        conf = classifier_confidence(ints, boxes, self.pool, ens, model)
+        inside = inside_fraction(boxes.to(torch.float64), ints.size).to(conf.device)
+        return torch.where(inside >= MIN_INSIDE, conf, torch.zeros_like(conf))
 
     def log_likelihood(self, confidence: torch.Tensor) -> torch.Tensor:
         """Eq. (3) up to the constant: ``lambda * C``."""

@@ -307,7 +307,8 @@ class AdaptiveHaarTracker(Tracker):
         anc, prior_lw, _ = resample(self._log_w, cfg.resample, None, self.generator)
         states = self._states.gather(1, anc.unsqueeze(2).expand(-1, -1, self._states.shape[2]))
         model = self.model.gather(1, anc)
-        states = self.motion.predict(states, self.generator)
+        # eq. (1), confined to the frame so that a lost target's particles do not run away
+        states = self.motion.confine(self.motion.predict(states, self.generator), self.frame_size)
         boxes = self.motion.to_boxes(states)
         conf = self.observation.confidence(ints, boxes, self.ensemble, model)  # (B, N)
         ll = self.observation.log_likelihood(conf.to(torch.float64))

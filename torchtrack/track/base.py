@@ -17,6 +17,11 @@ target (an OpenCV peer returning ``ok=False``, a particle filter whose likelihoo
 reports ``visible=False`` and still returns a box (its last estimate); the evaluator decides
 what that box counts for (see :mod:`torchtrack.eval.metrics`).
 
+**One rule for every tracker:** a box with less than half of its area inside the frame
+(:attr:`Tracker.min_visible_inside`), or one that is not finite, is never reported visible,
+whatever the tracker believes: there is no image evidence outside the frame. :meth:`Tracker.init`
+and :meth:`Tracker.update` apply it to what ``_init`` / ``_update`` return.
+
 Registry: trackers register a factory under a name with :func:`register_tracker`;
 :func:`create_tracker` builds one by name and raises :class:`~torchtrack.errors.ConfigError`
 listing the known names for a wrong one. Modules listed in :data:`BUILTIN_TRACKER_MODULES` are
@@ -26,6 +31,7 @@ imported on first use, so registering is a matter of adding the module name ther
 from __future__ import annotations
 
 import abc
+import dataclasses
 import importlib
 import inspect
 import warnings
@@ -35,7 +41,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from torchtrack.boxes import check_boxes
+from torchtrack.boxes import check_boxes, inside_fraction
 from torchtrack.errors import ConfigError, ShapeError, TrackerError
 
 __all__ = [
@@ -119,11 +125,14 @@ class Tracker(abc.ABC):
     * ``name``: the registry name.
     * ``max_targets``: how many targets one instance can follow (``None`` = any).
     * ``auto_init``: ``init(frame, box=None)`` finds the target itself (e.g. a detector scan).
+    * ``min_visible_inside``: a target whose box has less than this fraction of its area inside
+      the frame is reported not visible (the module's one rule; 0.5).
     """
 
     name: ClassVar[str] = "tracker"
     max_targets: ClassVar[int | None] = 1
     auto_init: ClassVar[bool] = False
+    min_visible_inside: ClassVar[float] = 0.5
 
     def __init__(self) -> None:
         self._initialised = False
@@ -174,7 +183,7 @@ class Tracker(abc.ABC):
         self.frame_size = (h, w)
         state = self._init(frame, boxes)
         self._initialised = True
-        return state
+        return self._visible_in_frame(state)
 
     def update(self, frame: torch.Tensor) -> TrackState:
         """Track into the next frame ``(C, H, W)`` uint8; returns its :class:`TrackState`.
@@ -191,7 +200,16 @@ class Tracker(abc.ABC):
                 f"frame size changed from {self.frame_size} to {tuple(frame.shape[-2:])} "
                 "(H, W) during tracking"
             )
-        return self._update(frame)
+        return self._visible_in_frame(self._update(frame))
+
+    def _visible_in_frame(self, state: TrackState) -> TrackState:
+        """``state`` with ``visible`` cleared for boxes mostly outside the frame or not finite."""
+        inside = inside_fraction(state.box.to(torch.float64), self.frame_size)
+        ok = inside >= self.min_visible_inside
+        vis = state.visible.to(torch.bool)
+        if bool((vis & ~ok.to(vis.device)).any()):
+            state = dataclasses.replace(state, visible=vis & ok.to(vis.device))
+        return state
 
     # -- for subclasses ------------------------------------------------------------------------
     @abc.abstractmethod

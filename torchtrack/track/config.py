@@ -27,6 +27,7 @@ from torchtrack.errors import ConfigError
 __all__ = [
     "DetectorTrackerConfig",
     "HistogramTrackerConfig",
+    "MultiTrackerConfig",
     "apply_overrides",
     "config_from_dict",
     "load_tracker_config",
@@ -150,6 +151,161 @@ class HistogramTrackerConfig:
         for k in ("sigma_xy", "sigma_wh"):
             if not getattr(self, k) >= 0:
                 raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
+        _estimator_and_scheme(self)
+
+
+@dataclass
+class MultiTrackerConfig:
+    """Multi-target detect-and-track (:class:`torchtrack.track.multi.MultiTargetTracker`).
+
+    Attributes:
+        model: the detector (bundled name or model file): it proposes detections and its
+            calibrated probability is the particles' likelihood (Chateau et al. eq. 11).
+        n_particles: particles per target.
+        dynamics: AR dynamics TOML (eq. 4); empty: ``dynamics_chateau_cv.toml``, constant
+            velocity with the noise fitted on the tracking sequences (the paper's free fit,
+            ``dynamics_chateau.toml``, damps a walker's velocity by half every frame, which
+            loses people who cross; measured in ``docs/benchmarks/mot.md``).
+        scan_every: scan the frame with the detector every k-th frame (1: every frame); the
+            filter carries the targets in between.
+        scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
+            (:func:`torchtrack.detect.scan.sliding_windows`; ``scan_max_scale = 0``: up to the
+            largest window that fits the frame).
+        detection_threshold: detections below this calibrated probability are dropped; those
+            between it and ``birth_threshold`` only extend existing targets (ByteTrack's
+            second association, made meaningful by calibration).
+        birth_threshold: detections at least this confident start targets and take part in the
+            first association.
+        confirm_hits: a new target is reported once it was matched on this many scans in a row
+            (counting the one that started it); a miss before that ends it.
+        max_lost: a target unmatched for more than this many frames ends.
+        max_coast: an unmatched confirmed target is still reported for up to this many frames
+            while the filter's evidence (the mean calibrated probability of its particles) is
+            at least ``visible_threshold``: the detector still sees a person where the filter
+            is, only the scan's threshold or NMS missed it.
+        visible_threshold: see ``max_coast``.
+        max_targets: at most this many targets at once (births beyond are refused).
+        birth_overlap: a confident detection left unmatched starts a target only if its IoU
+            with every live target's box is below this (else it is that target, momentarily
+            out of the gate).
+        overlap_gate: a target and a detection can pair only if the detection's expected IoU
+            under the target's particles is at least this.
+        max_cost: pairs costing more are not made (see :mod:`torchtrack.track.association`).
+        w_overlap, w_appearance: weights of the overlap and appearance cues in the cost.
+        appearance: ``"colour"`` (an online HSV histogram per target, Pérez et al. 2002) or
+            ``"none"``.
+        appearance_lambda: the appearance likelihood of a particle is
+            ``exp(-lambda (1 - BC))`` (Pérez et al. eq. 6 with ``D^2 = 1 - BC``); 0: not in the
+            particle weights (association only).
+        appearance_rate: colour-model update rate on confident, unoccluded matches.
+        detection_sigma: a matched detection weights the particles by a Gaussian around it,
+            with this standard deviation as a fraction of its height (position) and of its
+            scale (log scale).
+        exclusion: strength ``k`` of the interaction potential ``exp(-k IoU)`` between a
+            particle's window and the other targets' predicted windows (Khan et al. 2005: two
+            targets do not take the same place); 0: off.
+        reseed_overlap: a matched target whose particles overlap its detection less than this
+            (expected IoU) is re-seeded around the detection.
+        lost_noise_growth: the motion noise of an unmatched target grows by this factor per
+            frame without a match (up to ``max_noise_scale``): the search widens while it is
+            lost.
+        max_noise_scale: cap of that growth.
+        min_visible_fraction: a target whose object box has less than this fraction inside the
+            frame has left it and ends (never reported).
+        likelihood_floor: smallest detector probability in the weights (keeps them finite).
+        estimator: particle estimate (``mean``, ``mode``, ``best``).
+        resample: resampling scheme.
+    """
+
+    model: str = "pedestrian"
+    n_particles: int = 100
+    dynamics: str = ""
+    scan_every: int = 1
+    scan_min_scale: float = 0.35
+    scan_max_scale: float = 0.0
+    scan_scale_step: float = 1.15
+    scan_stride: float = 0.08
+    scan_nms: float = 0.4
+    detection_threshold: float = 0.5
+    birth_threshold: float = 0.9
+    confirm_hits: int = 2
+    max_lost: int = 30
+    max_coast: int = 10
+    visible_threshold: float = 0.5
+    max_targets: int = 100
+    birth_overlap: float = 0.3
+    overlap_gate: float = 0.1
+    max_cost: float = 0.8
+    w_overlap: float = 1.0
+    w_appearance: float = 0.5
+    appearance: str = "colour"
+    appearance_lambda: float = 0.0
+    appearance_rate: float = 0.05
+    detection_sigma: float = 0.05
+    exclusion: float = 0.0
+    reseed_overlap: float = 0.3
+    lost_noise_growth: float = 0.1
+    max_noise_scale: float = 3.0
+    min_visible_fraction: float = 0.25
+    likelihood_floor: float = 1e-6
+    estimator: str = "mean"
+    resample: str = "systematic"
+
+    def validate(self) -> None:
+        _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
+        for k in ("max_lost", "max_coast"):
+            if getattr(self, k) < 0:
+                raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
+        _in_unit(
+            self,
+            "detection_threshold",
+            "birth_threshold",
+            "visible_threshold",
+            "overlap_gate",
+            "appearance_rate",
+            "reseed_overlap",
+            "min_visible_fraction",
+            "scan_stride",
+            "birth_overlap",
+        )
+        if self.birth_threshold < self.detection_threshold:
+            raise ConfigError(
+                f"birth_threshold ({self.birth_threshold}) must be >= detection_threshold "
+                f"({self.detection_threshold})"
+            )
+        if not self.scan_min_scale > 0:
+            raise ConfigError(f"scan_min_scale must be > 0, got {self.scan_min_scale}")
+        if self.scan_max_scale != 0 and self.scan_max_scale < self.scan_min_scale:
+            raise ConfigError(
+                f"scan_max_scale ({self.scan_max_scale}) is below scan_min_scale "
+                f"({self.scan_min_scale}); 0 means no upper bound"
+            )
+        if not self.scan_scale_step > 1:
+            raise ConfigError(f"scan_scale_step must be > 1, got {self.scan_scale_step}")
+        if not 0 < self.scan_nms <= 1:
+            raise ConfigError(f"scan_nms must be in (0, 1], got {self.scan_nms}")
+        for k in (
+            "w_overlap",
+            "w_appearance",
+            "appearance_lambda",
+            "lost_noise_growth",
+            "exclusion",
+        ):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"{k} must be a finite number >= 0, got {v}")
+        if self.w_overlap + self.w_appearance <= 0:
+            raise ConfigError("w_overlap and w_appearance cannot both be 0")
+        if not (self.max_cost > 0 and math.isfinite(self.max_cost)):
+            raise ConfigError(f"max_cost must be > 0, got {self.max_cost}")
+        if not (self.detection_sigma > 0 and math.isfinite(self.detection_sigma)):
+            raise ConfigError(f"detection_sigma must be > 0, got {self.detection_sigma}")
+        if not self.max_noise_scale >= 1:
+            raise ConfigError(f"max_noise_scale must be >= 1, got {self.max_noise_scale}")
+        if self.appearance not in ("colour", "none"):
+            raise ConfigError(f"appearance must be 'colour' or 'none', got {self.appearance!r}")
+        if not 0.0 <= self.likelihood_floor < 1.0:
+            raise ConfigError(f"likelihood_floor must be in [0, 1), got {self.likelihood_floor}")
         _estimator_and_scheme(self)
 
 

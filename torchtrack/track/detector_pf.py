@@ -64,22 +64,29 @@ __all__ = ["DetectorTracker", "default_dynamics_path", "load_dynamics", "resolve
 _PACKAGE = Path(__file__).resolve().parents[1]
 
 
-def default_dynamics_path() -> Path | None:
+def default_dynamics_path(structure: str = "free") -> Path | None:
     """The fitted Chateau dynamics shipped with torchtrack (``torchtrack/data/``, package
-    data, refitted by ``tools/fit_dynamics.py``); ``None`` if the file is missing."""
-    cand = _PACKAGE / "data" / "dynamics_chateau.toml"
+    data, refitted by ``tools/fit_dynamics.py``): ``structure="free"`` is eq. (4) with A fitted
+    (``dynamics_chateau.toml``), ``"constant_velocity"`` constant velocity with Sigma fitted
+    (``dynamics_chateau_cv.toml``, the multi-target tracker's default); ``None`` if the file
+    is missing."""
+    name = (
+        "dynamics_chateau_cv.toml" if structure == "constant_velocity" else "dynamics_chateau.toml"
+    )
+    cand = _PACKAGE / "data" / name
     return cand if cand.is_file() else None
 
 
-def load_dynamics(path: str | os.PathLike | None = None) -> ChateauAR:
-    """The AR dynamics of eq. (4) from ``path`` (default :func:`default_dynamics_path`).
+def load_dynamics(path: str | os.PathLike | None = None, structure: str = "free") -> ChateauAR:
+    """The AR dynamics of eq. (4) from ``path`` (default :func:`default_dynamics_path` of
+    ``structure``).
 
     Without any file the constant-velocity defaults of :class:`ChateauAR` are used, with a
     warning.
     """
     from torchtrack.filter.dynamics_fit import load_chateau_toml
 
-    p = Path(path) if path else default_dynamics_path()
+    p = Path(path) if path else default_dynamics_path(structure)
     if p is None:
         warnings.warn(
             "dynamics_chateau.toml not found; using constant-velocity default dynamics",
@@ -331,7 +338,7 @@ class DetectorTracker(Tracker):
         res = sir_step(
             self._states,
             self._log_w,
-            self.dynamics.predict,
+            self._predict,
             log_likelihood,
             scheme=cfg.resample,
             estimator=cfg.estimator,
@@ -351,6 +358,11 @@ class DetectorTracker(Tracker):
             particles=self._states,
             log_weights=self._log_w,
         )
+
+    def _predict(self, states: torch.Tensor, generator) -> torch.Tensor:
+        """The AR dynamics, confined to the frame (a lost target's particles do not run away:
+        :meth:`~torchtrack.filter.ChateauAR.confine`)."""
+        return self.dynamics.confine(self.dynamics.predict(states, generator), self.frame_size)
 
     def particle_boxes(self) -> torch.Tensor:
         """Current particles as object boxes ``(B, N, 4)`` (for drawing)."""

@@ -330,7 +330,7 @@ class FusedTracker(DetectorTracker):
         res = sir_step(
             self._states,
             self._log_w,
-            self.dynamics.predict,
+            self._predict,
             log_likelihood,
             scheme=cfg.resample,
             estimator=cfg.estimator,

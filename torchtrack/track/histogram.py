@@ -107,7 +107,7 @@ class HistogramTracker(Tracker):
         res = sir_step(
             self._states,
             self._log_w,
-            self.motion.predict,
+            lambda s, g: self.motion.confine(self.motion.predict(s, g), self.frame_size),
             log_likelihood,
             scheme=cfg.resample,
             estimator=cfg.estimator,

@@ -322,11 +322,11 @@ class TemplateTracker(Tracker):
         inflated noise, the others the tracking noise (they stay on the coasted prediction)."""
         pred = self.motion.predict(states, generator, history=hist)
         if not bool(hist.occluded[0]) or self.config.occluded_fraction >= 1.0:
-            return pred
+            return self.motion.confine(pred, self.frame_size)
         calm = VelocityHistory(hist.velocities, hist.count, torch.zeros_like(hist.occluded))
         near = self.motion.predict(states, generator, history=calm)
         k = round(self.config.occluded_fraction * states.shape[1])
-        return torch.cat([pred[:, :k], near[:, k:]], 1)
+        return self.motion.confine(torch.cat([pred[:, :k], near[:, k:]], 1), self.frame_size)
 
     def _mean_velocity(self) -> torch.Tensor:
         h = self._hist

@@ -1,0 +1,1058 @@
+"""The bad-input corpus (issue 12): every subcommand fed what a hostile but realistic user would
+give it, in process (``torchtrack.cli.main``) on tiny generated inputs.
+
+Each case asserts the exit code, the error message (or, for inputs rightly accepted, the
+output), that no Python traceback escapes, and that a failed run leaves no output file in its
+output folder. ``{c}`` in an argument is the corpus folder, ``{o}`` the case's own (empty)
+output folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.cli import main
+
+
+@dataclass(frozen=True)
+class Case:
+    """One command line: ``code`` the expected exit status, ``match`` a regex the command's
+    stderr (errors) or stdout + stderr (accepted runs) must contain, ``keep`` the files the
+    run must leave in ``{o}`` (empty for failures: nothing may be left)."""
+
+    id: str
+    argv: tuple[str, ...]
+    code: int
+    match: str
+    keep: tuple[str, ...] = field(default_factory=tuple)
+
+
+def E(id: str, argv: str, match: str, code: int = 1) -> Case:
+    """A case that must fail cleanly."""
+    return Case(id, tuple(_split(argv)), code, match)
+
+
+def A(id: str, argv: str, match: str, keep: tuple[str, ...] = ()) -> Case:
+    """A case that must be accepted (exit 0) and leave exactly ``keep`` in ``{o}``."""
+    return Case(id, tuple(_split(argv)), 0, match, keep)
+
+
+def _split(argv: str) -> list[str]:
+    import shlex
+
+    return shlex.split(argv)
+
+
+# --------------------------------------------------------------------------- the corpus
+def _toy_detector(window=(16, 8), svm=False):
+    from torchtrack.detect import Detector
+    from torchtrack.features.haar import haar_bank
+    from torchtrack.learn import BoostedStumps, PlattCalibrator, SVMClassifier
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(80, 4, generator=g)
+    y = (x[:, 0] - x[:, 2] + 0.5 * torch.randn(80, generator=g) > 0).long()
+    clf = (SVMClassifier() if svm else BoostedStumps(n_estimators=5)).fit(x, y)
+    cal = PlattCalibrator().fit(clf.decision_function(x).double(), y)
+    bank = haar_bank(window, sizes=(8, 4))
+    return Detector(bank, torch.tensor([3, 50, 200, 360]), clf, cal, name="toy")
+
+
+def _frames(folder: Path, n=6, size=(48, 64), ext=".png"):
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    bg = cv2.GaussianBlur(rng.integers(0, 255, (*size, 3), np.uint8), (7, 7), 3)
+    for t in range(n):
+        f = bg.copy()
+        f[14:34, 10 + 2 * t : 24 + 2 * t] = (30, 30, 220)
+        assert cv2.imwrite(str(folder / f"{t:04d}{ext}"), f)
+    return folder
+
+
+def _video(path: Path, n=10, size=(48, 64), fourcc="mp4v"):
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 10.0, (size[1], size[0]))
+    rng = np.random.default_rng(1)
+    for t in range(n):
+        f = cv2.GaussianBlur(rng.integers(0, 255, (*size, 3), np.uint8), (5, 5), 2)
+        f[14:34, 10 + 2 * t : 24 + 2 * t] = (30, 30, 220)
+        w.write(f)
+    w.release()
+    return path
+
+
+def _crops(folder: Path, n: int, kind: str, size=(16, 16), seed=0):
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        if kind == "pos":  # a bright bar on noise
+            img = rng.integers(0, 60, size, np.uint8)
+            img[:, size[1] // 3 : 2 * size[1] // 3] = 220
+        elif kind == "flat":
+            img = np.full(size, 128, np.uint8)
+        else:
+            img = rng.integers(0, 255, size, np.uint8)
+        cv2.imwrite(str(folder / f"{kind}{i:03d}.png"), img)
+    return folder
+
+
+def _otb(folder: Path, n=6, gt: str | None = None):
+    _frames(folder / "img", n, ext=".jpg")
+    rows = gt if gt is not None else "".join(f"{11 + 2 * t},15,14,20\n" for t in range(n))
+    (folder / "groundtruth_rect.txt").write_text(rows)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory, forge_model):
+    from torchtrack.detect import save_detector
+    from torchtrack.detect.signing import generate_key
+
+    c = tmp_path_factory.mktemp("corpus")
+    # frames and videos
+    _frames(c / "frames")
+    _frames(c / "jpgs", ext=".jpg")
+    data = (c / "jpgs" / "0002.jpg").read_bytes()
+    (c / "jpgs" / "0002.jpg").write_bytes(data[: len(data) // 4])  # truncated
+    (c / "corrupt").mkdir()
+    for i in range(3):
+        (c / "corrupt" / f"{i}.jpg").write_bytes(b"not a jpeg at all " * 3)
+    (c / "tiny").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(c / "tiny" / f"{i}.png"), np.zeros((1, 1, 3), np.uint8))
+    (c / "emptydir").mkdir()
+    (c / "notes").mkdir()
+    (c / "notes" / "readme.txt").write_text("no images here")
+    _video(c / "clip.mp4")
+    v = (c / "clip.mp4").read_bytes()
+    (c / "cut.mp4").write_bytes(v[: len(v) // 2])  # no moov atom: cannot be opened
+    _video(c / "clip.avi", fourcc="MJPG")
+    v = (c / "clip.avi").read_bytes()
+    (c / "cut.avi").write_bytes(v[: len(v) // 2])  # frames readable, then it ends early
+    (c / "empty.mp4").write_bytes(b"")
+    (c / "text.mp4").write_text("this is not a video\n")
+    (c / "photo.png").write_bytes((c / "frames" / "0000.png").read_bytes())
+    (c / "afile").write_text("x")
+    # models
+    toy = save_detector(c / "toy.safetensors", _toy_detector())
+    save_detector(c / "svm.safetensors", _toy_detector(svm=True))
+    raw = _toy_detector()
+    raw.calibrator = None
+    save_detector(c / "uncal.safetensors", raw)
+    b = toy.read_bytes()
+    (c / "trunc.safetensors").write_bytes(b[: len(b) - 7])
+    (c / "trail.safetensors").write_bytes(b + b"\0" * 8)
+    (c / "junk.safetensors").write_bytes(b"\x07" * 40)
+    (c / "tiny.safetensors").write_bytes(b"\1\2")
+    flipped = bytearray(b)
+    flipped[-3] ^= 0x10
+    (c / "bitflip.safetensors").write_bytes(bytes(flipped))
+    priv, _, _ = generate_key(c / "alice.pem")
+    generate_key(c / "mallory.pem")
+    save_detector(c / "signed.safetensors", _toy_detector(), signing_key=priv)
+    (c / "junk.pub").write_text("-----BEGIN PUBLIC KEY-----\nnope\n-----END PUBLIC KEY-----\n")
+    for name, kw in FORGERIES.items():
+        forge_model(toy, c / f"forged_{name}.safetensors", **kw)
+    forge_model(
+        c / "signed.safetensors",
+        c / "forged_signed.safetensors",
+        meta_edit=lambda m: m["calibration"].update(b=m["calibration"]["b"] - 0.5),
+    )
+    # crops
+    _crops(c / "crops" / "pos", 40, "pos")
+    _crops(c / "crops" / "neg", 40, "neg", seed=1)
+    _crops(c / "few" / "pos", 3, "pos")
+    _crops(c / "few" / "neg", 3, "neg", seed=1)
+    _crops(c / "flat" / "pos", 40, "flat")
+    (c / "badcrops").mkdir()
+    for i in range(4):
+        (c / "badcrops" / f"{i}.png").write_bytes(b"\x89PNG broken")
+    (c / "split.txt").write_text("pos000.png\n")
+    (c / "bad.toml").write_text("window = [16, 16\n")
+    (c / "unknown.toml").write_text(
+        'window = [16, 16]\nsurprise = 1\n[data]\npositives = ["crops/pos"]\n'
+    )
+    (c / "tracker_unknown.toml").write_text("n_particles = 50\nsurprise = 2\n")
+    # scores
+    rng = np.random.default_rng(2)
+    m = rng.normal(size=200)
+    y = (m + rng.normal(size=200) > 0).astype(int)
+    (c / "scores.csv").write_text(
+        "score,label\n" + "".join(f"{a},{b}\n" for a, b in zip(m, y, strict=True))
+    )
+    (c / "scores3.csv").write_text("0.1,0\n0.9,1\n0.5,1\n")
+    (c / "onelabel.csv").write_text("".join(f"{a},1\n" for a in m[:50]))
+    (c / "nan.csv").write_text("0.1,0\nnan,1\n0.3,1\n")
+    (c / "text.csv").write_text("0.1,0\nabc,1\n")
+    (c / "header.csv").write_text("score,label\n")
+    (c / "empty.csv").write_text("")
+    (c / "threelabels.csv").write_text("".join(f"{a},{i % 3}\n" for i, a in enumerate(m)))
+    (c / "latin1.csv").write_bytes("0.1,0\n0.2,1 \xe9\n".encode("latin-1"))
+    (c / "cols.csv").write_text("0.1\n0.2\n")
+    # sequences
+    _otb(c / "seqs" / "good")
+    _otb(c / "badgt" / "short", gt="11,15,14,20\n13,15,14,20\n")
+    _otb(c / "textgt" / "t", gt="11,15,14,20\nfoo,bar\n" + "11,15,14,20\n" * 4)
+    (c / "noseq").mkdir()
+    (c / "noseq" / "x.txt").write_text("nothing")
+    return c
+
+
+FORGERIES = {
+    "window": {"meta_edit": lambda m: m.update(window=[100000, 100000])},
+    "bankwin": {
+        "meta_edit": lambda m: (
+            m.update(window=[100000, 100000]),
+            m["features"].update(window=[100000, 100000]),
+        )
+    },
+    "platt_sign": {"meta_edit": lambda m: m["calibration"].update(a=-m["calibration"]["a"])},
+    "platt_huge": {"meta_edit": lambda m: m["calibration"].update(b=1e308)},
+    "threshold": {
+        "tensor_edit": lambda t: t.update(
+            {"classifier.threshold": t["classifier.threshold"] + 1000}
+        )
+    },
+    "index": {"tensor_edit": lambda t: t.update({"features.index": t["features.index"] + 10**6})},
+    "nan": {
+        "tensor_edit": lambda t: t.update(
+            {"classifier.left": torch.full_like(t["classifier.left"], float("nan"))}
+        )
+    },
+    "meta_list": {"meta_replace": lambda m: [m]},
+    "no_offsets": {"header_edit": lambda h: h["features.index"].pop("data_offsets")},
+    "str_entry": {"header_edit": lambda h: h.update({"features.index": "oops"})},
+    "kind": {"meta_edit": lambda m: m["classifier"].update(kind="forest")},
+    "version": {"meta_edit": lambda m: m.update(format_version=99)},
+    "nochecksum": {"meta_edit": lambda m: m["training"].update(x=1), "recompute": False},
+    "sel": {"meta_edit": lambda m: m["selected_features"].pop()},
+    "objbox": {"meta_edit": lambda m: m.update(object_box=[0.9, 0.9, 0.5, 0.5])},
+    "name": {"meta_edit": lambda m: m.update(name=7)},
+}
+
+FORGED_MSG = {
+    "window": "window height",
+    "bankwin": "window height",
+    "platt_sign": "Platt slope",
+    "platt_huge": "calibration.b",
+    "threshold": "classifier.threshold",
+    "index": "outside the bank",
+    "nan": "NaN",
+    "meta_list": "format",
+    "no_offsets": "data_offsets",
+    "str_entry": "features.index",
+    "kind": "unknown classifier kind",
+    "version": "newer than this torchtrack",
+    "nochecksum": "checksum",
+    "sel": "selected_features",
+    "objbox": "object_box",
+    "name": "name must be",
+}
+
+MODEL_FILES_BAD = {
+    "trunc": "truncated",
+    "trail": "trailing bytes",
+    "junk": "truncated or not a safetensors",
+    "tiny": "only 2 bytes",
+    "bitflip": "checksum",
+    "missing": "does not exist",
+}
+
+# ----------------------------------------------------------------------------- track
+T = "track {c}/frames --no-progress"
+HB = "--tracker histogram:n_particles=50 --box 10,14,14,20"
+
+CASES: list[Case] = [
+    # output paths, checked before any work
+    E("track-out-is-dir", f"{T} {HB} -o {{o}}", "is an existing folder"),
+    E("track-out-parent-missing", f"{T} {HB} -o {{o}}/no/such/out.csv", "does not exist"),
+    E("track-out-parent-is-file", f"{T} {HB} -o {{c}}/afile/out.csv", "is not a folder"),
+    E("track-out-empty", f"{T} {HB} -o ''", "empty path"),
+    E("track-video-is-dir", f"{T} {HB} --video {{c}}/frames", "is an existing folder"),
+    E("track-video-xyz", f"{T} {HB} --video {{o}}/out.xyz", r"must end in \.mp4 or \.avi"),
+    E("track-video-no-ext", f"{T} {HB} --video {{o}}/out", r"must end in \.mp4 or \.avi"),
+    E("track-video-parent-missing", f"{T} {HB} --video {{o}}/x/y.mp4", "does not exist"),
+    E("track-out-equals-video", f"{T} {HB} -o {{o}}/a.mp4 --video {{o}}/a.mp4", "same file"),
+    E("track-video-is-source", f"track {{c}}/clip.mp4 {HB} --video {{c}}/clip.mp4", "same file"),
+    E("track-out-is-source", f"track {{c}}/clip.mp4 {HB} -o {{c}}/clip.mp4", "same file"),
+    # boxes
+    E("track-box-outside", f"{T} --tracker camshift --box 500,500,10,10 -o {{o}}/b.csv", "outside"),
+    E(
+        "track-box-zero",
+        f"{T} --tracker camshift --box 1,1,0,10 -o {{o}}/b.csv",
+        "zero or negative",
+    ),
+    E(
+        "track-box-negative",
+        f"{T} --tracker camshift --box 1,1,-4,10 -o {{o}}/b.csv",
+        "zero or negative",
+    ),
+    E("track-box-nan", f"{T} --tracker camshift --box 1,nan,4,10 -o {{o}}/b.csv", "finite"),
+    E("track-box-inf", f"{T} --tracker camshift --box 1,2,inf,10 -o {{o}}/b.csv", "finite"),
+    E("track-box-three", f"{T} --tracker camshift --box 1,2,3 -o {{o}}/b.csv", "four numbers"),
+    E("track-box-five", f"{T} --tracker camshift --box 1,2,3,4,5 -o {{o}}/b.csv", "four numbers"),
+    E("track-box-text", f"{T} --tracker camshift --box a,b,c,d -o {{o}}/b.csv", "four numbers"),
+    E("track-box-empty", f"{T} --tracker camshift --box '' -o {{o}}/b.csv", "four numbers"),
+    E(
+        "track-box-subpixel",
+        f"{T} --tracker camshift --box 1,1,0.2,0.2 -o {{o}}/b.csv",
+        "under one pixel|size below",
+    ),
+    A(
+        "track-box-sticks-out",
+        f"{T} --tracker camshift --box 55,10,20,20 -o {{o}}/b.csv",
+        "clipped",
+        ("b.csv",),
+    ),
+    # sources
+    E("track-source-missing", f"track {{c}}/nothing {HB} -o {{o}}/b.csv", "does not exist"),
+    E("track-source-empty-dir", f"track {{c}}/emptydir {HB} -o {{o}}/b.csv", "holds no image file"),
+    E("track-source-notes-only", f"track {{c}}/notes {HB} -o {{o}}/b.csv", "holds no image file"),
+    E(
+        "track-source-corrupt",
+        f"track {{c}}/corrupt {HB} -o {{o}}/b.csv --video {{o}}/v.mp4",
+        "no readable frame",
+    ),
+    E(
+        "track-source-1x1",
+        "track {c}/tiny --tracker camshift --box 0,0,1,1 -o {o}/b.csv",
+        "too small",
+    ),
+    E(
+        "track-source-empty-video",
+        f"track {{c}}/empty.mp4 {HB} -o {{o}}/b.csv",
+        "cannot be opened|no readable frame",
+    ),
+    E(
+        "track-source-text-video",
+        f"track {{c}}/text.mp4 {HB} -o {{o}}/b.csv",
+        "cannot be opened|no readable frame",
+    ),
+    E("track-source-camera", f"track 97 {HB} -o {{o}}/b.csv", "camera index 97"),
+    A(
+        "track-truncated-jpeg",
+        f"track {{c}}/jpgs {HB} -o {{o}}/b.csv",
+        "1 unreadable frame",
+        ("b.csv",),
+    ),
+    A(
+        "track-truncated-video",
+        f"track {{c}}/cut.avi {HB} -o {{o}}/b.csv",
+        "the video ended early",
+        ("b.csv",),
+    ),
+    E(
+        "track-unopenable-video",
+        f"track {{c}}/cut.mp4 {HB} -o {{o}}/b.csv",
+        "cannot be opened .*moov atom not found",
+    ),
+    A("track-video-out", f"{T} {HB} --video {{o}}/v.avi", "wrote", ("v.avi",)),
+    # trackers and options
+    E("track-tracker-unknown", f"{T} --tracker sift --box 10,14,14,20", "unknown tracker 'sift'"),
+    E(
+        "track-tracker-spec",
+        f"{T} --tracker histogram:n_particles --box 10,14,14,20",
+        "not key=value",
+    ),
+    E("track-tracker-noname", f"{T} --tracker :a=1 --box 10,14,14,20", "has no name"),
+    E("track-tracker-param", f"{T} --tracker camshift:wings=2 --box 10,14,14,20", "no parameter"),
+    E(
+        "track-particles-neg",
+        f"{T} --tracker histogram:n_particles=-5 --box 10,14,14,20",
+        "n_particles",
+    ),
+    E(
+        "track-particles-text",
+        f"{T} --tracker histogram:n_particles=many --box 10,14,14,20",
+        "n_particles",
+    ),
+    E(
+        "track-particles-zero",
+        f"{T} --tracker adaptive-haar:n_particles=0 --box 10,14,14,20",
+        "n_particles",
+    ),
+    E(
+        "track-adapt-wrong-tracker",
+        f"{T} --tracker camshift --adapt global --box 10,14,14,20",
+        "does not take --adapt",
+    ),
+    E(
+        "track-adapt-bad",
+        f"{T} --tracker adaptive-haar --adapt sideways --box 10,14,14,20",
+        "invalid choice",
+        2,
+    ),
+    E(
+        "track-config-missing",
+        f"{T} --tracker histogram --config {{c}}/none.toml --box 10,14,14,20",
+        "cannot read tracker config .*No such file",
+    ),
+    E(
+        "track-config-unknown-key",
+        f"{T} --tracker histogram --config {{c}}/tracker_unknown.toml --box 10,14,14,20",
+        "surprise",
+    ),
+    E(
+        "track-config-bad-toml",
+        f"{T} --tracker histogram --config {{c}}/bad.toml --box 10,14,14,20",
+        "TOML|toml",
+    ),
+    E("track-max-frames-0", f"{T} {HB} --max-frames 0", "--max-frames must be >= 1"),
+    E("track-max-frames-text", f"{T} {HB} --max-frames ten", "invalid int", 2),
+    E("track-threads-0", f"{T} {HB} --threads 0", "--threads must be >= 1"),
+    E("track-particles-no-video", f"{T} {HB} --particles", "--particles draws into"),
+    E("track-color-bad", f"{T} {HB} --color cmyk", "invalid choice", 2),
+    E("track-detect-unknown", f"{T} --detect zebra", "unknown model 'zebra'"),
+    E("track-detect-missing-file", f"{T} --detect {{c}}/none.safetensors", "does not exist"),
+    E(
+        "track-detect-with-box",
+        f"{T} --tracker camshift --detect pedestrian --box 10,14,14,20",
+        "--detect",
+    ),
+    E("track-trusted-key-junk", f"{T} {HB} --trusted-key {{c}}/junk.pub", "not a PEM public key"),
+    E("track-trusted-key-missing", f"{T} {HB} --trusted-key {{c}}/none.pub", "cannot be read"),
+    E(
+        "track-unsigned-required",
+        f"{T} --tracker detector:model={{c}}/toy.safetensors --box 10,14,14,20 --require-signed -o {{o}}/b.csv",
+        "not signed",
+    ),
+    E(
+        "track-untrusted-signer",
+        f"{T} --tracker detector:model={{c}}/signed.safetensors --box 10,14,14,20 --trusted-key {{c}}/mallory.pub -o {{o}}/b.csv",
+        "not trusted here",
+    ),
+    E(
+        "track-forged-signed",
+        f"{T} --tracker detector:model={{c}}/forged_signed.safetensors --box 10,14,14,20 -o {{o}}/b.csv --trusted-key {{c}}/alice.pub",
+        "does not verify",
+    ),
+    E(
+        "track-uncalibrated",
+        f"{T} --tracker detector:model={{c}}/uncal.safetensors --box 10,14,14,20 -o {{o}}/b.csv",
+        "calibrat",
+    ),
+    E("track-seed-text", f"{T} {HB} --seed x", "invalid int", 2),
+    E("track-no-source", "track", "required|SOURCE", 2),
+]
+for name, msg in FORGED_MSG.items():
+    CASES.append(
+        E(
+            f"track-forged-{name}",
+            f"{T} --tracker detector:model={{c}}/forged_{name}.safetensors --box 10,14,14,20 -o {{o}}/b.csv",
+            msg,
+        )
+    )
+
+# ---------------------------------------------------------------------------- detect
+D = "detect {c}/toy.safetensors {c}/frames -q"
+CASES += [
+    E("detect-out-dir", f"{D} -o {{c}}/frames", "is an existing folder"),
+    E("detect-out-parent", f"{D} -o {{o}}/x/d.jsonl", "does not exist"),
+    E("detect-annotate-file", f"{D} --annotate {{c}}/afile", "is an existing file"),
+    E("detect-annotate-parent", f"{D} --annotate {{o}}/x/y", "does not exist"),
+    E("detect-video-avi", f"{D} --video {{o}}/v.avi", r"\.mp4"),
+    E("detect-video-dir", f"{D} --video {{c}}/frames", r"\.mp4|existing folder"),
+    E("detect-out-equals-video", f"{D} -o {{o}}/v.mp4 --video {{o}}/v.mp4", "same file"),
+    E("detect-threshold-2", f"{D} --threshold 2", "--threshold is a probability"),
+    E("detect-threshold-nan", f"{D} --threshold nan", "--threshold is a probability"),
+    E("detect-min-scale-0", f"{D} --min-scale 0", "--min-scale must be > 0"),
+    E("detect-max-below-min", f"{D} --min-scale 2 --max-scale 1", "below --min-scale"),
+    E("detect-nms-0", f"{D} --nms-iou 0", "--nms-iou"),
+    E("detect-batch-0", f"{D} --batch 0", "--batch must be >= 1"),
+    E("detect-max-frames-0", f"{D} --max-frames 0", "--max-frames must be >= 1"),
+    E("detect-threads-0", f"{D} --threads 0", "--threads must be >= 1"),
+    E(
+        "detect-source-missing",
+        "detect {c}/toy.safetensors {c}/none -o {o}/d.jsonl",
+        "does not exist",
+    ),
+    E(
+        "detect-source-empty",
+        "detect {c}/toy.safetensors {c}/emptydir -o {o}/d.jsonl",
+        "holds no image file",
+    ),
+    E(
+        "detect-source-corrupt",
+        "detect {c}/toy.safetensors {c}/corrupt -o {o}/d.jsonl --annotate {o}/ann",
+        "no frame of",
+    ),
+    E(
+        "detect-source-1x1",
+        "detect {c}/toy.safetensors {c}/tiny -o {o}/d.jsonl",
+        "no frame of|smaller",
+    ),
+    E(
+        "detect-source-text-video",
+        "detect {c}/toy.safetensors {c}/text.mp4 -o {o}/d.jsonl",
+        "cannot be opened|no frame",
+    ),
+    E(
+        "detect-strict-truncated",
+        "detect {c}/toy.safetensors {c}/jpgs -o {o}/d.jsonl --strict",
+        r"0002\.jpg is truncated",
+    ),
+    A(
+        "detect-truncated-skipped",
+        "detect {c}/toy.safetensors {c}/jpgs -o {o}/d.jsonl",
+        r"skipped frame 2: .*0002\.jpg is truncated",
+        ("d.jsonl",),
+    ),
+    A(
+        "detect-truncated-video",
+        "detect {c}/toy.safetensors {c}/cut.avi -o {o}/d.jsonl",
+        "ended early",
+        ("d.jsonl",),
+    ),
+    E(
+        "detect-strict-truncated-video",
+        "detect {c}/toy.safetensors {c}/cut.avi -o {o}/d.jsonl --strict",
+        "ended at frame",
+    ),
+    A(
+        "detect-one-image",
+        "detect {c}/toy.safetensors {c}/photo.png -o {o}/d.jsonl",
+        "frame",
+        ("d.jsonl",),
+    ),
+    E(
+        "detect-uncalibrated",
+        "detect {c}/uncal.safetensors {c}/frames -o {o}/d.jsonl",
+        "no calibration",
+    ),
+    E("detect-model-unknown", "detect zebra {c}/frames", "unknown model 'zebra'"),
+    E(
+        "detect-model-is-dir",
+        "detect {c}/frames {c}/frames -o {o}/d.jsonl",
+        "is a folder|not a torchtrack|does not exist",
+    ),
+    E("detect-require-unsigned", f"{D} --require-signed -o {{o}}/d.jsonl", "not signed"),
+    E(
+        "detect-untrusted",
+        "detect {c}/signed.safetensors {c}/frames --trusted-key {c}/mallory.pub -o {o}/d.jsonl",
+        "not trusted here",
+    ),
+    A(
+        "detect-trusted",
+        "detect {c}/signed.safetensors {c}/frames --trusted-key {c}/alice.pub -o {o}/d.jsonl",
+        "frame",
+        ("d.jsonl",),
+    ),
+    E(
+        "detect-forged-signed",
+        "detect {c}/forged_signed.safetensors {c}/frames -o {o}/d.jsonl --trusted-key {c}/alice.pub",
+        "does not verify",
+    ),
+    # signatures optional and the signer unknown here: it loads like an unsigned file (the
+    # checksum and range checks still hold); trusting the signer's key is what catches it
+    A(
+        "detect-forged-signed-untrusted",
+        "detect {c}/forged_signed.safetensors {c}/frames -o {o}/d.jsonl",
+        "frame",
+        ("d.jsonl",),
+    ),
+    E(
+        "detect-forged-signed-required",
+        "detect {c}/forged_signed.safetensors {c}/frames -o {o}/d.jsonl --require-signed",
+        "not trusted here",
+    ),
+    E("detect-missing-args", "detect", "required|MODEL", 2),
+]
+for name, msg in {**FORGED_MSG, **MODEL_FILES_BAD}.items():
+    f = f"forged_{name}" if name in FORGED_MSG else name
+    CASES.append(
+        E(
+            f"detect-model-{name}",
+            f"detect {{c}}/{f}.safetensors {{c}}/frames -o {{o}}/d.jsonl",
+            msg,
+        )
+    )
+
+# ----------------------------------------------------------------------------- train
+TR = "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 16 --features 4 -q"
+CASES += [
+    E("train-out-dir", f"{TR} -o {{c}}/frames", "is an existing folder"),
+    E("train-out-parent", f"{TR} -o {{o}}/a/b.safetensors", "does not exist"),
+    E("train-out-parent-file", f"{TR} -o {{c}}/afile/m.safetensors", "is not a folder"),
+    E("train-no-out", "train --pos {c}/crops/pos", "required|--out", 2),
+    E("train-no-pos", "train -o {o}/m.safetensors", "give --config TOML, or --pos"),
+    E(
+        "train-no-neg",
+        "train --pos {c}/crops/pos --window 16 16 -o {o}/m.safetensors",
+        "no negatives",
+    ),
+    E(
+        "train-pos-missing",
+        "train --pos {c}/none --neg {c}/crops/neg --window 16 16 -o {o}/m.safetensors",
+        "does not exist",
+    ),
+    E(
+        "train-pos-empty",
+        "train --pos {c}/emptydir --neg {c}/crops/neg --window 16 16 -o {o}/m.safetensors",
+        "no usable image",
+    ),
+    E(
+        "train-pos-corrupt",
+        "train --pos {c}/badcrops --neg {c}/crops/neg --window 16 16 -o {o}/m.safetensors",
+        "no usable image",
+    ),
+    E(
+        "train-pos-corrupt-strict",
+        "train --pos {c}/badcrops --neg {c}/crops/neg --window 16 16 --strict -o {o}/m.safetensors",
+        "unusable file",
+    ),
+    E(
+        "train-few",
+        "train --pos {c}/few/pos --neg {c}/few/neg --window 16 16 --features 4 -q -o {o}/m.safetensors",
+        "too little data.*fewer than the minimum 20",
+    ),
+    E("train-holdout-99", f"{TR} --holdout 0.99 -o {{o}}/m.safetensors", "too little data"),
+    E(
+        "train-holdout-tiny",
+        f"{TR} --holdout 0.01 -o {{o}}/m.safetensors",
+        "calibration crops, fewer than the minimum 10",
+    ),
+    E("train-holdout-1.5", f"{TR} --holdout 1.5 -o {{o}}/m.safetensors", "calibration_fraction"),
+    E("train-holdout-0", f"{TR} --holdout 0 -o {{o}}/m.safetensors", "calibration_fraction"),
+    E(
+        "train-flat",
+        "train --pos {c}/flat/pos --neg {c}/crops/neg --window 16 16 --features 4 -q -o {o}/m.safetensors",
+        "are flat",
+    ),
+    E("train-features-0", f"{TR} --features 0 -o {{o}}/m.safetensors", "n_features"),
+    E(
+        "train-window-0",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 0 16 -o {o}/m.safetensors",
+        "window",
+    ),
+    E(
+        "train-window-small",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 3 3 -q -o {o}/m.safetensors",
+        "filter size|window|sizes",
+    ),
+    E(
+        "train-config-missing",
+        "train --config {c}/none.toml -o {o}/m.safetensors",
+        "does not exist",
+    ),
+    E("train-config-bad", "train --config {c}/bad.toml -o {o}/m.safetensors", "not valid TOML"),
+    E("train-config-unknown", "train --config {c}/unknown.toml -o {o}/m.safetensors", "surprise"),
+    E(
+        "train-mining-no-images",
+        f"{TR} --mining-rounds 1 -o {{o}}/m.safetensors",
+        "needs data.negative_images",
+    ),
+    E(
+        "train-random-neg",
+        "train --pos {c}/crops/pos --neg-images {c}/frames --random-negatives -5 --window 16 16 -o {o}/m.safetensors",
+        "random_negatives|no negatives",
+    ),
+    E(
+        "train-exclude-missing",
+        f"{TR} --exclude {{c}}/none.txt -o {{o}}/m.safetensors",
+        "does not exist",
+    ),
+    E(
+        "train-classifier-bad",
+        f"{TR} --classifier tree -o {{o}}/m.safetensors",
+        "invalid choice",
+        2,
+    ),
+    E(
+        "train-neg-images-missing",
+        "train --pos {c}/crops/pos --neg-images {c}/none --random-negatives 50 --window 16 16 -q -o {o}/m.safetensors",
+        "does not exist",
+    ),
+    E(
+        "train-few-svm",
+        "train --pos {c}/few/pos --neg {c}/few/neg --window 16 16 --features 4 --classifier svm "
+        "-q -o {o}/m.safetensors",
+        "too little data",
+    ),
+    A(
+        "train-few-forced",
+        "train --pos {c}/few/pos --neg {c}/crops/neg --window 16 16 --features 4 --holdout 0.5 --force -q -o {o}/m.safetensors",
+        "wrote",
+        ("m.safetensors",),
+    ),
+]
+
+# ------------------------------------------------------------------------- calibrate
+CS = "calibrate --scores {c}/scores.csv -q"
+CM = "calibrate {c}/toy.safetensors --pos {c}/crops/pos --neg {c}/crops/neg -q"
+CASES += [
+    E("cal-neither", "calibrate", "give either a MODEL"),
+    E(
+        "cal-both",
+        "calibrate {c}/toy.safetensors --scores {c}/scores.csv --json {o}/p.json",
+        "give either a MODEL",
+    ),
+    E("cal-scores-no-json", CS, "needs --json"),
+    E("cal-json-dir", f"{CS} --json {{c}}/frames", "is an existing folder"),
+    E("cal-json-parent", f"{CS} --json {{o}}/x/p.json", "does not exist"),
+    E("cal-plot-suffix", f"{CS} --json {{o}}/p.json --plot {{o}}/p.txt", r"must end in \.png"),
+    E("cal-plot-dir", f"{CS} --json {{o}}/p.json --plot {{c}}/frames", "is an existing folder"),
+    E("cal-json-equals-plot", f"{CS} --json {{o}}/p.png --plot {{o}}/p.png", "same file"),
+    E("cal-json-is-scores", f"{CS} --json {{c}}/scores.csv", "same file"),
+    E(
+        "cal-scores-missing",
+        "calibrate --scores {c}/none.csv --json {o}/p.json",
+        "cannot read score file",
+    ),
+    E("cal-scores-empty", "calibrate --scores {c}/empty.csv --json {o}/p.json", "has no rows"),
+    E("cal-scores-header", "calibrate --scores {c}/header.csv --json {o}/p.json", "no data rows"),
+    E("cal-scores-nan", "calibrate --scores {c}/nan.csv --json {o}/p.json", "non-finite"),
+    E("cal-scores-text", "calibrate --scores {c}/text.csv --json {o}/p.json", "not numbers"),
+    E(
+        "cal-scores-one-label",
+        "calibrate --scores {c}/onelabel.csv --json {o}/p.json",
+        "label|class",
+    ),
+    E(
+        "cal-scores-three-labels",
+        "calibrate --scores {c}/threelabels.csv --json {o}/p.json",
+        "label|class",
+    ),
+    E("cal-scores-latin1", "calibrate --scores {c}/latin1.csv --json {o}/p.json", "not UTF-8"),
+    E("cal-scores-one-col", "calibrate --scores {c}/cols.csv --json {o}/p.json", "columns"),
+    E(
+        "cal-scores-few",
+        "calibrate --scores {c}/scores3.csv --json {o}/p.json",
+        "too little data to calibrate",
+    ),
+    A(
+        "cal-scores-few-forced",
+        "calibrate --scores {c}/scores3.csv --json {o}/p.json --force --min-per-class 1",
+        "wrote",
+        ("p.json",),
+    ),
+    A(
+        "cal-scores-ok",
+        f"{CS} --json {{o}}/p.json --plot {{o}}/r.png",
+        "wrote",
+        ("p.json", "r.png"),
+    ),
+    E("cal-bins-0", f"{CS} --json {{o}}/p.json --bins 0", "--bins must be >= 1"),
+    E("cal-min-0", f"{CS} --json {{o}}/p.json --min-per-class 0", "--min-per-class must be >= 1"),
+    E("cal-method-bad", f"{CS} --json {{o}}/p.json --method beta", "invalid choice", 2),
+    E("cal-scores-with-pos", f"{CS} --json {{o}}/p.json --pos {{c}}/crops/pos", "need a MODEL"),
+    E(
+        "cal-model-no-crops",
+        "calibrate {c}/toy.safetensors -o {o}/m.safetensors",
+        "needs labelled calibration crops",
+    ),
+    E("cal-model-out-dir", f"{CM} -o {{c}}/frames", "is an existing folder"),
+    E(
+        "cal-model-few",
+        "calibrate {c}/toy.safetensors --pos {c}/few/pos --neg {c}/few/neg -o {o}/m.safetensors",
+        "too little data to calibrate",
+    ),
+    E(
+        "cal-model-pos-missing",
+        "calibrate {c}/toy.safetensors --pos {c}/none --neg {c}/crops/neg -o {o}/m.safetensors",
+        "does not exist",
+    ),
+    E("cal-model-region", f"{CM} --region 0 0 8 8 -o {{o}}/m.safetensors", "go together"),
+    E(
+        "cal-model-file-missing",
+        "calibrate {c}/none.safetensors --pos {c}/crops/pos --neg {c}/crops/neg -o {o}/m.safetensors",
+        "does not exist",
+    ),
+    E(
+        "cal-model-forged-signed",
+        "calibrate {c}/forged_signed.safetensors --pos {c}/crops/pos --neg {c}/crops/neg -o {o}/m.safetensors --trusted-key {c}/alice.pub",
+        "does not verify",
+    ),
+    E("cal-model-require", f"{CM} --require-signed -o {{o}}/m.safetensors", "not signed"),
+    E(
+        "cal-model-inverted",
+        f"{CM} -o {{o}}/m.safetensors --plot {{o}}/r.png",
+        "negatives higher; are --pos and --neg swapped",
+    ),
+    # the toy detector (random stumps) happens to score the noise crops higher than the bars
+    A(
+        "cal-model-ok",
+        "calibrate {c}/toy.safetensors --pos {c}/crops/neg --neg {c}/crops/pos -q "
+        "-o {o}/m.safetensors --plot {o}/r.png",
+        "wrote",
+        ("m.safetensors", "r.png"),
+    ),
+]
+for name, msg in {**FORGED_MSG, **MODEL_FILES_BAD}.items():
+    f = f"forged_{name}" if name in FORGED_MSG else name
+    CASES.append(
+        E(
+            f"cal-model-{name}",
+            f"calibrate {{c}}/{f}.safetensors --pos {{c}}/crops/pos --neg {{c}}/crops/neg -o {{o}}/m.safetensors",
+            msg,
+        )
+    )
+
+# ------------------------------------------------------------------------------ eval
+EV = "eval --sequences {c}/seqs --trackers camshift --no-progress"
+CASES += [
+    E("eval-out-file", f"{EV} -o {{c}}/afile", "is an existing file"),
+    E("eval-out-parent", f"{EV} -o {{o}}/a/b", "does not exist"),
+    E("eval-no-out", EV, "needs --out"),
+    E("eval-no-sequences", "eval --trackers camshift -o {o}/r", "needs --sequences"),
+    E("eval-no-trackers", "eval --sequences {c}/seqs -o {o}/r", "needs --trackers"),
+    E(
+        "eval-sequences-missing",
+        "eval --sequences {c}/none --trackers camshift -o {o}/r",
+        "does not exist",
+    ),
+    E(
+        "eval-no-sequence-found",
+        "eval --sequences {c}/noseq --trackers camshift -o {o}/r",
+        "no tracking sequence",
+    ),
+    E("eval-gt-mismatch", "eval --sequences {c}/badgt --trackers camshift -o {o}/r", "rows|frames"),
+    E("eval-gt-text", "eval --sequences {c}/textgt --trackers camshift -o {o}/r", "line 2"),
+    E("eval-tracker-unknown", f"{EV} --trackers sift -o {{o}}/r", "unknown tracker 'sift'"),
+    E("eval-tracker-param", f"{EV} --trackers camshift:wings=1 -o {{o}}/r", "no parameter"),
+    E("eval-max-frames-1", f"{EV} --max-frames 1 -o {{o}}/r", "--max-frames must be >= 2"),
+    E("eval-jobs-0", f"{EV} --jobs 0 -o {{o}}/r", "--jobs must be >= 1"),
+    E(
+        "eval-import-missing",
+        f"{EV} --import no_such_module_x -o {{o}}/r",
+        "cannot import tracker module",
+    ),
+    E("eval-invisible-bad", f"{EV} --invisible maybe -o {{o}}/r", "invalid choice", 2),
+    E("eval-trusted-junk", f"{EV} --trusted-key {{c}}/junk.pub -o {{o}}/r", "not a PEM public key"),
+    A(
+        "eval-truncate",
+        "eval --sequences {c}/badgt --trackers camshift --on-mismatch truncate --no-progress -o {o}/r",
+        "results",
+        ("r/results.json", "r/results.md", "r/sequences/short/camshift.json"),
+    ),
+]
+
+# ------------------------------------------------------------------------------ sign
+CASES += [
+    E("sign-nothing", "sign", "exactly one of"),
+    E("sign-no-model", "sign --key {c}/alice.pem", "give the MODEL"),
+    E(
+        "sign-key-missing",
+        "sign {c}/toy.safetensors --key {c}/none.pem -o {o}/s.safetensors",
+        "cannot be read",
+    ),
+    E(
+        "sign-key-public",
+        "sign {c}/toy.safetensors --key {c}/alice.pub -o {o}/s.safetensors",
+        "not an unencrypted PEM private key",
+    ),
+    E(
+        "sign-key-junk",
+        "sign {c}/toy.safetensors --key {c}/afile -o {o}/s.safetensors",
+        "not an unencrypted PEM private key",
+    ),
+    E("sign-new-key-exists", "sign --new-key {c}/alice.pem", "exists already|never overwritten"),
+    E("sign-new-key-parent", "sign --new-key {o}/x/k.pem", "does not exist"),
+    E("sign-new-key-dir", "sign --new-key {c}/frames", "is an existing folder"),
+    E("sign-new-key-model", "sign {c}/toy.safetensors --new-key {o}/k.pem", "takes no MODEL"),
+    E("sign-two-modes", "sign {c}/toy.safetensors --check --key {c}/alice.pem", "exactly one of"),
+    E(
+        "sign-out-dir",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {c}/frames",
+        "is an existing folder",
+    ),
+    E("sign-check-out", "sign {c}/toy.safetensors --check -o {o}/x.safetensors", "writes nothing"),
+    E(
+        "sign-forged",
+        "sign {c}/forged_threshold.safetensors --key {c}/alice.pem -o {o}/s.safetensors",
+        "classifier.threshold",
+    ),
+    E(
+        "sign-forged-signed",
+        "sign {c}/forged_signed.safetensors --key {c}/alice.pem -o {o}/s.safetensors",
+        "does not verify",
+    ),
+    E("sign-check-bitflip", "sign --check {c}/bitflip.safetensors", "checksum"),
+    E(
+        "sign-check-untrusted-required",
+        "sign --check {c}/signed.safetensors --require-signed",
+        "not trusted here",
+    ),
+    A(
+        "sign-ok",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {o}/s.safetensors",
+        "signed by key",
+        ("s.safetensors",),
+    ),
+    A(
+        "sign-check-trusted",
+        "sign --check {c}/signed.safetensors --trusted-key {c}/alice.pub",
+        "signature verifies",
+    ),
+    A("sign-new-key", "sign --new-key {o}/k.pem", "key id", ("k.pem", "k.pub")),
+    # the top level
+    E("top-unknown-command", "frobnicate", "invalid choice", 2),
+    E("top-no-command", "", "usage", 2),
+]
+
+
+def _fill(argv: tuple[str, ...], c: Path, o: Path) -> list[str]:
+    return [a.replace("{c}", str(c)).replace("{o}", str(o)) for a in argv]
+
+
+def _files(folder: Path) -> set[str]:
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.fixture(autouse=True)
+def _restore_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+def test_corpus_is_large_and_named_uniquely():
+    ids = [c.id for c in CASES]
+    assert len(ids) == len(set(ids)) and len(ids) >= 200, len(ids)
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda c: c.id)
+@pytest.mark.filterwarnings("ignore:sequence short")
+def test_bad_input(case: Case, corpus, tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    before = _files(corpus)
+    try:
+        code = main(_fill(case.argv, corpus, out))
+    except SystemExit as exc:  # argparse: usage errors exit 2 with a message
+        code = exc.code
+    captured = capsys.readouterr()
+    text = captured.err if case.code else captured.out + captured.err
+    assert code == case.code, f"exit {code}, expected {case.code}; stderr: {captured.err[-800:]}"
+    assert re.search(case.match, text), f"{case.match!r} not in: {text[-800:]}"
+    assert "Traceback" not in captured.err
+    assert _files(out) == set(case.keep), "a failed run left output behind" if case.code else ""
+    # nothing written beside the inputs either (temporary files, .part files, plots)
+    assert _files(corpus) == before
+
+
+# ------------------------------------------------------------------- cases on real data
+def test_real_truncated_frame_and_video(data_dir, tmp_path, capsys):
+    """The issue's cases on shared data: a BoBoT frame cut to 25% of its bytes is counted as
+    unreadable by track (and caught by detect --strict); the PETS clip cut in half makes
+    detect warn that it ended early."""
+    src = data_dir / "tracking" / "bobot_pedestrian" / "frames"
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(2, 7):
+        (frames / f"img{i:04d}.jpg").write_bytes((src / f"img{i:04d}.jpg").read_bytes())
+    cut = frames / "img0004.jpg"
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 4])
+    out = tmp_path / "b.csv"
+    argv = ["track", str(frames), "--tracker", "camshift", "--box", "108,47,56,156"]
+    assert main([*argv, "-o", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr()
+    assert "1 unreadable frame(s)" in printed.out
+    rows = out.read_text().splitlines()[1:]
+    assert rows[2].endswith(",0") and len(rows) == 5  # the cut frame: not visible
+    assert (
+        main(["detect", "pedestrian", str(frames), "--strict", "-q", "-o", str(tmp_path / "d")])
+        == 1
+    )
+    assert "img0004.jpg is truncated" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+    video = data_dir / "videos" / "pets2009_s2l1_vtest" / "vtest.avi"
+    if video.is_file():
+        data = video.read_bytes()
+        short = tmp_path / "short.avi"
+        short.write_bytes(data[: len(data) // 40])
+        code = main(
+            [
+                "detect",
+                "pedestrian",
+                str(short),
+                "--max-frames",
+                "400",
+                "--no-progress",
+                "--min-scale",
+                "2",
+                "-o",
+                str(tmp_path / "d.jsonl"),
+            ]
+        )
+        err = capsys.readouterr().err
+        assert code == 0 and "ended early" in err and "Traceback" not in err
+
+
+def test_sigterm_finishes_the_csv_like_sigint(corpus, tmp_path, capsys):
+    """SIGTERM during tracking: the rows so far are kept and OUT is a finished file (no
+    .part left), exit status 143."""
+    import signal
+    import threading
+
+    from torchtrack.track import base
+
+    out = tmp_path / "b.csv"
+    real_update = base.Tracker.update
+    calls = {"n": 0}
+
+    def update(self, frame):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real_update(self, frame)
+
+    assert threading.current_thread() is threading.main_thread()
+    base.Tracker.update = update
+    try:
+        code = main(["track", str(corpus / "frames"), *HB.split(), "-o", str(out), "--no-progress"])
+    finally:
+        base.Tracker.update = real_update
+    assert code == 143
+    assert "terminated: keeping the results so far" in capsys.readouterr().err
+    assert out.is_file() and not (tmp_path / "b.csv.part").exists()
+    assert len(out.read_text().splitlines()) >= 3  # header + the frames before the signal
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored after the command
+
+
+def test_model_header_is_not_allocated(corpus):
+    """The forged 100000 x 100000 window is refused from the header (struct + JSON only)."""
+    from torchtrack.detect import load_detector
+    from torchtrack.errors import ModelFormatError
+
+    data = (corpus / "forged_bankwin.safetensors").read_bytes()
+    (n,) = struct.unpack("<Q", data[:8])
+    meta = json.loads(json.loads(data[8 : 8 + n])["__metadata__"]["torchtrack"])
+    assert meta["window"] == [100000, 100000]
+    with pytest.raises(ModelFormatError, match="window height"):
+        load_detector(corpus / "forged_bankwin.safetensors")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        "track {c}/cut.mp4 --tracker camshift --box 1,1,9,9 -o {o}/b.csv",
+        "track {c}/badcrops --tracker camshift --box 1,1,9,9 -o {o}/b.csv",
+        "detect {c}/toy.safetensors {c}/badcrops -o {o}/d.jsonl",
+        "detect {c}/toy.safetensors {c}/jpgs --strict -o {o}/d.jsonl",
+        "detect {c}/toy.safetensors {c}/text.mp4 -o {o}/d.jsonl",
+    ],
+)
+def test_one_clean_line_and_no_library_noise(argv, corpus, tmp_path, capfd):
+    """What libjpeg, libpng, FFmpeg and OpenCV print goes into the error message (or nowhere),
+    not onto the terminal before it; an open progress bar is closed first, so the error
+    starts a line of its own."""
+    out = tmp_path / "o"
+    out.mkdir()
+    assert main(_fill(tuple(_split(argv)), corpus, out)) == 1
+    err = capfd.readouterr().err
+    lines = [ln for ln in re.split(r"[\r\n]", err) if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("torchtrack ")]
+    assert len(errors) == 1, err
+    noise = [ln for ln in lines if not ln.startswith(("torchtrack ", "detect:", "  "))]
+    noise = [ln for ln in noise if "frame/s" not in ln and "it/s" not in ln]
+    assert noise == [], err
+    assert _files(out) == set()

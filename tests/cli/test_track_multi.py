@@ -1,0 +1,139 @@
+"""``torchtrack track`` without --box: every target, identities, MOT output, bad input."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from torchtrack.cli import main
+
+
+@pytest.fixture
+def clip(tmp_path):
+    """A 12-frame grey clip (no person in it)."""
+    path = tmp_path / "grey.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (320, 240))
+    for _ in range(12):
+        w.write(np.full((240, 320, 3), 90, np.uint8))
+    w.release()
+    return path
+
+
+@pytest.fixture
+def dets(tmp_path):
+    """Two walkers as MOTChallenge detections (1-based frames and pixels), scores in [0, 1]."""
+    path = tmp_path / "det.txt"
+    lines = []
+    for f in range(1, 13):
+        for k, (x0, y0) in enumerate(((20, 50), (200, 80))):
+            x = x0 + 3 * f if k == 0 else x0 - 2 * f
+            lines.append(f"{f},-1,{x + 1},{y0 + 1},20,60,0.97,-1,-1,-1")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_external_detections_to_csv_and_mot(clip, dets, tmp_path, capsys):
+    out, mot, vid = tmp_path / "t.csv", tmp_path / "t.txt", tmp_path / "t.mp4"
+    rc = main(
+        ["track", str(clip), "--detections", str(dets), "--out", str(out), "--mot", str(mot),
+         "--video", str(vid), "--no-progress"]
+    )  # fmt: skip
+    assert rc == 0
+    lines = out.read_text().splitlines()
+    assert lines[0] == "frame,target,x,y,w,h,confidence,detected"
+    rows = [r.split(",") for r in lines[1:]]
+    assert {r[1] for r in rows} == {"1", "2"}  # two identities, kept to the end
+    assert {int(r[0]) for r in rows} == set(range(1, 12))  # confirmed on the second frame
+    m = [r.split(",") for r in mot.read_text().splitlines()]
+    assert len(m) == len(rows) and all(len(r) == 10 for r in m)
+    first = next(r for r in m if r[1] == "1")
+    assert int(first[0]) == 2 and abs(float(first[2]) - 27.0) < 4  # 1-based frame and pixels
+    assert vid.stat().st_size > 0
+    assert "2 target(s)" in capsys.readouterr().out
+
+
+def test_video_without_any_target_writes_empty_tracks(clip, tmp_path, capsys):
+    out, mot = tmp_path / "e.csv", tmp_path / "e.txt"
+    rc = main(
+        ["track", str(clip), "--out", str(out), "--mot", str(mot), "--no-progress",
+         "--tracker", "multi:scan_min_scale=1.0"]
+    )  # fmt: skip
+    assert rc == 0
+    assert out.read_text().splitlines() == ["frame,target,x,y,w,h,confidence,detected"]
+    assert mot.read_text() == ""
+    io = capsys.readouterr()
+    assert "0 target(s)" in io.out and "no 'pedestrian' target was found" in io.err
+
+
+def test_raw_scores_and_calibrated_scores(clip, dets, tmp_path):
+    raw = tmp_path / "raw.txt"
+    raw.write_text(dets.read_text().replace(",0.97,", ",55.0,"))
+    out = tmp_path / "r.txt"
+    assert main(["track", str(clip), "--detections", str(raw), "--mot", str(out), "-q"]) == 0
+    assert len(out.read_text().splitlines()) == 22  # raw scores: relative to the best
+    assert main(
+        ["track", str(clip), "--detections", str(raw), "--det-min-score", "60",
+         "--mot", str(out), "-q"]
+    ) == 0  # fmt: skip
+    assert out.read_text() == ""
+    # a Platt calibration of the raw scores (as `torchtrack calibrate --scores --json` writes)
+    import json
+
+    import torch
+
+    from torchtrack.learn import PlattCalibrator, calibrator_to_dict
+
+    s = torch.tensor([10.0, 20.0, 50.0, 60.0, 80.0, 90.0], dtype=torch.float64)
+    cal = PlattCalibrator().fit(s, torch.tensor([0, 0, 0, 1, 1, 1]))
+    js = tmp_path / "cal.json"
+    js.write_text(json.dumps(calibrator_to_dict(cal)))
+    assert float(cal.predict_proba(torch.tensor([55.0], dtype=torch.float64))) < 0.9
+    args = ["track", str(clip), "--detections", str(raw), "--mot", str(out), "-q"]
+    assert main([*args, "--det-calibration", str(js)]) == 0
+    assert out.read_text() == ""  # p(55) is below the birth threshold: nobody starts
+    js.write_text("{}")
+    assert main([*args, "--det-calibration", str(js)]) == 1
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--max-targets", "0"], "--max-targets must be >= 1"),
+        (["--max-targets", "-2"], "--max-targets must be >= 1"),
+        (["--scan-every", "0"], "--scan-every must be >= 1"),
+        (["--box", "1,2,3,4", "--mot", "x.txt"], "belong"),
+        (["--det-min-score", "3"], "apply to --detections"),
+        (["--tracker", "multi:scan_every=0"], "scan_every must be >= 1"),
+        (["--tracker", "multi:nonsense=1"], "unknown key"),
+        (["--adapt", "global"], "--adapt"),
+    ],
+)
+def test_bad_multi_options(clip, tmp_path, capsys, extra, message):
+    out = tmp_path / "o.csv"
+    assert main(["track", str(clip), "--out", str(out), "-q", *extra]) == 1
+    assert message in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "o.csv.part").exists()
+
+
+def test_malformed_detections_name_file_and_line(clip, tmp_path, capsys):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1,-1,10,10,20,60,0.9,-1,-1,-1\n2,-1,10,ten,20,60,0.9,-1,-1,-1\n")
+    out = tmp_path / "o.txt"
+    assert main(["track", str(clip), "--detections", str(bad), "--mot", str(out), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "bad.txt line 2" in err and not out.exists()
+    beyond = tmp_path / "late.txt"
+    beyond.write_text("40,-1,10,10,20,60,0.9,-1,-1,-1\n")
+    assert main(["track", str(clip), "--detections", str(beyond), "--mot", str(out), "-q"]) == 1
+    assert "late.txt line 1" in capsys.readouterr().err
+
+
+def test_wrong_class_model_finds_nothing_on_people(data_dir, tmp_path, capsys):
+    """The vehicle model on the pedestrian demo clip: a clean run, few or no targets."""
+    out = tmp_path / "v.txt"
+    rc = main(
+        ["track", "demo", "--detect", "vehicle", "--mot", str(out), "--max-frames", "3", "-q",
+         "--tracker", "multi:scan_min_scale=0.8"]
+    )  # fmt: skip
+    assert rc == 0 and out.exists()

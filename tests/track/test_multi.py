@@ -1,0 +1,131 @@
+"""Multi-target tracker: births, confirmation, identities, deaths, bounds and bad input."""
+
+import pytest
+import torch
+
+from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.track.multi import MultiTargetTracker
+
+
+def blank(h=240, w=320):
+    return torch.full((3, h, w), 90, dtype=torch.uint8)
+
+
+def people(t, n=3):
+    """n object boxes walking right at 3 px per frame, 80 px apart, 60 px tall."""
+    return torch.tensor(
+        [[20.0 + 80 * i + 3 * t, 60.0 + 20 * i, 20.0, 60.0] for i in range(n)], dtype=torch.float64
+    )
+
+
+def make(**kw):
+    return MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(0), **kw)
+
+
+def test_external_detections_give_stable_identities():
+    mt = make(confirm_hits=2)
+    seen = []
+    for t in range(30):
+        boxes = people(t)
+        out = mt.update(blank(), (boxes, torch.ones(3)))
+        seen.append(out)
+    assert len(seen[0]) == 0  # tentative on the first detection
+    assert len(seen[1]) == 3 and seen[1].ids.tolist() == [1, 2, 3]
+    for t, out in enumerate(seen[1:], 1):
+        assert out.ids.tolist() == [1, 2, 3], t
+        err = (out.boxes - people(t)).abs().max()
+        assert err < 4.0, (t, err)  # follows the detections within a few pixels
+        assert bool(out.detected.all())
+    assert mt.stats["born"] == 3 and mt.stats["confirmed"] == 3
+
+
+def test_missed_detections_keep_the_identity_and_a_leaving_target_ends():
+    mt = make(max_lost=5)
+    for t in range(10):
+        mt.update(blank(), (people(t), torch.ones(3)))
+    # target 2 is missed for three frames, then found again: same identity
+    for t in range(10, 13):
+        mt.update(blank(), (people(t)[[0, 2]], torch.ones(2)))
+    out = mt.update(blank(), (people(13), torch.ones(3)))
+    assert out.ids.tolist() == [1, 2, 3]
+    # nobody detected any more: every target ends after max_lost frames
+    for _ in range(7):
+        out = mt.update(blank(), (torch.zeros((0, 4)), torch.zeros(0)))
+    assert mt.n_targets == 0 and len(out) == 0
+    assert mt.stats["ended: lost"] == 3
+
+
+def test_target_walking_out_of_the_frame_is_ended_not_reported_outside():
+    mt = make()
+    box = torch.tensor([[250.0, 100.0, 20.0, 60.0]], dtype=torch.float64)
+    for t in range(40):
+        b = box + torch.tensor([[8.0 * t, 0, 0, 0]], dtype=torch.float64)
+        inside = b[:, 0] + b[:, 2] <= 320
+        out = mt.update(blank(), (b[inside], torch.ones(int(inside.sum()))))
+        for bb in out.boxes:
+            assert bb[0] < 320 and bb[0] + bb[2] > 0  # never entirely outside
+    assert mt.n_targets == 0 and mt.stats["ended: left the frame"] == 1
+
+
+def test_low_probability_detections_extend_but_never_start_targets():
+    mt = make(detection_threshold=0.3, birth_threshold=0.8)
+    for t in range(5):
+        out = mt.update(blank(), (people(t), torch.full((3,), 0.5)))
+    assert mt.n_targets == 0 and len(out) == 0
+    for t in range(5, 8):
+        out = mt.update(blank(), (people(t), torch.ones(3)))
+    for t in range(8, 12):  # weak detections keep them matched
+        out = mt.update(blank(), (people(t), torch.full((3,), 0.5)))
+        assert bool(out.detected.all()) and out.ids.tolist() == [1, 2, 3]
+
+
+def test_max_targets_bounds_the_batch():
+    mt = make(max_targets=2)
+    with pytest.warns(RuntimeWarning, match="max_targets=2"):
+        for t in range(4):
+            mt.update(blank(), (people(t), torch.ones(3)))
+    assert mt.n_targets == 2 and mt.states.shape[:2] == (2, mt.config.n_particles)
+
+
+def test_same_seed_same_tracks():
+    outs = []
+    for _ in range(2):
+        mt = make()
+        rows = []
+        for t in range(12):
+            o = mt.update(blank(), (people(t), torch.ones(3)))
+            rows.append(o.boxes.clone())
+        outs.append(rows)
+    for a, b in zip(*outs, strict=True):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"max_targets": 0}, "max_targets"),
+        ({"max_targets": -3}, "max_targets"),
+        ({"scan_every": 0}, "scan_every"),
+        ({"birth_threshold": 0.2, "detection_threshold": 0.5}, "birth_threshold"),
+        ({"appearance": "sift"}, "appearance"),
+        ({"estimator": "median"}, "estimator"),
+        ({"n_particle": 10}, "unknown key"),
+    ],
+)
+def test_bad_config(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        make(**kw)
+
+
+def test_bad_frames_and_detections():
+    mt = make()
+    with pytest.raises(ShapeError, match="uint8"):
+        mt.update(torch.zeros((3, 10, 10)))
+    mt.update(blank(), (people(0), torch.ones(3)))
+    with pytest.raises(ShapeError, match="frame size changed"):
+        mt.update(blank(200, 320))
+    with pytest.raises(ShapeError, match="probabilities"):
+        mt.update(blank(), (people(1), torch.ones(2)))
+    # non-finite or empty boxes are dropped, not tracked
+    bad = torch.tensor([[float("nan"), 0, 10, 10], [5.0, 5.0, 0.0, 10.0]], dtype=torch.float64)
+    mt.update(blank(), (bad, torch.ones(2)))

@@ -1,0 +1,224 @@
+"""Options every subcommand spells the same way.
+
+* ``-o / --out``: the main output (a file, or a folder for ``eval``); ``--output`` is still
+  accepted as an old spelling.
+* ``--no-progress``: no progress bar; ``-q / --quiet``: no progress bar and no log or summary
+  lines on stderr (results and ``wrote ...`` lines still go to stdout).
+* ``--threads``: torch threads.
+* ``--trusted-key`` / ``--require-signed``: which model files to trust (subcommands that load
+  models); :func:`trust_scope` applies them.
+
+Output paths are checked by :func:`check_output_file` / :func:`check_output_dir` (and
+:func:`check_distinct`) in every subcommand's argument check, before any work, so a bad path
+fails at once and never after a long run.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = [
+    "add_out",
+    "add_progress",
+    "add_threads",
+    "add_trust",
+    "apply_threads",
+    "check_distinct",
+    "check_output_dir",
+    "check_output_file",
+    "show_progress",
+    "trust_scope",
+]
+
+
+def add_out(p: argparse.ArgumentParser, metavar: str, help: str, required: bool = False) -> None:
+    """``-o/--out METAVAR`` (dest ``out``), plus the hidden old spelling ``--output``."""
+    p.add_argument("-o", "--out", metavar=metavar, help=help, required=required, dest="out")
+    p.add_argument("--output", dest="out", help=argparse.SUPPRESS)
+
+
+def add_progress(p: argparse.ArgumentParser) -> None:
+    """``--no-progress`` and ``-q/--quiet``."""
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bar and no log lines on stderr"
+    )
+
+
+def add_threads(p: argparse.ArgumentParser, default: int = 1) -> None:
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=default,
+        metavar="N",
+        help=f"torch threads (default {default})",
+    )
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Whether to draw progress bars (neither ``--no-progress`` nor ``--quiet``)."""
+    return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))
+
+
+def apply_threads(args: argparse.Namespace) -> None:
+    """Set torch's thread count from ``--threads`` (:class:`ConfigError` below 1)."""
+    from torchtrack.errors import ConfigError
+
+    n = getattr(args, "threads", None)
+    if n is None:
+        return
+    if n < 1:
+        raise ConfigError(f"--threads must be >= 1, got {n}")
+    import torch
+
+    torch.set_num_threads(n)
+
+
+# ------------------------------------------------------------------------------ output paths
+def check_output_file(path: str | None, option: str, suffixes: tuple[str, ...] = ()):
+    """Check an output file path before any work: not empty, not an existing folder, its
+    folder exists and is writable, and (given ``suffixes``) one of those extensions.
+
+    Returns:
+        the path as a :class:`~pathlib.Path` (``None`` for ``None``).
+
+    Raises:
+        ConfigError: naming ``option`` and what is wrong.
+    """
+    import os
+    from pathlib import Path
+
+    from torchtrack.errors import ConfigError
+
+    if path is None:
+        return None
+    if not str(path).strip():
+        raise ConfigError(f"{option} is an empty path")
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{option} {str(p)!r} is an existing folder; give a file name")
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise ConfigError(
+            f"{option} {str(p)!r} must end in {' or '.join(suffixes)}, got {p.suffix or 'none'}"
+        )
+    _check_parent(p, option)
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ConfigError(f"{option} {str(p)!r} exists and is not writable")
+    return p
+
+
+def check_output_dir(path: str | None, option: str):
+    """Check an output folder path before any work: not an existing file; an existing folder
+    must be writable, a new one's parent must exist (the folder itself is made by the run).
+
+    Raises:
+        ConfigError: naming ``option`` and what is wrong.
+    """
+    import os
+    from pathlib import Path
+
+    from torchtrack.errors import ConfigError
+
+    if path is None:
+        return None
+    if not str(path).strip():
+        raise ConfigError(f"{option} is an empty path")
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{option} {str(p)!r} is an existing file; give a folder")
+    if p.is_dir():
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise ConfigError(f"{option} folder {str(p)!r} is not writable")
+        return p
+    _check_parent(p, option)
+    return p
+
+
+def _check_parent(p, option: str) -> None:
+    import os
+
+    from torchtrack.errors import ConfigError
+
+    parent = p.parent if str(p.parent) else type(p)(".")
+    if not parent.exists():
+        raise ConfigError(f"{option} {str(p)!r}: folder {str(parent)!r} does not exist")
+    if not parent.is_dir():
+        raise ConfigError(f"{option} {str(p)!r}: {str(parent)!r} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {str(p)!r}: folder {str(parent)!r} is not writable")
+
+
+def check_distinct(paths: dict[str, str | None]) -> None:
+    """Different options must not name the same output (or an input) file: ``{option: path}``.
+
+    Raises:
+        ConfigError: two options name one file.
+    """
+    import os
+
+    from torchtrack.errors import ConfigError
+
+    seen: dict[str, str] = {}
+    for option, path in paths.items():
+        if not path:
+            continue
+        key = os.path.normcase(os.path.realpath(path))
+        if key in seen:
+            raise ConfigError(f"{seen[key]} and {option} name the same file {path!r}")
+        seen[key] = option
+
+
+# ------------------------------------------------------------------------------ model trust
+def add_trust(p: argparse.ArgumentParser) -> None:
+    """``--trusted-key FILE`` (repeatable) and ``--require-signed``."""
+    p.add_argument(
+        "--trusted-key",
+        action="append",
+        default=None,
+        metavar="PUB",
+        help="accept model files signed by this Ed25519 public key (repeatable) and refuse "
+        "unsigned ones or ones signed by other keys (the bundled models' key stays trusted)",
+    )
+    p.add_argument(
+        "--require-signed",
+        action="store_true",
+        help="refuse model files without a valid signature of a trusted key",
+    )
+
+
+def trust_scope(args: argparse.Namespace):
+    """A context in which model loading follows ``--trusted-key`` / ``--require-signed``.
+
+    The policy travels as the environment variables of :mod:`torchtrack.detect.signing`, so
+    worker processes (``eval --jobs``) follow it too; they are restored on exit. The key files
+    are read once here, so a bad one fails before any work (:class:`ConfigError`).
+    """
+    import contextlib
+    import os
+
+    keys = getattr(args, "trusted_key", None) or []
+    require = bool(keys) or bool(getattr(args, "require_signed", False))
+    if not keys and not require:
+        return contextlib.nullcontext()
+    from torchtrack.detect.signing import ENV_KEYS, ENV_REQUIRE, TrustPolicy
+
+    TrustPolicy.build(keys, require=True)  # fail early on an unreadable key
+    old = {k: os.environ.get(k) for k in (ENV_KEYS, ENV_REQUIRE)}
+    paths = [os.path.abspath(k) for k in keys]
+    if old[ENV_KEYS]:
+        paths.append(old[ENV_KEYS])
+
+    @contextlib.contextmanager
+    def scope():
+        os.environ[ENV_KEYS] = os.pathsep.join(paths)
+        os.environ[ENV_REQUIRE] = "1"
+        try:
+            yield
+        finally:
+            for k, v in old.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+
+    return scope()

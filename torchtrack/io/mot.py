@@ -1,0 +1,618 @@
+"""MOTChallenge files and sequences: ground truth, detections and tracking results.
+
+A MOTChallenge file has one box per line, no header, comma separated (whitespace is accepted
+too)::
+
+    frame, id, bb_left, bb_top, bb_width, bb_height, conf, x, y, z      (MOT15, 10 columns)
+    frame, id, bb_left, bb_top, bb_width, bb_height, conf, class, visibility   (MOT16+, 9)
+
+Frames are 1-based; ``id`` is -1 in detection files; ``conf`` is the detector's score in
+detection files, the tracker's confidence in results files and a 0/1 "consider" flag in ground
+truth (0: ignored by the evaluation). Results files may stop after ``conf`` (7 columns) or even
+after the box (6 columns, ``conf`` = 1).
+
+Conventions (the package's, :mod:`torchtrack.boxes`, converted at this edge):
+
+* :class:`MotRows` hold **0-based** frame indices (file frame - 1) and **0-based** boxes
+  (file ``bb_left - 1``, ``bb_top - 1``: the MOTChallenge devkit numbers pixels from 1, as OTB
+  does). :func:`write_mot` adds the 1 back, so ``write_mot(read_mot(f))`` reproduces ``f``'s
+  boxes; ground truth, detections and results read here share one pixel grid.
+* ``scale`` multiplies the 0-based ``x, y, w, h`` (PETS09-S2L1's ground truth is in 768x576
+  coordinates for the 480x360 video: ``scale=0.625``).
+
+Sequences (:func:`load_mot_sequence`):
+
+* a **MOTChallenge folder**: ``seqinfo.ini``, ``gt/gt.txt``, ``img1/`` frames, ``det/det.txt``
+  (public detections). A folder without ``img1/`` (e.g. ground truth shipped without frames)
+  still loads: its length comes from ``seqinfo.ini``, and results files can be scored on it.
+* a **video plus a ground-truth file**: the length and frame size come from the video. When the
+  GT file sits in a MOTChallenge folder whose ``seqinfo.ini`` gives a different frame size, the
+  scale is that ratio (``scale=None``); the name is then the folder's sequence name.
+
+Every malformed row raises :class:`~torchtrack.errors.MotFormatError` naming the file and the
+line: a wrong number of columns, a non-number, a non-finite value, a frame below 1 or beyond the
+sequence, a non-integer frame or id, a box of zero or negative size, an identity given twice in
+one frame.
+
+Example::
+
+    seq = load_mot_sequence("MOT15/train/TUD-Stadtmitte")
+    det = seq.detections()                      # MotRows of det/det.txt
+    for t, rows in enumerate(det.split(seq.n_frames)):
+        boxes = torch.from_numpy(det.boxes[rows])        # (K_t, 4) x, y, w, h of frame t
+    write_mot("out.txt", MotRows.from_arrays(frames, ids, boxes, conf))
+"""
+
+from __future__ import annotations
+
+import configparser
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from torchtrack.errors import MotFormatError, SequenceError, ShapeError, VideoError
+from torchtrack.io.atomic import atomic_write
+from torchtrack.io.video import VIDEO_EXTENSIONS, FrameSource, list_image_files
+
+__all__ = [
+    "MotRows",
+    "MotSequence",
+    "SeqInfo",
+    "find_mot_sequences",
+    "format_mot_row",
+    "is_mot_folder",
+    "load_mot_sequence",
+    "read_mot",
+    "read_seqinfo",
+    "write_mot",
+]
+
+Kind = Literal["gt", "det", "results"]
+_SPLIT = re.compile(r"\s*,\s*|\s+")
+_KIND_WORD = {"gt": "ground-truth", "det": "detections", "results": "results"}
+_MIN_COLS = {"gt": 7, "det": 6, "results": 6}
+_MAX_COLS = 10
+
+
+def _as_numpy(a, dtype, name: str) -> np.ndarray:
+    if hasattr(a, "detach"):  # torch tensor
+        a = a.detach().cpu().numpy()
+    try:
+        return np.asarray(a, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ShapeError(f"{name} cannot be converted to {np.dtype(dtype).name}: {exc}") from None
+
+
+@dataclass(frozen=True)
+class MotRows:
+    """Boxes of a MOTChallenge file, one entry per row (module doc for the conventions).
+
+    Attributes:
+        frames: ``(K,)`` int64, 0-based frame index (file frame - 1).
+        ids: ``(K,)`` int64 identities (-1 in detection files).
+        boxes: ``(K, 4)`` float64 ``x, y, w, h`` in pixels, 0-based, scaled.
+        conf: ``(K,)`` float64: detector score, tracker confidence, or the GT's 0/1 flag.
+        extra: ``(K, E)`` float64 columns after ``conf`` (world coordinates, class, ...).
+        lines: ``(K,)`` int64 line numbers in ``path`` (1-based), ``-1`` for built rows.
+        path: the file read, else ``None``.
+
+    ``torch.from_numpy(rows.boxes)`` gives a tensor without a copy.
+    """
+
+    frames: np.ndarray
+    ids: np.ndarray
+    boxes: np.ndarray
+    conf: np.ndarray
+    extra: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    lines: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    path: Path | None = None
+
+    def __post_init__(self) -> None:
+        k = len(self.frames)
+        if self.boxes.shape != (k, 4):
+            raise ShapeError(f"boxes must have shape ({k}, 4), got {self.boxes.shape}")
+        for name in ("ids", "conf"):
+            if getattr(self, name).shape != (k,):
+                raise ShapeError(f"{name} must have shape ({k},), got {getattr(self, name).shape}")
+        if self.extra.shape[0] != k:
+            object.__setattr__(self, "extra", np.zeros((k, 0)))
+        if self.lines.shape != (k,):
+            object.__setattr__(self, "lines", np.full(k, -1, np.int64))
+
+    @classmethod
+    def from_arrays(cls, frames, ids, boxes, conf=None) -> MotRows:
+        """Rows from arrays or tensors (what a tracker produces, ready for :func:`write_mot`).
+
+        Args:
+            frames: ``(K,)`` 0-based frame indices.
+            ids: ``(K,)`` identities (>= 0 for tracks; -1 for detections).
+            boxes: ``(K, 4)`` ``x, y, w, h``, 0-based pixels.
+            conf: ``(K,)`` confidences; default 1.
+
+        Raises:
+            ShapeError: inconsistent lengths or shapes.
+        """
+        f = _as_numpy(frames, np.int64, "frames").reshape(-1)
+        b = _as_numpy(boxes, np.float64, "boxes").reshape(-1, 4) if len(f) else np.zeros((0, 4))
+        i = _as_numpy(ids, np.int64, "ids").reshape(-1)
+        c = np.ones(len(f)) if conf is None else _as_numpy(conf, np.float64, "conf").reshape(-1)
+        return cls(frames=f, ids=i, boxes=b, conf=c)
+
+    @classmethod
+    def empty(cls) -> MotRows:
+        """No rows (an empty tracker)."""
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4)), np.zeros(0))
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def select(self, index) -> MotRows:
+        """The rows at ``index`` (a boolean mask or integer indices), in that order."""
+        return MotRows(
+            frames=self.frames[index],
+            ids=self.ids[index],
+            boxes=self.boxes[index],
+            conf=self.conf[index],
+            extra=self.extra[index],
+            lines=self.lines[index],
+            path=self.path,
+        )
+
+    def split(self, n_frames: int) -> list[np.ndarray]:
+        """Row indices of each frame: ``out[t]`` indexes the rows of frame ``t`` (0-based), in
+        file order; frames without rows get an empty array. Rows at or beyond ``n_frames`` are
+        left out (:func:`read_mot` with ``n_frames`` rejects them)."""
+        order = np.argsort(self.frames, kind="stable")
+        f = self.frames[order]
+        starts = np.searchsorted(f, np.arange(n_frames + 1))
+        return [order[starts[t] : starts[t + 1]] for t in range(n_frames)]
+
+    def scaled(self, scale: float) -> MotRows:
+        """The same rows with boxes multiplied by ``scale``."""
+        return MotRows(
+            self.frames, self.ids, self.boxes * scale, self.conf, self.extra, self.lines, self.path
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading and writing files
+# ---------------------------------------------------------------------------------------------
+def _fail(path: Path, no: int, msg: str, line: str | None = None) -> MotFormatError:
+    shown = f": {line.strip()[:80]!r}" if line is not None else ""
+    return MotFormatError(f"{path} line {no}: {msg}{shown}")
+
+
+def read_mot(
+    path: str | os.PathLike,
+    scale: float = 1.0,
+    n_frames: int | None = None,
+    *,
+    kind: Kind = "results",
+) -> MotRows:
+    """Read a MOTChallenge file (module doc for the format and conventions).
+
+    Args:
+        path: the file. An empty file is valid and gives no rows (an empty tracker).
+        scale: multiplies the boxes (after the shift to 0-based pixels).
+        n_frames: the sequence's length; a row with a frame beyond it is an error.
+        kind: ``"gt"`` (at least 7 columns: ``conf`` is the consider flag; ids >= 0, unique
+            per frame), ``"results"`` (ids >= 0, unique per frame) or ``"det"`` (ids ignored).
+
+    Returns:
+        :class:`MotRows` in file order.
+
+    Raises:
+        MotFormatError: unreadable file or a malformed row (file and line in the message).
+        ValueError: ``scale`` not a positive finite number, unknown ``kind``.
+    """
+    if kind not in _MIN_COLS:
+        raise ValueError(f"kind must be 'gt', 'det' or 'results', got {kind!r}")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive finite number, got {scale!r}")
+    p = Path(path)
+    word = _KIND_WORD[kind]
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise MotFormatError(f"{word} file {p} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MotFormatError(f"{word} file {p} cannot be read as text: {exc}") from None
+    rows: list[list[float]] = []
+    line_nos: list[int] = []
+    n_cols = None
+    first_line = 0
+    lines = text.splitlines()
+    for no, line in enumerate(lines, start=1):
+        s = line.strip()
+        if not s:
+            continue
+        parts = _SPLIT.split(s)
+        try:
+            vals = [float(v) for v in parts]
+        except ValueError:
+            raise _fail(p, no, f"not a row of numbers ({word} file)", line) from None
+        if n_cols is None:
+            if not _MIN_COLS[kind] <= len(vals) <= _MAX_COLS:
+                raise _fail(
+                    p,
+                    no,
+                    f"{len(vals)} columns; a {word} file has {_MIN_COLS[kind]} to {_MAX_COLS} "
+                    "(frame, id, bb_left, bb_top, bb_width, bb_height"
+                    + (", conf" if kind == "gt" else "[, conf]")
+                    + ", ...)",
+                    line,
+                )
+            n_cols, first_line = len(vals), no
+        elif len(vals) != n_cols:
+            raise _fail(p, no, f"{len(vals)} columns, line {first_line} has {n_cols}", line)
+        if not all(math.isfinite(v) for v in vals):
+            raise _fail(p, no, "a value is not finite", line)
+        rows.append(vals)
+        line_nos.append(no)
+    if not rows:
+        return MotRows(
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros((0, 4)),
+            np.zeros(0),
+            np.zeros((0, 0)),
+            np.zeros(0, np.int64),
+            p,
+        )
+    a = np.asarray(rows, dtype=np.float64)
+    nos = np.asarray(line_nos, dtype=np.int64)
+
+    def check(bad: np.ndarray, msg) -> None:
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise _fail(p, int(nos[k]), msg(k), lines[nos[k] - 1])
+
+    check(a[:, 0] != np.round(a[:, 0]), lambda k: "the frame number is not an integer")
+    check(a[:, 0] < 1, lambda k: f"frame {a[k, 0]:g}: frames are numbered from 1")
+    if n_frames is not None:
+        check(
+            a[:, 0] > n_frames,
+            lambda k: f"frame {int(a[k, 0])} is beyond the sequence's {n_frames} frames",
+        )
+    check(a[:, 1] != np.round(a[:, 1]), lambda k: "the id is not an integer")
+    if kind != "det":
+        check(a[:, 1] < 0, lambda k: f"id {int(a[k, 1])}: identities must be >= 0")
+    check(
+        (a[:, 4] <= 0) | (a[:, 5] <= 0),
+        lambda k: f"box of size {a[k, 4]:g} x {a[k, 5]:g}: width and height must be > 0",
+    )
+    frames = a[:, 0].astype(np.int64) - 1
+    ids = a[:, 1].astype(np.int64)
+    if kind != "det":
+        key = frames * (int(ids.max()) + 1) + ids
+        order = np.argsort(key, kind="stable")
+        dup = np.nonzero(key[order][1:] == key[order][:-1])[0]
+        if len(dup):
+            k0, k1 = int(order[dup[0]]), int(order[dup[0] + 1])
+            raise _fail(
+                p,
+                int(nos[k1]),
+                f"id {ids[k1]} appears twice in frame {frames[k1] + 1} "
+                f"(also on line {int(nos[k0])})",
+                lines[nos[k1] - 1],
+            )
+    boxes = a[:, 2:6].copy()
+    boxes[:, :2] -= 1.0  # MOTChallenge pixels are numbered from 1
+    conf = a[:, 6].copy() if n_cols >= 7 else np.ones(len(a))
+    return MotRows(
+        frames=frames,
+        ids=ids,
+        boxes=boxes * scale if scale != 1.0 else boxes,
+        conf=conf,
+        extra=a[:, 7:].copy(),
+        lines=nos,
+        path=p,
+    )
+
+
+def write_mot(path: str | os.PathLike, rows: MotRows) -> None:
+    """Write ``rows`` as a MOTChallenge results file, atomically.
+
+    Lines are ``frame,id,x,y,w,h,conf,-1,-1,-1`` (1-based frame and pixels, boxes with three
+    decimals), sorted by frame then id. No rows give an empty file (a valid, empty tracker).
+
+    Raises:
+        ValueError: a non-finite box or confidence, or a negative frame index.
+    """
+    if len(rows):
+        if not (np.isfinite(rows.boxes).all() and np.isfinite(rows.conf).all()):
+            raise ValueError("write_mot: boxes and confidences must be finite")
+        if rows.frames.min() < 0:
+            raise ValueError("write_mot: frame indices are 0-based and must be >= 0")
+    order = np.lexsort((rows.ids, rows.frames))
+    with atomic_write(path, "w", encoding="utf-8", newline="\n") as f:
+        for k in order:
+            f.write(format_mot_row(rows.frames[k], rows.ids[k], rows.boxes[k], rows.conf[k]))
+
+
+def format_mot_row(frame: int, ident: int, box, conf: float) -> str:
+    """One results line ``frame,id,x,y,w,h,conf,-1,-1,-1`` from a 0-based ``frame`` and a
+    0-based ``box`` (x, y, w, h): 1-based in the file, boxes with three decimals."""
+    x, y, w, h = (float(v) for v in box)
+    return (
+        f"{int(frame) + 1},{int(ident)},{x + 1:.3f},{y + 1:.3f},{w:.3f},{h:.3f},"
+        f"{float(conf):.6g},-1,-1,-1\n"
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# seqinfo.ini
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SeqInfo:
+    """The ``[Sequence]`` section of a MOTChallenge ``seqinfo.ini``."""
+
+    name: str
+    seq_length: int
+    im_dir: str = "img1"
+    frame_rate: float | None = None
+    im_width: int | None = None
+    im_height: int | None = None
+    im_ext: str = ".jpg"
+
+
+def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
+    """Read a ``seqinfo.ini``.
+
+    Raises:
+        MotFormatError: unreadable, no ``[Sequence]`` section, a missing ``seqLength`` or a
+            value that is not a positive number.
+    """
+    p = Path(path)
+    cp = configparser.ConfigParser()
+    try:
+        with open(p, encoding="utf-8-sig") as f:
+            cp.read_file(f)
+    except OSError as exc:
+        raise MotFormatError(f"{p} cannot be read: {exc}") from None
+    except configparser.Error as exc:
+        raise MotFormatError(f"{p} is not a valid ini file: {exc}") from None
+    if not cp.has_section("Sequence"):
+        raise MotFormatError(f"{p} has no [Sequence] section")
+    sec = cp["Sequence"]
+
+    def num(key: str, cast, required: bool = False):
+        if key not in sec:
+            if required:
+                raise MotFormatError(f"{p}: [Sequence] has no {key}")
+            return None
+        try:
+            v = cast(sec[key])
+        except ValueError:
+            raise MotFormatError(f"{p}: {key}={sec[key]!r} is not a number") from None
+        if not v > 0:
+            raise MotFormatError(f"{p}: {key}={sec[key]!r} must be > 0")
+        return v
+
+    return SeqInfo(
+        name=sec.get("name", p.parent.name),
+        seq_length=num("seqLength", int, required=True),
+        im_dir=sec.get("imDir", "img1"),
+        frame_rate=num("frameRate", float),
+        im_width=num("imWidth", int),
+        im_height=num("imHeight", int),
+        im_ext=sec.get("imExt", ".jpg"),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Sequences
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class MotSequence:
+    """A multi-target sequence: frames (or at least their number) and ground truth.
+
+    Attributes:
+        name: the sequence name (``seqinfo.ini``'s, else the folder or video stem); results
+            files in a folder are looked up as ``<name>.txt``.
+        gt: ground-truth :class:`MotRows`, scaled to the frames' pixels.
+        n_frames: number of frames.
+        gt_path: the ground-truth file.
+        scale: the factor applied to the ground truth (and to :meth:`detections`).
+        frames: image files in order (MOTChallenge ``img1/``), else ``None``.
+        video: the video file, else ``None``.
+        det_path: the public detections (``det/det.txt``) when present.
+        width, height: frame size in pixels when known.
+        frame_rate: frames per second when known.
+    """
+
+    name: str
+    gt: MotRows
+    n_frames: int
+    gt_path: Path
+    scale: float = 1.0
+    frames: list[Path] | None = None
+    video: Path | None = None
+    det_path: Path | None = None
+    width: int | None = None
+    height: int | None = None
+    frame_rate: float | None = None
+
+    @property
+    def source(self) -> Path | list[Path] | None:
+        """What to read the frames from: the video, the frame list, or ``None``."""
+        return self.video if self.video is not None else self.frames
+
+    def open(self, color: str = "rgb") -> FrameSource:
+        """The frames as a :class:`~torchtrack.io.video.FrameSource`.
+
+        Raises:
+            VideoError: the sequence has no frames here (ground truth only).
+        """
+        if self.source is None:
+            raise VideoError(
+                f"sequence {self.name} has no frames here (no img1/ folder and no video)"
+            )
+        return FrameSource(self.source, color=color)
+
+    def detections(self, path: str | os.PathLike | None = None) -> MotRows:
+        """Detections in MOT format (default: the public ``det/det.txt``), scaled like the
+        ground truth and checked against the sequence's length.
+
+        Raises:
+            MotFormatError: no such file, or a malformed row.
+        """
+        p = path if path is not None else self.det_path
+        if p is None:
+            raise MotFormatError(f"sequence {self.name} has no det/det.txt")
+        return read_mot(p, self.scale, self.n_frames, kind="det")
+
+
+def is_mot_folder(path: str | os.PathLike) -> bool:
+    """A folder with ``gt/gt.txt`` and ``seqinfo.ini`` or ``img1/``."""
+    d = Path(path)
+    return (d / "gt" / "gt.txt").is_file() and (
+        (d / "seqinfo.ini").is_file() or (d / "img1").is_dir()
+    )
+
+
+def _resolve_scale(scale: float | None) -> float:
+    if scale is None:
+        return 1.0
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise SequenceError(f"the ground-truth scale must be a positive number, got {scale!r}")
+    return float(scale)
+
+
+def load_mot_sequence(
+    path: str | os.PathLike,
+    gt: str | os.PathLike | None = None,
+    scale: float | None = None,
+) -> MotSequence:
+    """Load a MOTChallenge folder, or a video plus its ground-truth file (module doc).
+
+    Args:
+        path: a MOTChallenge folder or a video file.
+        gt: the ground-truth file (required for a video; default ``gt/gt.txt`` of a folder).
+        scale: factor for the ground truth; ``None``: 1 for a folder, and for a video the
+            ratio of the video's width to the ``imWidth`` of the ``seqinfo.ini`` next to the GT
+            (``<seq>/seqinfo.ini`` for ``<seq>/gt/gt.txt``), 1 when there is none.
+
+    Raises:
+        SequenceError: neither a MOTChallenge folder nor a video, a video without ``gt``, a
+            frame count that disagrees with ``seqinfo.ini``, frame sizes of a different shape.
+        MotFormatError: a malformed ground-truth file or ``seqinfo.ini``, GT rows beyond the
+            sequence's frames.
+        VideoError: the video cannot be opened.
+    """
+    p = Path(path)
+    if p.is_dir():
+        return _load_folder(p, gt, _resolve_scale(scale))
+    if p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS:
+        if gt is None:
+            raise SequenceError(
+                f"{p} is a video: give its ground-truth file (MOTChallenge gt.txt) as well"
+            )
+        return _load_video(p, Path(gt), scale)
+    if not p.exists():
+        raise SequenceError(f"MOT sequence {p} does not exist")
+    raise SequenceError(
+        f"{p} is neither a MOTChallenge folder (seqinfo.ini, gt/gt.txt, img1/) nor a video "
+        f"({', '.join(sorted(VIDEO_EXTENSIONS))})"
+    )
+
+
+def _load_folder(d: Path, gt: str | os.PathLike | None, scale: float) -> MotSequence:
+    info = read_seqinfo(d / "seqinfo.ini") if (d / "seqinfo.ini").is_file() else None
+    img_dir = d / (info.im_dir if info else "img1")
+    frames = list_image_files(img_dir) if img_dir.is_dir() else None
+    if info is None and frames is None:
+        raise SequenceError(
+            f"{d} is not a MOTChallenge folder: it has neither seqinfo.ini nor an img1/ folder, "
+            "so its number of frames is unknown"
+        )
+    if info is not None and frames is not None and len(frames) != info.seq_length:
+        raise SequenceError(
+            f"{img_dir} holds {len(frames)} frames but {d / 'seqinfo.ini'} says "
+            f"seqLength={info.seq_length}"
+        )
+    gt_path = Path(gt) if gt is not None else d / "gt" / "gt.txt"
+    if not gt_path.is_file():
+        raise SequenceError(f"{d} has no ground truth ({gt_path} does not exist)")
+    n = info.seq_length if info else len(frames)
+    det = d / "det" / "det.txt"
+    return MotSequence(
+        name=info.name if info else d.name,
+        gt=read_mot(gt_path, scale, n, kind="gt"),
+        n_frames=n,
+        gt_path=gt_path,
+        scale=scale,
+        frames=frames,
+        det_path=det if det.is_file() else None,
+        width=None if info is None else info.im_width,
+        height=None if info is None else info.im_height,
+        frame_rate=None if info is None else info.frame_rate,
+    )
+
+
+def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    try:
+        if not cap.isOpened():
+            raise VideoError(f"video file {video} cannot be opened (unknown or broken format)")
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        w = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        h = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+    finally:
+        cap.release()
+    if n <= 0:
+        raise VideoError(f"video file {video} announces no frames")
+    if not gt_path.is_file():
+        raise SequenceError(f"ground-truth file {gt_path} does not exist")
+    seq_dir = gt_path.parent.parent if gt_path.parent.name == "gt" else None
+    ini = seq_dir / "seqinfo.ini" if seq_dir is not None else None
+    info = read_seqinfo(ini) if ini is not None and ini.is_file() else None
+    if info is not None and info.seq_length != n:
+        raise SequenceError(
+            f"{video} has {n} frames but {ini} says seqLength={info.seq_length}: the ground "
+            "truth belongs to another video"
+        )
+    if scale is None:
+        scale = 1.0
+        if info is not None and info.im_width and info.im_height and w > 0:
+            sx, sy = w / info.im_width, h / info.im_height
+            if abs(sx - sy) > 0.01 * max(sx, sy):
+                raise SequenceError(
+                    f"{video} is {w}x{h} but {ini} describes {info.im_width}x{info.im_height} "
+                    "frames, another aspect ratio: give the ground-truth scale explicitly"
+                )
+            scale = sx
+    scale = _resolve_scale(scale)
+    return MotSequence(
+        name=info.name if info is not None else video.stem,
+        gt=read_mot(gt_path, scale, n, kind="gt"),
+        n_frames=n,
+        gt_path=gt_path,
+        scale=scale,
+        video=video,
+        det_path=None,
+        width=w or None,
+        height=h or None,
+        frame_rate=fps,
+    )
+
+
+def find_mot_sequences(path: str | os.PathLike, max_depth: int = 2) -> list[Path]:
+    """MOTChallenge folders at ``path`` or below it (``MOT15/train`` holds one per sequence),
+    in sorted order; ``[path]`` itself when it is one."""
+    root = Path(path)
+    if is_mot_folder(root):
+        return [root]
+    found: list[Path] = []
+    if root.is_dir() and max_depth > 0:
+        for sub in sorted(q for q in root.iterdir() if q.is_dir()):
+            found.extend(find_mot_sequences(sub, max_depth - 1))
+    return found

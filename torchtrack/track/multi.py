@@ -1,0 +1,740 @@
+"""Multi-target detect-and-track: every target of a video in one batched particle filter.
+
+Every live target is one row of a particle set ``(T, N, 6)`` with Chateau et al.'s state
+``X = (c_t, c_{t-1}, s_t, s_{t-1})`` (eq. 2: window centre and scale, the scale relative to the
+target's reference window) and the fitted AR dynamics of eq. (4); all rows are resampled,
+predicted and weighted in one call per frame. Per frame:
+
+1. **Predict** every target (its motion noise widens while it goes unmatched).
+2. **Detect** every ``scan_every`` frames (or take detections given from outside): the detector
+   scans the frame; its windows become object boxes (:meth:`~torchtrack.detect.Detector.window_to_object`).
+3. **Associate** (:mod:`torchtrack.track.association`, ``scipy.optimize.linear_sum_assignment``)
+   in ByteTrack's order, which calibrated probabilities make meaningful: confirmed targets with
+   the confident detections (``>= birth_threshold``) on overlap through the filter plus
+   appearance; the confirmed targets left with the weaker ones (``>= detection_threshold``) on
+   overlap alone; then the tentative targets with the confident detections left.
+4. **Weight** each particle by the detector's calibrated probability of its window (the
+   likelihood of Chateau et al. eq. 11, all windows of all targets scored from one integral
+   image), times the target's colour-model likelihood ``exp(-lambda (1 - BC))`` (Pérez et al.),
+   times, for a matched target, a Gaussian around its detection (the detection as a measurement,
+   as in Breitenstein et al., "Robust tracking-by-detection using a detector confidence particle
+   filter", ICCV 2009). A matched target whose particles do not reach its detection is re-seeded
+   around it.
+5. **Births and deaths**: a confident detection that matches nothing starts a tentative target,
+   confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row;
+   a target unmatched for more than ``max_lost`` frames, or whose box has left the frame, ends.
+   At most ``max_targets`` live at once; memory is flat however long the video.
+
+A confirmed target is reported while it is matched, and for up to ``max_coast`` frames after
+its last match while the filter's evidence (the mean calibrated probability of its particles)
+stays at least ``visible_threshold``. Boxes are object boxes (the person, not the detector
+window with its training margin).
+
+Example::
+
+    mt = MultiTargetTracker("pedestrian", scan_every=2)
+    for frame in frames:                       # (C, H, W) uint8
+        out = mt.update(frame)                 # MultiState: ids (K,), boxes (K, 4), ...
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from torchtrack.errors import ShapeError
+from torchtrack.filter.particles import normalize_with_lse
+from torchtrack.filter.resample import resample
+from torchtrack.filter.sir import get_estimator
+from torchtrack.observe.detector import DetectorObservation
+from torchtrack.track.association import association_cost, expected_iou, linear_assignment
+from torchtrack.track.config import MultiTrackerConfig, apply_overrides, resolve_tracker_config
+from torchtrack.track.detector_pf import load_dynamics, resolve_detector
+
+__all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_sequence"]
+
+
+@dataclass
+class MultiState:
+    """The reported targets of one frame.
+
+    Attributes:
+        ids: ``(K,)`` int64 identities (1, 2, ... in order of confirmation; stable while the
+            target lives).
+        boxes: ``(K, 4)`` float64 object boxes x, y, w, h in pixels.
+        confidence: ``(K,)`` float64: the matched detection's calibrated probability, or the
+            filter's evidence while the target coasts between detections.
+        detected: ``(K,)`` bool: matched to a detection on this frame.
+    """
+
+    ids: torch.Tensor
+    boxes: torch.Tensor
+    confidence: torch.Tensor
+    detected: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+class MultiTargetTracker:
+    """Detect and track every target of a video (see the module notes).
+
+    Args:
+        model: a :class:`~torchtrack.detect.Detector`, a bundled model name or a model file;
+            overrides ``config.model``.
+        config: a :class:`MultiTrackerConfig` or a TOML file of one.
+        generator: the source of randomness (reproducible runs).
+        **overrides: any :class:`MultiTrackerConfig` field, e.g. ``scan_every=3``.
+
+    Raises:
+        ConfigError: bad options.
+        NotFittedError: the detector has no calibration.
+    """
+
+    def __init__(
+        self,
+        model: Any = None,
+        config: MultiTrackerConfig | str | os.PathLike | None = None,
+        generator: torch.Generator | None = None,
+        **overrides: Any,
+    ) -> None:
+        cfg = resolve_tracker_config(
+            MultiTrackerConfig, config, overrides, where="multi-target tracker"
+        )
+        if model is not None and not isinstance(model, (str, os.PathLike)):
+            self.detector = resolve_detector(model)
+        else:
+            if model is not None:
+                cfg = apply_overrides(
+                    cfg, {"model": os.fspath(model)}, where="multi-target tracker"
+                )
+            self.detector = resolve_detector(cfg.model)
+        self.config = cfg
+        self.generator = generator
+        self.observation = DetectorObservation(self.detector, floor=cfg.likelihood_floor)
+        self.dynamics = load_dynamics(cfg.dynamics or None, structure="constant_velocity")
+        self._estimate = get_estimator(cfg.estimator)
+        self._bins = None
+        if cfg.appearance == "colour":
+            from torchtrack.observe.histogram import HSVBins
+
+            self._bins = HSVBins()
+        self._warned_full = False
+        self.reset()
+
+    # -- state -------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget every target (a new video)."""
+        f64 = torch.float64
+        n = self.config.n_particles
+        self.frame_index = -1
+        self.frame_size: tuple[int, int] | None = None
+        self.states = torch.zeros((0, n, 6), dtype=f64)
+        self.log_weights = torch.zeros((0, n), dtype=f64)
+        self.ref = torch.zeros((0, 2), dtype=f64)  # reference window (w, h) at s = 1
+        self.aspect = torch.zeros(0, dtype=f64)  # object width / the detector's object width
+        self.ids = torch.zeros(0, dtype=torch.int64)  # 0 while tentative
+        self.hits = torch.zeros(0, dtype=torch.int64)  # matched scans in a row
+        self.since_match = torch.zeros(0, dtype=torch.int64)  # frames since the last match
+        self.confirmed = torch.zeros(0, dtype=torch.bool)
+        self.evidence = torch.zeros(0, dtype=f64)
+        self.last_score = torch.zeros(0, dtype=f64)
+        self.detected = torch.zeros(0, dtype=torch.bool)  # matched on this frame
+        self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
+        self._next_id = 1
+        self._scans = 0
+        #: counts of what happened: births, confirmations, re-seeds, deaths by reason
+        self.stats: Counter[str] = Counter()
+
+    @property
+    def n_targets(self) -> int:
+        """Live targets, tentative ones included."""
+        return int(self.states.shape[0])
+
+    def _keep(self, keep: torch.Tensor) -> None:
+        for name in (
+            "states",
+            "log_weights",
+            "ref",
+            "aspect",
+            "ids",
+            "hits",
+            "since_match",
+            "confirmed",
+            "evidence",
+            "last_score",
+            "detected",
+            "hist",
+        ):
+            setattr(self, name, getattr(self, name)[keep])
+
+    # -- geometry ------------------------------------------------------------------------------
+    def _windows(self, states: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+        """Eq. (3): ``states (T, N, 6)`` -> detector windows ``(T, N, 4)``."""
+        wh = states[..., 4:5] * ref[:, None, :]
+        return torch.cat([states[..., 0:2] - wh / 2, wh], -1)
+
+    def particle_boxes(self) -> torch.Tensor:
+        """Object boxes ``(T, N, 4)`` of every live target's particles (for drawing)."""
+        return self.detector.window_to_object(self._windows(self.states, self.ref))
+
+    def _visible_fraction(self, boxes: torch.Tensor) -> torch.Tensor:
+        fh, fw = self.frame_size
+        x, y, w, h = boxes.unbind(-1)
+        iw = ((x + w).clamp(0, fw) - x.clamp(0, fw)).clamp_min(0)
+        ih = ((y + h).clamp(0, fh) - y.clamp(0, fh)).clamp_min(0)
+        return iw * ih / (w * h).clamp_min(1e-9)
+
+    # -- detections ----------------------------------------------------------------------------
+    def detect(self, frame: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scan ``frame (C, H, W)``: object boxes ``(M, 4)`` float64 and calibrated
+        probabilities ``(M,)`` of the detections at least ``detection_threshold``."""
+        from torchtrack.detect.scan import scan
+
+        cfg = self.config
+        fh, fw = frame.shape[-2:]
+        wh, ww = self.detector.window
+        if fh < wh * cfg.scan_min_scale or fw < ww * cfg.scan_min_scale:
+            return torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64)
+        wins, p = scan(
+            self.detector,
+            frame,
+            threshold=cfg.detection_threshold,
+            scale_step=cfg.scan_scale_step,
+            stride=cfg.scan_stride,
+            min_scale=cfg.scan_min_scale,
+            max_scale=cfg.scan_max_scale or None,
+            nms_iou=cfg.scan_nms,
+        )
+        return self.detector.window_to_object(wins.double()), p.double()
+
+    # -- the frame step ------------------------------------------------------------------------
+    def update(
+        self,
+        frame: torch.Tensor,
+        detections: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> MultiState:
+        """Track into the next frame.
+
+        Args:
+            frame: ``(C, H, W)`` uint8 RGB or gray.
+            detections: optional ``(boxes (M, 4), probabilities (M,))`` object boxes found by
+                someone else (e.g. public detections); given, they replace this frame's scan
+                (and a frame without them is not scanned either when any were given before).
+
+        Returns:
+            :class:`MultiState` of the targets reported on this frame.
+
+        Raises:
+            ShapeError: a frame of the wrong type or size, or malformed detections.
+        """
+        cfg = self.config
+        self._check_frame(frame)
+        self.frame_index += 1
+        t = self.frame_index
+        if detections is not None:
+            det_boxes, det_p = self._check_detections(detections)
+            self._external = True
+        elif not getattr(self, "_external", False) and t % cfg.scan_every == 0:
+            det_boxes, det_p = self.detect(frame)
+        else:
+            det_boxes = det_p = None
+        scan = det_boxes is not None
+        if scan:
+            keep = det_p >= cfg.detection_threshold
+            det_boxes, det_p = det_boxes[keep], det_p[keep]
+        bin_map = None
+        need = (scan and det_boxes.shape[0] > 0) or (
+            self.n_targets > 0 and cfg.appearance_lambda > 0
+        )
+        if self._bins is not None and need:
+            from torchtrack.observe.histogram import hsv_bin_map
+
+            bin_map = hsv_bin_map(frame[None], self._bins)
+
+        matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
+        if self.n_targets:
+            self._predict()
+            p = self._probabilities(frame)  # (T, N)
+            self.evidence = p.mean(1)
+            # Breitenstein et al.'s occlusion term: where another target overlaps this one, the
+            # class detector cannot tell whose evidence a window is; its weight shrinks with
+            # the overlap (1 alone, 0 fully covered).
+            occ, excl = self._interactions()
+            log_l = p.clamp_min(cfg.likelihood_floor).log() * (1.0 - occ)[:, None]
+            if cfg.exclusion > 0:
+                log_l = log_l - cfg.exclusion * excl
+            app = None
+            if bin_map is not None and cfg.appearance_lambda > 0:
+                app = self._particle_appearance(bin_map)  # (T, N) Bhattacharyya coefficients
+                log_l = log_l - cfg.appearance_lambda * (1.0 - app)
+            if scan and det_boxes.shape[0]:
+                det_hist = (
+                    self._histograms(bin_map, det_boxes[None])[0] if bin_map is not None else None
+                )
+                matched_det, overlap = self._associate(det_boxes, det_p, det_hist)
+                log_l = log_l + self._detection_term(det_boxes, matched_det)
+                log_l = log_l + self._explained_away(det_boxes, matched_det)
+                self._reseed(det_boxes, matched_det, overlap)
+            self.log_weights, _, _ = normalize_with_lse(log_l, step="multi-target update")
+            if scan:
+                self._bookkeep(matched_det, det_p, det_boxes, bin_map)
+            else:
+                self.since_match += 1
+                self.detected = torch.zeros_like(self.detected)
+        used = set(matched_det[matched_det >= 0].tolist())
+        if scan:
+            self._scans += 1
+            free = [j for j in range(det_boxes.shape[0]) if j not in used]
+            self._births(det_boxes, det_p, free, bin_map)
+        self._deaths()
+        return self._report()
+
+    # -- steps ---------------------------------------------------------------------------------
+    def _check_frame(self, frame: torch.Tensor) -> None:
+        if (
+            not isinstance(frame, torch.Tensor)
+            or frame.ndim != 3
+            or frame.shape[0] not in (1, 3)
+            or frame.dtype != torch.uint8
+        ):
+            got = tuple(frame.shape) if isinstance(frame, torch.Tensor) else type(frame).__name__
+            raise ShapeError(f"frame must be (C, H, W) uint8 with C = 1 or 3, got {got}")
+        size = (int(frame.shape[-2]), int(frame.shape[-1]))
+        if self.frame_size is None:
+            self.frame_size = size
+        elif size != self.frame_size:
+            raise ShapeError(
+                f"frame size changed from {self.frame_size} to {size} (H, W) at frame "
+                f"{self.frame_index + 1}"
+            )
+
+    @staticmethod
+    def _check_detections(detections) -> tuple[torch.Tensor, torch.Tensor]:
+        try:
+            boxes, p = detections
+        except (TypeError, ValueError):
+            raise ShapeError(
+                "detections must be a pair (boxes (M, 4), probabilities (M,))"
+            ) from None
+        boxes = torch.as_tensor(boxes, dtype=torch.float64).reshape(-1, 4)
+        p = torch.as_tensor(p, dtype=torch.float64).reshape(-1)
+        if p.shape[0] != boxes.shape[0]:
+            raise ShapeError(f"{boxes.shape[0]} detection boxes but {p.shape[0]} probabilities")
+        ok = torch.isfinite(boxes).all(1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
+        ok &= torch.isfinite(p)
+        return boxes[ok], p[ok].clamp(0.0, 1.0)
+
+    def _predict(self) -> None:
+        cfg = self.config
+        anc, _, _ = resample(self.log_weights, cfg.resample, None, self.generator)
+        states = torch.gather(self.states, 1, anc.unsqueeze(-1).expand(-1, -1, 6))
+        lost = (self.since_match - (cfg.scan_every - 1)).clamp_min(0).to(torch.float64)
+        scale = (1.0 + cfg.lost_noise_growth * lost).clamp(max=cfg.max_noise_scale)
+        self.states = self.dynamics.predict(states, self.generator, noise_scale=scale)
+        n = self.states.shape[1]
+        self.log_weights = torch.full_like(self.log_weights, -math.log(n))
+
+    def _interactions(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Target-target interactions from the predicted boxes (mean field).
+
+        Returns:
+            ``occlusion (T,)``: each target's largest IoU with another target's predicted
+            window; ``exclusion (T, N)``: each particle window's largest IoU with another
+            target's predicted window (the interaction potential of Khan, Balch and Dellaert,
+            "MCMC-based particle filtering for tracking a variable number of interacting
+            targets", PAMI 2005: two targets do not take the same place).
+        """
+        t, n = self.states.shape[:2]
+        if t < 2:
+            z = torch.zeros(t, dtype=torch.float64)
+            return z, torch.zeros((t, n), dtype=torch.float64)
+        from torchtrack.boxes import box_iou_matrix
+
+        est = self._estimate(self.states, self.log_weights)
+        boxes = self._windows(est[:, None], self.ref)[:, 0]  # (T, 4)
+        iou = box_iou_matrix(boxes, boxes)
+        iou.fill_diagonal_(0)
+        pw = self._windows(self.states, self.ref).reshape(t * n, 4)
+        piou = box_iou_matrix(pw, boxes).reshape(t, n, t)
+        own = torch.arange(t)
+        piou[own, :, own] = 0.0
+        return iou.max(1).values.clamp(0.0, 1.0), piou.max(2).values
+
+    def _probabilities(self, frame: torch.Tensor) -> torch.Tensor:
+        wins = self._windows(self.states, self.ref)
+        t, n = wins.shape[:2]
+        p = self.observation.probabilities(frame[None], wins.reshape(1, t * n, 4))
+        return p.reshape(t, n).to(torch.float64)
+
+    def _histograms(self, bin_map: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        from torchtrack.observe.histogram import box_histograms
+
+        return box_histograms(bin_map, boxes, self._bins.n_bins, grid=8)
+
+    def _particle_appearance(self, bin_map: torch.Tensor) -> torch.Tensor:
+        from torchtrack.observe.histogram import bhattacharyya
+
+        t, n = self.states.shape[:2]
+        boxes = self.particle_boxes().reshape(1, t * n, 4)
+        h = self._histograms(bin_map, boxes).reshape(t, n, -1)
+        return bhattacharyya(h, self.hist[:, None, :]).to(torch.float64)
+
+    def _associate(
+        self, det_boxes: torch.Tensor, det_p: torch.Tensor, det_hist: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """ByteTrack-order assignment; returns ``(matched detection per target (T,), -1 for
+        none; expected overlap (T, M))``."""
+        cfg = self.config
+        t = self.n_targets
+        # Overlap through the filter: the better of the IoU with the estimate and the expected
+        # IoU under the particles (the first does not shrink when the particles spread).
+        from torchtrack.boxes import box_iou_matrix
+
+        overlap = torch.maximum(
+            expected_iou(self.particle_boxes(), self.log_weights, det_boxes),
+            box_iou_matrix(self._estimated_boxes(), det_boxes),
+        )  # (T, M)
+        app = None
+        if det_hist is not None:
+            from torchtrack.observe.histogram import bhattacharyya
+
+            app = bhattacharyya(self.hist[:, None, :], det_hist[None, :, :]).to(torch.float64)
+        matched = torch.full((t,), -1, dtype=torch.int64)
+        high = det_p >= cfg.birth_threshold
+        conf_rows = torch.nonzero(self.confirmed).flatten()
+        tent_rows = torch.nonzero(~self.confirmed).flatten()
+        free_det = torch.ones(det_boxes.shape[0], dtype=torch.bool)
+
+        def stage(rows: torch.Tensor, cols_mask: torch.Tensor, use_app: bool) -> None:
+            cols = torch.nonzero(cols_mask & free_det).flatten()
+            rows = rows[matched[rows] < 0]
+            if rows.numel() == 0 or cols.numel() == 0:
+                return
+            o = overlap[rows][:, cols]
+            a = app[rows][:, cols] if (use_app and app is not None) else None
+            cost = association_cost(
+                o,
+                a,
+                w_overlap=cfg.w_overlap,
+                w_appearance=cfg.w_appearance,
+                gate=cfg.overlap_gate,
+            )
+            res = linear_assignment(cost, cfg.max_cost)
+            for r, c in res.pairs.tolist():
+                matched[rows[r]] = cols[c]
+                free_det[cols[c]] = False
+
+        stage(conf_rows, high, use_app=True)
+        stage(conf_rows, ~high, use_app=False)
+        stage(tent_rows, high, use_app=True)
+        return matched, overlap
+
+    def _detection_term(self, det_boxes: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
+        """Log Gaussian of each particle around its target's matched detection (0 elsewhere):
+        ``(T, N)``."""
+        out = torch.zeros(self.states.shape[:2], dtype=torch.float64)
+        rows = torch.nonzero(matched >= 0).flatten()
+        if rows.numel() == 0:
+            return out
+        sig = self.config.detection_sigma
+        win = self.detector.object_to_window(det_boxes[matched[rows]])  # (R, 4)
+        dc = win[:, 0:2] + win[:, 2:4] / 2
+        ds = win[:, 3] / self.ref[rows, 1]
+        st = self.states[rows]
+        sd = sig * win[:, 3:4]
+        d2 = (((st[..., 0:2] - dc[:, None, :]) / sd[:, None, :]) ** 2).sum(-1)
+        ls = (st[..., 4].clamp_min(1e-6).log() - ds.log()[:, None]) / sig
+        out[rows] = -0.5 * (d2 + ls**2)
+        return out
+
+    def _explained_away(self, det_boxes: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
+        """``(T, N)`` log of ``1 - IoU`` of each particle's object box with the detections
+        matched to other targets: a person another target was just matched to explains the
+        detector's evidence there, so an unmatched neighbour's particles are not drawn to it."""
+        t, n = self.states.shape[:2]
+        rows = torch.nonzero(matched >= 0).flatten()
+        if t < 2 or rows.numel() == 0:
+            return torch.zeros((t, n), dtype=torch.float64)
+        from torchtrack.boxes import box_iou_matrix
+
+        boxes = det_boxes[matched[rows]]  # (R, 4) detections of targets `rows`
+        iou = box_iou_matrix(self.particle_boxes().reshape(t * n, 4), boxes).reshape(t, n, -1)
+        own = rows[None, :] == torch.arange(t)[:, None]  # (T, R): a target's own detection
+        iou = iou.masked_fill(own[:, None, :], 0.0)
+        return torch.log1p(-iou.max(2).values.clamp(0.0, 0.999))
+
+    def _reseed(
+        self, det_boxes: torch.Tensor, matched: torch.Tensor, overlap: torch.Tensor
+    ) -> None:
+        """Matched targets whose particles barely reach their detection restart around it."""
+        rows = torch.nonzero(matched >= 0).flatten()
+        if rows.numel() == 0:
+            return
+        ov = overlap[rows, matched[rows]]
+        rows = rows[ov < self.config.reseed_overlap]
+        if rows.numel() == 0:
+            return
+        self.stats["reseeded"] += rows.numel()
+        win = self.detector.object_to_window(det_boxes[matched[rows]])
+        c = win[:, 0:2] + win[:, 2:4] / 2
+        s = win[:, 3] / self.ref[rows, 1]
+        old = self._estimate(self.states[rows], self.log_weights[rows])
+        vel = old[:, 0:2] - old[:, 2:4]
+        x0 = torch.cat([c, c - vel, s[:, None], s[:, None]], 1)
+        self.states[rows] = self._spread(x0)
+
+    def _spread(self, x0: torch.Tensor) -> torch.Tensor:
+        """``(R, 6)`` states -> ``(R, N, 6)`` particles spread by one step of process noise
+        around them (their lagged slots kept)."""
+        n = self.config.n_particles
+        rep = x0[:, None, :].repeat(1, n, 1)
+        out = rep + self.dynamics._noise(rep, self.generator)
+        out[..., 4] = out[..., 4].clamp_min(self.dynamics.min_scale)
+        out[..., 2:4] = rep[..., 2:4]
+        out[..., 5] = rep[..., 5]
+        return out
+
+    def _bookkeep(
+        self,
+        matched: torch.Tensor,
+        det_p: torch.Tensor,
+        det_boxes: torch.Tensor,
+        bin_map: torch.Tensor | None,
+    ) -> None:
+        cfg = self.config
+        hit = matched >= 0
+        self.detected = hit
+        self.hits = torch.where(hit, self.hits + 1, torch.zeros_like(self.hits))
+        self.since_match = torch.where(
+            hit, torch.zeros_like(self.since_match), self.since_match + 1
+        )
+        self.last_score = torch.where(
+            hit, det_p[matched.clamp_min(0)] if det_p.numel() else self.last_score, self.last_score
+        )
+        rows = torch.nonzero(hit).flatten()
+        if rows.numel():
+            a = self._aspect_of(det_boxes[matched[rows]])
+            self.aspect[rows] = 0.7 * self.aspect[rows] + 0.3 * a
+        newly = hit & ~self.confirmed & (self.hits >= cfg.confirm_hits)
+        for r in torch.nonzero(newly).flatten().tolist():
+            self.ids[r] = self._next_id
+            self._next_id += 1
+        self.confirmed |= newly
+        self.stats["confirmed"] += int(newly.sum())
+        if bin_map is not None and cfg.appearance_rate > 0:
+            rows = torch.nonzero(hit).flatten()
+            if rows.numel():
+                boxes = det_boxes[matched[rows]]
+                ok = det_p[matched[rows]] >= cfg.birth_threshold
+                if rows.numel() > 1:  # no update while another target overlaps (occlusion)
+                    from torchtrack.boxes import box_iou_matrix
+
+                    iou = box_iou_matrix(boxes, boxes)
+                    iou.fill_diagonal_(0)
+                    ok &= iou.max(1).values < 0.1
+                rows, boxes = rows[ok], boxes[ok]
+                if rows.numel():
+                    h = self._histograms(bin_map, boxes[None])[0]
+                    a = cfg.appearance_rate
+                    self.hist[rows] = (1 - a) * self.hist[rows] + a * h
+
+    def _births(
+        self,
+        det_boxes: torch.Tensor,
+        det_p: torch.Tensor,
+        free: list[int],
+        bin_map: torch.Tensor | None,
+    ) -> None:
+        cfg = self.config
+        cand = [j for j in free if float(det_p[j]) >= cfg.birth_threshold]
+        if not cand:
+            return
+        boxes = det_boxes[cand]
+        if self.n_targets:
+            # A confident detection on a live (possibly lost or tentative) target is that
+            # target, not a new one.
+            from torchtrack.boxes import box_iou_matrix
+
+            est = self._estimated_boxes()
+            iou = box_iou_matrix(boxes, est)
+            keep = iou.max(1).values < cfg.birth_overlap
+            boxes = boxes[keep]
+            cand = [c for c, k in zip(cand, keep.tolist(), strict=True) if k]
+        room = cfg.max_targets - self.n_targets
+        if len(cand) > room:
+            if not self._warned_full:
+                warnings.warn(
+                    f"max_targets={cfg.max_targets} reached: new targets are not started",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+                self._warned_full = True
+            order = det_p[cand].argsort(descending=True)[: max(room, 0)]
+            cand = [cand[i] for i in order.tolist()]
+            boxes = det_boxes[cand]
+        if not cand:
+            return
+        k = len(cand)
+        self.stats["born"] += k
+        win = self.detector.object_to_window(boxes)
+        c = win[:, 0:2] + win[:, 2:4] / 2
+        one = torch.ones((k, 1), dtype=torch.float64)
+        x0 = torch.cat([c, c, one, one], 1)
+        n = cfg.n_particles
+        self.states = torch.cat([self.states, self._spread(x0)])
+        self.log_weights = torch.cat(
+            [self.log_weights, torch.full((k, n), -math.log(n), dtype=torch.float64)]
+        )
+        self.ref = torch.cat([self.ref, win[:, 2:4]])
+        self.aspect = torch.cat([self.aspect, self._aspect_of(boxes)])
+        self.ids = torch.cat([self.ids, torch.zeros(k, dtype=torch.int64)])
+        self.hits = torch.cat([self.hits, torch.ones(k, dtype=torch.int64)])
+        self.since_match = torch.cat([self.since_match, torch.zeros(k, dtype=torch.int64)])
+        confirmed = torch.full((k,), cfg.confirm_hits <= 1, dtype=torch.bool)
+        self.confirmed = torch.cat([self.confirmed, confirmed])
+        ids = torch.zeros(k, dtype=torch.int64)
+        if cfg.confirm_hits <= 1:
+            ids = torch.arange(self._next_id, self._next_id + k, dtype=torch.int64)
+            self._next_id += k
+        self.ids[-k:] = ids
+        self.evidence = torch.cat([self.evidence, det_p[cand]])
+        self.last_score = torch.cat([self.last_score, det_p[cand]])
+        self.detected = torch.cat([self.detected, torch.ones(k, dtype=torch.bool)])
+        if bin_map is not None:
+            h = self._histograms(bin_map, boxes[None])[0]
+        else:
+            h = torch.zeros((k, self.hist.shape[1]), dtype=torch.float32)
+        self.hist = torch.cat([self.hist, h])
+
+    def _estimated_boxes(self) -> torch.Tensor:
+        est = self._estimate(self.states, self.log_weights)  # (T, 6)
+        return self._with_aspect(
+            self.detector.window_to_object(self._windows(est[:, None], self.ref)[:, 0]),
+            self.aspect,
+        )
+
+    @staticmethod
+    def _with_aspect(boxes: torch.Tensor, aspect: torch.Tensor) -> torch.Tensor:
+        """Object boxes ``(T, 4)`` widened by ``aspect (T,)`` about their centre."""
+        w = boxes[:, 2] * aspect
+        x = boxes[:, 0] + (boxes[:, 2] - w) / 2
+        return torch.stack([x, boxes[:, 1], w, boxes[:, 3]], 1)
+
+    def _aspect_of(self, boxes: torch.Tensor) -> torch.Tensor:
+        """Width ratio of object boxes ``(M, 4)`` to the detector's object box of their height
+        (1 for the detector's own detections; external detections keep their shape)."""
+        std = self.detector.window_to_object(self.detector.object_to_window(boxes))
+        return boxes[:, 2] / std[:, 2].clamp_min(1e-9)
+
+    def _deaths(self) -> None:
+        if not self.n_targets:
+            return
+        cfg = self.config
+        gone = self._visible_fraction(self._estimated_boxes()) < cfg.min_visible_fraction
+        lost = self.since_match > cfg.max_lost
+        tentative_miss = ~self.confirmed & (self.since_match >= cfg.scan_every)
+        keep = ~(gone | lost | tentative_miss)
+        if not bool(keep.all()):
+            self.stats["ended: left the frame"] += int((gone & self.confirmed).sum())
+            self.stats["ended: lost"] += int((lost & ~gone & self.confirmed).sum())
+            self.stats["ended: tentative"] += int((~keep & ~self.confirmed).sum())
+            self._keep(keep)
+
+    def _report(self) -> MultiState:
+        cfg = self.config
+        if not self.n_targets:
+            z = torch.zeros(0, dtype=torch.float64)
+            return MultiState(
+                torch.zeros(0, dtype=torch.int64),
+                z.reshape(0, 4),
+                z,
+                torch.zeros(0, dtype=torch.bool),
+            )
+        fresh = self.since_match < cfg.scan_every
+        coast = (self.since_match <= cfg.max_coast) & (self.evidence >= cfg.visible_threshold)
+        show = self.confirmed & (fresh | coast)
+        boxes = self._estimated_boxes()
+        detected = self.detected
+        conf = torch.where(self.since_match == 0, self.last_score, self.evidence)
+        order = torch.argsort(self.ids[show])
+        return MultiState(
+            ids=self.ids[show][order],
+            boxes=boxes[show][order],
+            confidence=conf[show][order],
+            detected=detected[show][order],
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"MultiTargetTracker({self.detector.name!r}, targets={self.n_targets}, "
+            f"scan_every={self.config.scan_every})"
+        )
+
+
+def track_sequence(
+    tracker: MultiTargetTracker,
+    frames,
+    detections=None,
+    max_frames: int | None = None,
+):
+    """Run ``tracker`` over ``frames`` and collect the reported targets.
+
+    Args:
+        tracker: a fresh (or :meth:`~MultiTargetTracker.reset`) tracker.
+        frames: a :class:`~torchtrack.io.video.FrameSource` (or anything with ``items()``
+            yielding ``(index, frame or None)``); unreadable frames are skipped.
+        detections: optional per-frame detections: a :class:`~torchtrack.io.mot.MotRows` of
+            object boxes with scores in [0, 1] (e.g. public detections), used instead of scans.
+        max_frames: stop after this many frames.
+
+    Returns:
+        :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target.
+    """
+    import numpy as np
+
+    from torchtrack.io.mot import MotRows
+
+    per_frame = None
+    if detections is not None:
+        n = int(detections.frames.max()) + 1 if len(detections) else 0
+        per_frame = detections.split(n)
+        boxes_all = torch.from_numpy(detections.boxes)
+        conf_all = torch.from_numpy(detections.conf.astype(np.float64)).clamp(0.0, 1.0)
+    f_, i_, b_, c_ = [], [], [], []
+    empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    for i, frame in frames.items():
+        if max_frames is not None and i >= max_frames:
+            break
+        if frame is None:
+            continue
+        d = None
+        if per_frame is not None:
+            idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
+            d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
+        out = tracker.update(frame, d)
+        if len(out):
+            f_.append(torch.full((len(out),), i, dtype=torch.int64))
+            i_.append(out.ids)
+            b_.append(out.boxes)
+            c_.append(out.confidence)
+    if not f_:
+        return MotRows.empty()
+    return MotRows.from_arrays(torch.cat(f_), torch.cat(i_), torch.cat(b_), torch.cat(c_))
+
+
+def score_probabilities(scores: torch.Tensor) -> torch.Tensor:
+    """Detection scores of an outside detector as probabilities ``(M,)`` float64: scores all in
+    ``[0, 1]`` are taken as they are; raw scores (e.g. the MOT15 public detections' -0.2..122)
+    are divided by the highest one (a crude map: calibrate them with ``torchtrack calibrate
+    --scores`` when labelled scores exist)."""
+    s = torch.as_tensor(scores, dtype=torch.float64).reshape(-1)
+    if s.numel() == 0 or bool(((s >= 0) & (s <= 1)).all()):
+        return s
+    return (s / s.max().clamp_min(1e-12)).clamp(0.0, 1.0)
