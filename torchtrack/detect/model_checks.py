@@ -564,7 +564,9 @@ def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
     haar = meta["features"]["kind"] == "haar"
     if haar:
         if "selected_features" not in meta:
-            raise ModelFormatError("the description lacks ['selected_features'] (a Haar model lists them)")
+            raise ModelFormatError(
+                "the description lacks ['selected_features'] (a Haar model lists them)"
+            )
         k = _check_selected(meta, entries, n_bank)
     else:
         if "selected_features" in meta:
