@@ -143,8 +143,18 @@ class LearnConfig:
             :class:`MiningConfig`) and their depth.
         feature_fraction, weight_trimming: share of the pool searched per tree, and share of
             the weight left out of the split search (see :class:`torchtrack.learn.BoostedTrees`).
-        cascade_probability: soft cascade: the held-out positives whose calibrated probability
-            reaches this are never rejected (direct backward pruning); 0 turns the cascade off.
+        cascade: the soft cascade stored in the model (used by scans; scoring boxes always
+            evaluates every tree): ``"constant"`` (Dollár's constant soft cascade: a window is
+            dropped as soon as its running margin falls below ``cascade_threshold``; ACF uses
+            -1), ``"backward"`` (Bourdev & Brandt's direct backward pruning on the held-out
+            positives, see ``cascade_probability``) or ``"none"``.
+        cascade_threshold: the constant cascade's threshold on the running margin.
+        cascade_probability, cascade_miss: backward pruning: the rejection threshold after
+            each tree is the ``cascade_miss`` quantile of the running margins of the held-out
+            positives whose calibrated probability reaches ``cascade_probability``
+            (``cascade_miss = 0``: none of them is ever rejected). Held-out crops are cleaner
+            than objects in real scenes, so these thresholds reject more real objects than the
+            constant cascade (docs/benchmarks/uiuc.md).
         svm_kernel, svm_c: SVM kernel (``"rbf"`` / ``"linear"``) and C.
         calibration: ``"platt"`` (paper eq. 5-8) or ``"isotonic"``.
         calibration_fraction: share of the training crops held out for calibration (paper: 0.3).
@@ -164,7 +174,10 @@ class LearnConfig:
     tree_depth: int = 2
     feature_fraction: float = 0.5
     weight_trimming: float = 0.02
-    cascade_probability: float = 0.01
+    cascade: str = "constant"
+    cascade_threshold: float = -1.0
+    cascade_probability: float = 0.5
+    cascade_miss: float = 0.01
     svm_kernel: str = "rbf"
     svm_c: float = 1.0
     calibration: str = "platt"
@@ -303,6 +316,16 @@ class TrainConfig:
             raise ConfigError(
                 f"learn.weight_trimming must be in [0, 1), got {lr.weight_trimming!r}"
             )
+        if lr.cascade not in ("constant", "backward", "none"):
+            raise ConfigError(
+                f"learn.cascade must be 'constant', 'backward' or 'none', got {lr.cascade!r}"
+            )
+        if not _isnum(lr.cascade_threshold):
+            raise ConfigError(
+                f"learn.cascade_threshold must be a number, got {lr.cascade_threshold!r}"
+            )
+        if not (_isnum(lr.cascade_miss) and 0 <= lr.cascade_miss < 0.5):
+            raise ConfigError(f"learn.cascade_miss must be in [0, 0.5), got {lr.cascade_miss!r}")
         if not (_isnum(lr.cascade_probability) and 0 <= lr.cascade_probability < 1):
             raise ConfigError(
                 f"learn.cascade_probability must be in [0, 1), got {lr.cascade_probability!r}"

@@ -289,6 +289,7 @@ def train_channel_detector(
     *,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
+    force: bool = False,
 ) -> Detector:
     """Train, mine, calibrate and cascade a channel-feature detector (see the module notes).
 
@@ -296,6 +297,9 @@ def train_channel_detector(
         cfg: a validated config with ``features.kind = "channels"``.
         progress: progress bars.
         log: called with one line per step.
+        force: train even on too little data (the minimums of
+            :func:`~torchtrack.detect.training.check_data_sizes`; the reasons are logged and
+            recorded in the summary as ``forced``).
 
     Returns:
         a calibrated :class:`Detector` whose bank holds only the features its trees use.
@@ -307,7 +311,12 @@ def train_channel_detector(
         TrainingWarning: mining ended with a false-positive rate on the training images above
             ``mining.target_fpr``.
     """
-    from torchtrack.detect.training import _data_root, _relative_to, portable_config
+    from torchtrack.detect.training import (
+        _data_root,
+        _relative_to,
+        check_data_sizes,
+        portable_config,
+    )
     from torchtrack.learn import calibration_metrics, make_calibrator
     from torchtrack.learn.trees import BoostedTrees, code_features, quantile_edges
 
@@ -396,6 +405,22 @@ def train_channel_detector(
         f"split: train {n_pos_tr} pos / {n_neg_tr} neg, calibration {n_pos_ca} pos / {n_neg_ca} "
         f"neg; {len(mine_imgs)} of {n_img} negative images mined"
     )
+    too_little = check_data_sizes(
+        cfg,
+        pos_tr[0].images,
+        torch.empty((n_neg_tr, 1, 1, 1)),
+        pos_ca[0].images,
+        torch.empty((n_neg_ca, 1, 1, 1)),
+    )
+    if too_little and not force:
+        raise DataError(
+            "too little data to train a detector: "
+            + "; ".join(too_little)
+            + f" (calibration hold-out {frac:.0%}). Add crops, lower learn.min_train_per_class / "
+            "learn.min_calibration_per_class, or train anyway with --force (force=True)"
+        )
+    for line in too_little:
+        log(f"  warning (forced): {line}")
     # features of the whole pool, coded once
     t0 = time.perf_counter()
     xs = [_crop_features(c, pool) for c in pos_tr]
@@ -530,19 +555,30 @@ def train_channel_detector(
     cal_metrics = calibration_metrics(calibrator.predict_proba(m_ca), y_ca.long())
     dr, _, _ = detection_rate_at_fpr(m_ca, y_ca, 0.01)
     auc = roc_auc(m_ca, y_ca)
-    # soft cascade: direct backward pruning on the held-out positives
-    c = float(lr.cascade_probability)
-    cascade: dict[str, Any] = {"probability": c}
-    clf.reject_ = torch.full_like(clf.reject_, -float(torch.finfo(torch.float32).max))
-    if c > 0:
+    # the soft cascade the scans use
+    cascade: dict[str, Any] = {"method": lr.cascade}
+    big = float(torch.finfo(torch.float32).max)
+    clf.reject_ = torch.full_like(clf.reject_, -big)
+    if lr.cascade == "constant":
+        clf.reject_ = torch.full_like(clf.reject_, float(lr.cascade_threshold))
+        cascade["threshold"] = float(lr.cascade_threshold)
+    elif lr.cascade == "backward" and lr.cascade_probability > 0:
+        c = float(lr.cascade_probability)
+        cascade.update({"probability": c, "miss": float(lr.cascade_miss)})
         mp = m_ca[: xp.shape[0]]
         ok = calibrator.predict_proba(mp) >= c
         if bool(ok.any()):
             m_cut = float(mp[ok].min())
-            clf.fit_cascade(xp, m_cut)
+            clf.fit_cascade(xp, m_cut, quantile=float(lr.cascade_miss))
             cascade.update(
                 {"min_margin": m_cut, "positives_kept": int(ok.sum()), "positives": int(mp.numel())}
             )
+    # share of held-out positives and negatives the cascade stops before the last tree
+    staged_p = clf.staged_decision_function(xp)
+    staged_n = clf.staged_decision_function(xn)
+    rej = clf.reject_.to(staged_p.dtype)
+    cascade["held_out_positives_rejected"] = float((staged_p < rej).any(1).double().mean())
+    cascade["held_out_negatives_rejected"] = float((staged_n < rej).any(1).double().mean())
     log(
         f"held-out: detection rate {dr:.3f} at 1% FPR, AUC {auc:.4f}; {lr.calibration} NLL "
         f"{cal_metrics['nll']:.4f}, ECE {cal_metrics['ece']:.4f}; {used.numel()} of {len(pool)} "
@@ -579,6 +615,8 @@ def train_channel_detector(
         "features_s": t_feat,
         "train_seconds": time.perf_counter() - t_start,
     }
+    if too_little:
+        summary["forced"] = too_little
     return Detector(
         bank, index, clf, calibrator, name=cfg.name, summary=summary, object_box=cfg.object_box()
     )

@@ -376,7 +376,7 @@ def train_detector(
     if cfg.features.kind == "channels":
         from torchtrack.detect.train_channels import train_channel_detector
 
-        return train_channel_detector(cfg, progress=progress, log=log)
+        return train_channel_detector(cfg, progress=progress, log=log, force=force)
     gen = torch.Generator().manual_seed(int(cfg.seed))
     window = (int(cfg.window[0]), int(cfg.window[1]))
     f = cfg.features
