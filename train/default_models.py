@@ -174,6 +174,22 @@ def write_readme(models_dir: Path) -> Path:
             f"* Training counts: {cnt['positives_train']} positive / {cnt['negatives_train']} "
             f"negative crops (incl. {cnt['hard_negatives']} mined), calibration "
             f"{cnt['positives_calibration']} / {cnt['negatives_calibration']}.",
+            *(
+                [
+                    "* Mining: false positives per scanned window of the training images (margin "
+                    ">= 0) after each round: "
+                    + ", ".join(f"{r['fpr']:.1e}" for r in t["rounds"] if "fpr" in r)
+                    + f" (mining.target_fpr {mi.get('target_fpr', 0):g}"
+                    + (
+                        "; not reached: training warned"
+                        if t["rounds"] and t["rounds"][-1].get("fpr", 0) > mi.get("target_fpr", 1)
+                        else ""
+                    )
+                    + ")."
+                ]
+                if any("fpr" in r for r in t["rounds"])
+                else []
+            ),
             f"* Calibration hold-out: detection rate {held['dr_at_1pct_fpr']:.1%} at 1% FPR, "
             f"AUC {held['auc']:.4f}; Platt NLL {held['calibrated_in_sample']['nll']:.4f}, "
             f"ECE {held['calibrated_in_sample']['ece']:.4f}.",

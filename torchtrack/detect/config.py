@@ -49,6 +49,13 @@ class DataConfig:
             these factors (<= 1; e.g. ``[1.0, 0.5]``): the detector then sees objects at the
             resolution of people smaller than the window (the scan reads small windows from
             the frame at its own resolution). ``cell * factor`` must be a whole number.
+        positive_jitter: channel models: also train on a copy of every positive crop moved by
+            a random whole number of pixels up to this in x and y (the window then sits off the
+            object by that much: a detector tolerant to the misaligned windows a particle filter
+            scores; the crop's margin must be larger than the shift).
+        gray_copies: colour channel models: also train on gray copies (R = G = B) of the
+            positives and the negative images, so that the model also works on grayscale
+            footage (where U = V = 0).
         mirror_positives, mirror_negatives: add left-right mirror images (channel features:
             ``mirror_negatives`` also mirrors the negative images, for random windows and
             mining).
@@ -66,6 +73,8 @@ class DataConfig:
     region: list[int] | None = None
     object: list[float] | None = None
     positive_scales: list[float] = field(default_factory=lambda: [1.0])
+    positive_jitter: int = 0
+    gray_copies: bool = False
     mirror_positives: bool = True
     mirror_negatives: bool = False
     random_negatives: int = 0
@@ -261,6 +270,14 @@ class TrainConfig:
             raise ConfigError(
                 f"data.positive_scales must be a non-empty list of numbers in (0, 1], got "
                 f"{d.positive_scales!r}"
+            )
+        if (
+            not isinstance(d.positive_jitter, int)
+            or isinstance(d.positive_jitter, bool)
+            or not 0 <= d.positive_jitter <= 64
+        ):
+            raise ConfigError(
+                f"data.positive_jitter must be an integer in [0, 64] pixels, got {d.positive_jitter!r}"
             )
         f = self.features
         if f.kind not in ("haar", "channels"):

@@ -137,6 +137,14 @@ def _concat(parts: list[_Crops]) -> _Crops:
     )
 
 
+def _gray(images: torch.Tensor) -> torch.Tensor:
+    """``(N, 3, H, W)`` uint8 RGB -> the same with R = G = B = the BT.601 luma (rounded)."""
+    from torchtrack.features.integral import rgb_to_gray
+
+    g = rgb_to_gray(images.float()).round().clamp(0, 255).to(torch.uint8)
+    return g.expand(-1, 3, -1, -1).contiguous()
+
+
 def _folder_pattern(entry: str) -> tuple[str, str | None]:
     p = Path(entry)
     if any(c in p.name for c in "*?["):
@@ -189,6 +197,21 @@ def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelDat
     skipped = list(pos.skipped)
     box = region if region is not None else (0, 0, window[1], window[0])
     base = _Crops(pos.images, tuple(int(v) for v in box), pos.sources)
+    if d.positive_jitter > 0:  # a copy of every crop shifted by up to positive_jitter pixels
+        g = torch.Generator().manual_seed(int(cfg.seed) + 7)
+        j = int(d.positive_jitter)
+        shifts = torch.randint(-j, j + 1, (len(base), 2), generator=g).tolist()
+        moved = torch.stack(
+            [
+                torch.roll(im, (dy, dx), (-2, -1))
+                for im, (dy, dx) in zip(base.images, shifts, strict=True)
+            ]
+        )
+        base = _concat([base, _Crops(moved, base.region, [s + "#jitter" for s in base.sources])])
+    if d.gray_copies and colour:
+        base = _concat(
+            [base, _Crops(_gray(base.images), base.region, [s + "#gray" for s in base.sources])]
+        )
     if d.mirror_positives:
         base = _concat([base, _mirrored(base)])
     positives = [_scaled(base, float(q)) for q in d.positive_scales]
@@ -225,6 +248,9 @@ def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelDat
         for a in arrs:
             t = torch.from_numpy(a)
             images.append(t.permute(2, 0, 1).contiguous() if t.ndim == 3 else t[None])
+        if d.gray_copies and colour:  # gray copies: a colour model that also works on gray
+            images += [_gray(im[None])[0] for im in images]
+            sources = sources + [s + "#gray" for s in sources]
         if d.mirror_negatives:  # mirrored images: twice the backgrounds to sample and mine
             images += [im.flip(-1) for im in images]
             sources = sources + [s + "#flip" for s in sources]

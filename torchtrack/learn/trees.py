@@ -45,7 +45,7 @@ from torchtrack.learn._base import (
     state_meta,
     state_tensor,
 )
-from torchtrack.learn.boosting import VARIANTS, _initial_weights, _quantile_edges, _tqdm
+from torchtrack.learn.boosting import VARIANTS, _initial_weights, _tqdm
 
 __all__ = ["BoostedTrees", "code_features", "quantile_edges"]
 
@@ -54,11 +54,27 @@ _BIG = float(torch.finfo(torch.float32).max)  # "never go right" threshold / "ne
 
 def quantile_edges(X: torch.Tensor, n_bins: int = 256, n_sample: int = 8192) -> torch.Tensor:
     """Bin edges ``(F, n_bins - 1)`` float32 of the columns of ``X (n, F)`` at the quantiles of
-    an evenly spaced row subsample (deterministic)."""
+    an evenly spaced row subsample (deterministic).
+
+    Every edge lies halfway between a sample value and the next larger one, never on a value
+    itself: features often take one value many times (0 in a flat region), and an edge on such
+    a value would let rounding (1e-7 between two exact ways of reading the same feature) decide
+    the split. An edge with no larger sample value is ``+inf`` (never splits).
+    """
     if not 2 <= int(n_bins) <= 256:
         raise errors.ConfigError(f"n_bins must be in [2, 256], got {n_bins}")
     cols = X.to(torch.float32).t().contiguous()
-    return _quantile_edges(cols, int(n_bins), n_sample)
+    n = cols.shape[1]
+    m = min(n, n_sample)
+    rows = torch.linspace(0, n - 1, m, device=cols.device).round().long()
+    sub = cols.index_select(1, rows).sort(dim=1).values  # (F, m)
+    pos = (torch.arange(1, int(n_bins), device=cols.device) * m) // int(n_bins)
+    at = sub.index_select(1, pos.clamp_max(m - 1))  # (F, n_bins - 1) sample values
+    nxt_i = torch.searchsorted(sub, at.contiguous(), right=True)  # first value > at
+    nxt = sub.gather(1, nxt_i.clamp_max(m - 1))
+    mid = (at.double() + nxt.double()).mul_(0.5).to(torch.float32)
+    mid = torch.where(mid > at, mid, nxt)  # float rounding can land the midpoint on `at`
+    return torch.where(nxt_i < m, mid, torch.full_like(mid, math.inf)).contiguous()
 
 
 def code_features(X: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
