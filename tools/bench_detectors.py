@@ -46,6 +46,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("test_sets", REPO / "train" / "test_sets.py")
 test_sets = importlib.util.module_from_spec(_spec)
+sys.modules["test_sets"] = test_sets  # dataclasses look their module up while being defined
 _spec.loader.exec_module(test_sets)
 
 

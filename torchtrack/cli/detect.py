@@ -127,6 +127,12 @@ def register(subparsers) -> None:
         help="report the detection windows instead of the object boxes",
     )
     p.add_argument(
+        "--no-cascade",
+        action="store_true",
+        help="score every window with every tree (channel models: slower; the soft cascade "
+        "drops a window as soon as its running score falls below the model's threshold)",
+    )
+    p.add_argument(
         "--batch", type=int, default=4, metavar="B", help="frames scored together (default 4)"
     )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
@@ -321,6 +327,7 @@ def run(args: argparse.Namespace) -> int:
         "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
         "nms_overlap": args.nms_overlap,
         "windows": args.windows,
+        "cascade": not args.no_cascade,
     }
     total = len(src) or None
     if args.max_frames is not None and total is not None:
