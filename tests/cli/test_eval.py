@@ -64,6 +64,10 @@ def test_eval_bad_inputs(tmp_path, capsys):
     assert "no tracking sequence found" in capsys.readouterr().err
     assert main([*args, str(tmp_path / "o"), "--max-frames", "1"]) == 1
     assert "--max-frames must be >= 2" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "o"), "--jobs", "0"]) == 1
+    assert "--jobs must be >= 1" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "o"), "--address", "10.0.0.5:6379"]) == 1
+    assert "--address names a Ray cluster: use it with --backend ray" in capsys.readouterr().err
 
 
 def test_list_trackers_and_import(capsys):

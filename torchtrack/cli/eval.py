@@ -5,6 +5,8 @@ Examples::
 
     torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
         --out runs/eval --plots --jobs 2
+    torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
+        --out runs/eval --backend ray --address 10.0.0.5:6379      # on a Ray cluster
     torchtrack eval --mot ../shared/data/mot/TUD-Stadtmitte --results tud.txt
     torchtrack eval --mot vtest.avi --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt \\
         --results pets.txt -o runs/mot
@@ -16,7 +18,7 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress, add_trust
+    from torchtrack.cli._common import add_backend, add_progress, add_trust
 
     p = subparsers.add_parser(
         "eval",
@@ -90,7 +92,6 @@ def register(subparsers) -> None:
 
     add_out(p, "DIR", "output folder (required with --sequences; optional with --mot)")
     p.add_argument("--plots", action="store_true", help="write success / precision PNG plots")
-    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument(
         "--reinit",
         action="store_true",
@@ -124,6 +125,7 @@ def register(subparsers) -> None:
         "repeatable; also imported by --jobs workers",
     )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
+    add_backend(p, "(tracker, sequence, seed)")
     add_progress(p)
     add_trust(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
@@ -174,15 +176,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
-    if args.jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
-    from torchtrack.cli._common import check_output_dir
+    from torchtrack.cli._common import backend_from_args, check_output_dir
+    from torchtrack.eval.backends import check_backend
 
     check_output_dir(args.out, "--out")
-
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate
     from torchtrack.io.sequences import find_sequences
+
+    check_backend(backend_from_args(args))  # Ray installed, its address answering: fail fast
 
     seqs = []
     for path in args.sequences:
@@ -196,6 +198,9 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         plots=args.plots,
         jobs=args.jobs,
+        backend=args.backend,
+        address=args.address,
+        max_retries=args.max_retries,
         reinit=args.reinit,
         invisible=args.invisible,
         seed=args.seed,
@@ -262,7 +267,10 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
 
 def run_mot(args: argparse.Namespace) -> int:
     """``torchtrack eval --mot SEQ ... --results FILE_OR_DIR ...``: score MOT results files."""
+    from torchtrack.cli._common import check_output_dir
     from torchtrack.errors import ConfigError
+
+    check_output_dir(args.out, "--out")  # before any work, on both MOT paths
 
     if args.mot and args.trackers and not args.results:
         return run_mot_trackers(args)
@@ -397,8 +405,14 @@ def _command_line(args: argparse.Namespace) -> str:
     parts += ["--out", args.out]
     if args.plots:
         parts.append("--plots")
-    if args.jobs != 1:
+    if args.backend != "local":
+        parts += ["--backend", args.backend]
+    if args.jobs is not None:
         parts += ["--jobs", str(args.jobs)]
+    if args.address:
+        parts += ["--address", args.address]
+    if args.max_retries != 3:
+        parts += ["--max-retries", str(args.max_retries)]
     if args.reinit:
         parts.append("--reinit")
     if args.invisible != "box":

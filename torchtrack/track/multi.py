@@ -184,13 +184,6 @@ class MultiTargetTracker:
         """Object boxes ``(T, N, 4)`` of every live target's particles (for drawing)."""
         return self.detector.window_to_object(self._windows(self.states, self.ref))
 
-    def _visible_fraction(self, boxes: torch.Tensor) -> torch.Tensor:
-        fh, fw = self.frame_size
-        x, y, w, h = boxes.unbind(-1)
-        iw = ((x + w).clamp(0, fw) - x.clamp(0, fw)).clamp_min(0)
-        ih = ((y + h).clamp(0, fh) - y.clamp(0, fh)).clamp_min(0)
-        return iw * ih / (w * h).clamp_min(1e-9)
-
     # -- detections ----------------------------------------------------------------------------
     def detect(self, frame: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Scan ``frame (C, H, W)``: object boxes ``(M, 4)`` float64 and calibrated
@@ -637,7 +630,12 @@ class MultiTargetTracker:
         if not self.n_targets:
             return
         cfg = self.config
-        gone = self._visible_fraction(self._estimated_boxes()) < cfg.min_visible_fraction
+        from torchtrack.boxes import inside_fraction
+
+        # NaN (a degenerate box) compares False: such a target is gone too.
+        gone = ~(
+            inside_fraction(self._estimated_boxes(), self.frame_size) >= cfg.min_visible_fraction
+        )
         lost = self.since_match > cfg.max_lost
         tentative_miss = ~self.confirmed & (self.since_match >= cfg.scan_every)
         keep = ~(gone | lost | tentative_miss)
