@@ -194,6 +194,22 @@ def write_readme(models_dir: Path) -> Path:
             f"AUC {held['auc']:.4f}; Platt NLL {held['calibrated_in_sample']['nll']:.4f}, "
             f"ECE {held['calibrated_in_sample']['ece']:.4f}.",
         ]
+        th = t.get("tracking_head")
+        by = (th or {}).get("held_out_by_trees", {})
+        if th and str(th.get("trees")) in by:
+            h = by[str(th["trees"])]
+            lines.append(
+                f"* Tracking head (what the particle-filter trackers score windows with): the "
+                f"first {th['trees']} trees, {h['features']} features, their own Platt "
+                f"calibration; calibration hold-out: detection rate {h['dr_at_1pct_fpr']:.1%} "
+                f"at 1% FPR, AUC {h['auc']:.4f}, ECE {h['ece']:.4f} (other sizes: "
+                + ", ".join(
+                    f"{k} trees {v['dr_at_1pct_fpr']:.1%} / AUC {v['auc']:.4f}"
+                    for k, v in sorted(by.items(), key=lambda kv: int(kv[0]))
+                    if k != str(th["trees"])
+                )
+                + ")."
+            )
         ts = t.get("test_split")
         if ts and "dr_interval_90" in ts:
             lo, hi = ts["dr_interval_90"]

@@ -256,3 +256,47 @@ def test_forged_channel_descriptions_are_refused(trained, tmp_path, forge_model)
     )
     with pytest.raises(ModelFormatError, match=r"features\.channel"):
         load_detector(short)
+
+
+def test_tracking_head_scores_with_its_first_trees(folders, frame, tmp_path, forge_model):
+    """A model trained with ``learn.tracking_trees`` keeps a head: the first trees, reading
+    only their features, with a Platt calibration of their own; saved, loaded and checked."""
+    cfg = small_config(folders)
+    cfg.learn.tracking_trees = 8
+    det = train_detector(cfg)
+    k, cal = det.tracking_head
+    assert k == 8 and det.summary["tracking_head"]["trees"] == 8
+    assert det.summary["tracking_head"]["held_out_by_trees"]["8"]["auc"] > 0.8
+    head = det.tracking_model()
+    used = torch.unique(det.classifier.feature_[:8])
+    assert head.feature_index.numel() == used.numel() < det.feature_index.numel()
+    boxes = torch.tensor([[[100.0, 40.0, 40.0, 80.0], [10.5, 3.2, 64.0, 128.0], [200, 10, 30, 60]]])
+    staged = det.classifier.staged_decision_function(det.features(frame[None], boxes))[..., 7]
+    torch.testing.assert_close(
+        head.decision_function(frame[None], boxes), staged, atol=1e-4, rtol=0
+    )
+    torch.testing.assert_close(
+        head.score(frame[None], boxes),
+        cal.predict_proba(staged.double()).float(),
+        atol=1e-5,
+        rtol=0,
+    )
+    path = save_detector(tmp_path / "head.safetensors", det)
+    again = load_detector(path)
+    assert again.tracking_head[0] == 8
+    torch.testing.assert_close(
+        again.tracking_model().score(frame[None], boxes), head.score(frame[None], boxes)
+    )
+    # the particle filter's observation uses the head unless told otherwise
+    from torchtrack.observe.detector import DetectorObservation
+
+    assert DetectorObservation(again).detector.classifier.n_estimators == 8
+    assert DetectorObservation(again, head=False).detector is again
+    for edit, match in [
+        (lambda m: m["tracking_head"].update(trees=10**6), "tracking_head.trees"),
+        (lambda m: m["tracking_head"]["calibration"].update(a=1.0), "tracking_head"),
+        (lambda m: m["tracking_head"].update(extra=1), "tracking_head"),
+    ]:
+        bad = forge_model(path, tmp_path / "bad.safetensors", meta_edit=edit)
+        with pytest.raises(ModelFormatError, match=match):
+            load_detector(bad)

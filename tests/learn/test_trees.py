@@ -155,3 +155,33 @@ def test_errors():
     clf = BoostedTrees(n_estimators=3).fit(x, y)
     with pytest.raises(ShapeError, match="5 columns"):
         clf.decision_function(torch.zeros(2, 4))
+
+
+def test_edges_stay_clear_of_clusters_of_nearly_equal_values():
+    """A feature that is 0 on most windows, read as 0, 4e-13 or -1e-15 by different exact
+    paths: no edge may fall inside that cluster, so rounding never decides a split."""
+    g = torch.Generator().manual_seed(0)
+    zeros = torch.randn(800, generator=g) * 1e-12  # the cluster around 0
+    rest = torch.rand(200, generator=g) + 0.5
+    x = torch.cat((zeros, rest))[:, None]
+    edges = quantile_edges(x, 64)[0]
+    finite = edges[torch.isfinite(edges)]
+    assert bool((finite.abs() > 1e-6).all()), finite[finite.abs() <= 1e-6]
+    codes = code_features(x, edges[None])[0]
+    assert codes[:800].unique().numel() == 1  # the whole cluster in one bin
+    # continuous columns still get fine edges
+    y = torch.linspace(0, 1, 1000)[:, None]
+    assert int(torch.isfinite(quantile_edges(y, 64)).sum()) == 63
+
+
+def test_truncated_trees_are_the_running_margin():
+    x, y = xor_data(400)
+    clf = BoostedTrees(n_estimators=12, variant="real").fit(x, y)
+    head = clf.truncated(5)
+    torch.testing.assert_close(
+        head.decision_function(x), clf.staged_decision_function(x)[:, 4], atol=1e-5, rtol=0
+    )
+    assert head.n_estimators == 5 and clf.feature_.shape[0] == 12
+    for bad in (0, 13, 2.5, True):
+        with pytest.raises(ConfigError):
+            clf.truncated(bad)

@@ -97,11 +97,12 @@ def test_naive_calibration_is_the_papers_fixed_range_rescale():
 
 def test_naive_calibration_needs_a_bounded_margin():
     tr = FusedTracker("pedestrian", n_particles=20, calibration="naive")
-    tr.detector = type(tr.detector)(
-        bank=tr.detector.bank,
-        feature_index=tr.detector.feature_index,
-        classifier=type("Unbounded", (), {"n_features_in_": tr.detector.feature_index.numel()})(),
-        calibrator=tr.detector.calibrator,
+    det = tr.observation.detector  # what scores the particles (the margins come from it)
+    tr.observation.detector = type(det)(
+        bank=det.bank,
+        feature_index=det.feature_index,
+        classifier=type("Unbounded", (), {"n_features_in_": det.feature_index.numel()})(),
+        calibrator=det.calibrator,
     )
     with pytest.raises(ConfigError, match="bounded margin"):
         tr.margin_range()

@@ -158,6 +158,10 @@ class LearnConfig:
             -1), ``"backward"`` (Bourdev & Brandt's direct backward pruning on the held-out
             positives, see ``cascade_probability``) or ``"none"``.
         cascade_threshold: the constant cascade's threshold on the running margin.
+        tracking_trees: trees of the model's tracking head (:attr:`Detector.tracking_head`):
+            the first ``tracking_trees`` trees with a Platt calibration of their own, fitted on
+            the same held-out windows; the particle-filter trackers score windows with it
+            (0, or at least ``n_trees``: no head, trackers use the whole classifier).
         cascade_probability, cascade_miss: backward pruning: the rejection threshold after
             each tree is the ``cascade_miss`` quantile of the running margins of the held-out
             positives whose calibrated probability reaches ``cascade_probability``
@@ -185,6 +189,7 @@ class LearnConfig:
     weight_trimming: float = 0.02
     cascade: str = "constant"
     cascade_threshold: float = -1.0
+    tracking_trees: int = 64
     cascade_probability: float = 0.5
     cascade_miss: float = 0.01
     svm_kernel: str = "rbf"
@@ -336,6 +341,12 @@ class TrainConfig:
         if lr.cascade not in ("constant", "backward", "none"):
             raise ConfigError(
                 f"learn.cascade must be 'constant', 'backward' or 'none', got {lr.cascade!r}"
+            )
+        if isinstance(lr.tracking_trees, bool) or not (
+            isinstance(lr.tracking_trees, int) and lr.tracking_trees >= 0
+        ):
+            raise ConfigError(
+                f"learn.tracking_trees must be a non-negative integer, got {lr.tracking_trees!r}"
             )
         if not _isnum(lr.cascade_threshold):
             raise ConfigError(

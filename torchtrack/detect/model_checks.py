@@ -547,11 +547,30 @@ _V2_KEYS = {
 }
 
 
+def _check_tracking_head(meta: dict, entries: dict[str, TensorEntry]) -> None:
+    """``tracking_head``: the first ``trees`` trees of a boosted-trees classifier, Platt."""
+    head = _mapping(meta["tracking_head"], "tracking_head", {"trees", "calibration"})
+    c = meta["classifier"]
+    if c.get("kind") != "boosted_trees":
+        raise ModelFormatError("tracking_head belongs to boosted-trees classifiers only")
+    r = entries["classifier.feature"].shape[0]
+    _int_in(head["trees"], "tracking_head.trees", 1, r)
+    cal = head["calibration"]
+    if not isinstance(cal, dict) or cal.get("kind") != "platt":
+        raise ModelFormatError("tracking_head.calibration must be a Platt calibration")
+    try:
+        _check_platt(cal, {})
+    except ModelFormatError as exc:
+        raise ModelFormatError(f"tracking_head: {exc}") from None
+
+
 def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
     """Version 2: the feature bank under ``features`` with a ``kind`` (``haar``: the version 1
     bank plus its ``selected_features``; ``channels``: channel set, lattice and feature tables
     ``features.rects`` / ``features.channel``); classifiers include boosted trees."""
-    _mapping(meta, "the description", _V2_KEYS, {"object_box", "selected_features"})
+    _mapping(
+        meta, "the description", _V2_KEYS, {"object_box", "selected_features", "tracking_head"}
+    )
     name = meta["name"]
     if not isinstance(name, str) or not 0 < len(name) <= LIMITS.name_chars:
         raise ModelFormatError(f"name must be a string of 1 to {LIMITS.name_chars} characters")
@@ -595,6 +614,8 @@ def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
             checks["calibration"] = v
     else:
         _no_extra(entries, "calibration.", set())
+    if "tracking_head" in meta:
+        _check_tracking_head(meta, entries)
     extra = sorted(
         n for n in entries if not n.startswith(("features.", "classifier.", "calibration."))
     )

@@ -16,6 +16,8 @@ tables ``features.rects`` / ``features.channel`` (channel models), ``classifier.
      "calibration": {"kind": "platt" | "isotonic", ...} | null,
      "training": {...data counts, split, held-out metrics...},
      "object_box": [x, y, w, h] fractions of the window | absent (the object fills the window),
+     "tracking_head": {"trees": n, "calibration": {"kind": "platt", "a", "b"}} | absent
+               (boosted trees: the first n trees and their own Platt, for particle filters),
      "sha256": hex digest of the JSON without this key plus every tensor's name, dtype, shape
                and bytes}
 
@@ -261,6 +263,12 @@ def save_detector(
         meta["selected_features"] = det.selected_features()
     if det.object_box is not None:
         meta["object_box"] = list(det.object_box)
+    if det.tracking_head is not None:
+        n_trees, head_cal = det.tracking_head
+        head_t, head_m = head_cal.to_state()
+        if head_t:
+            raise ConfigError("a tracking head's calibration must be Platt (no tensors)")
+        meta["tracking_head"] = {"trees": int(n_trees), "calibration": head_m}
     try:
         meta = json.loads(json.dumps(meta, allow_nan=False))
     except (TypeError, ValueError) as exc:
@@ -370,6 +378,16 @@ def _build_v1(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
     return det
 
 
+def _tracking_head(meta: dict) -> tuple[int, Any] | None:
+    """``(n_trees, Platt calibrator)`` of a validated description's ``tracking_head``."""
+    from torchtrack.learn import calibrator_from_state
+
+    head = meta.get("tracking_head")
+    if head is None:
+        return None
+    return int(head["trees"]), calibrator_from_state({}, head["calibration"])
+
+
 def _build_v2(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
     """A :class:`Detector` from a validated version-2 description (any feature bank)."""
     from torchtrack.learn import calibrator_from_state, classifier_from_state
@@ -389,6 +407,7 @@ def _build_v2(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
         name=meta["name"],
         summary=meta["training"],
         object_box=meta.get("object_box"),
+        tracking_head=_tracking_head(meta),
     )
     if isinstance(bank, HaarBank) and det.selected_features() != meta["selected_features"]:
         raise ModelFormatError("selected feature descriptions disagree with the feature index")

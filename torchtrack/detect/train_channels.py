@@ -581,6 +581,34 @@ def train_channel_detector(
     cal_metrics = calibration_metrics(calibrator.predict_proba(m_ca), y_ca.long())
     dr, _, _ = detection_rate_at_fpr(m_ca, y_ca, 0.01)
     auc = roc_auc(m_ca, y_ca)
+    # the tracking head: the first trees, calibrated on the same held-out windows
+    head = None
+    head_summary: dict[str, Any] = {}
+    staged = torch.cat(
+        (clf.staged_decision_function(xp), clf.staged_decision_function(xn))
+    ).double()
+    for k in sorted({32, 64, 128, 256, int(lr.tracking_trees)} - {0}):
+        if k > staged.shape[1]:
+            continue
+        mk = staged[:, k - 1]
+        cal_k = make_calibrator("platt").fit(mk, y_ca.long())
+        met_k = calibration_metrics(cal_k.predict_proba(mk), y_ca.long())
+        dr_k, _, _ = detection_rate_at_fpr(mk, y_ca, 0.01)
+        head_summary[str(k)] = {
+            "auc": roc_auc(mk, y_ca),
+            "dr_at_1pct_fpr": dr_k,
+            "features": int(torch.unique(clf.feature_[:k]).numel()),
+            "ece": float(met_k["ece"]),
+        }
+        if k == lr.tracking_trees and k < staged.shape[1]:
+            head = (k, cal_k)
+    if head is not None:
+        h = head_summary[str(head[0])]
+        log(
+            f"tracking head: first {head[0]} trees ({h['features']} features), held-out "
+            f"detection rate {h['dr_at_1pct_fpr']:.3f} at 1% FPR, AUC {h['auc']:.4f}, "
+            f"ECE {h['ece']:.4f}"
+        )
     # the soft cascade the scans use
     cascade: dict[str, Any] = {"method": lr.cascade}
     big = float(torch.finfo(torch.float32).max)
@@ -638,11 +666,19 @@ def train_channel_detector(
             "dr_at_1pct_fpr": dr,
             "calibrated_in_sample": {k: float(v) for k, v in cal_metrics.items()},
         },
+        "tracking_head": {"trees": lr.tracking_trees, "held_out_by_trees": head_summary},
         "features_s": t_feat,
         "train_seconds": time.perf_counter() - t_start,
     }
     if too_little:
         summary["forced"] = too_little
     return Detector(
-        bank, index, clf, calibrator, name=cfg.name, summary=summary, object_box=cfg.object_box()
+        bank,
+        index,
+        clf,
+        calibrator,
+        name=cfg.name,
+        summary=summary,
+        object_box=cfg.object_box(),
+        tracking_head=head,
     )

@@ -56,10 +56,13 @@ def quantile_edges(X: torch.Tensor, n_bins: int = 256, n_sample: int = 8192) -> 
     """Bin edges ``(F, n_bins - 1)`` float32 of the columns of ``X (n, F)`` at the quantiles of
     an evenly spaced row subsample (deterministic).
 
-    Every edge lies halfway between a sample value and the next larger one, never on a value
-    itself: features often take one value many times (0 in a flat region), and an edge on such
-    a value would let rounding (1e-7 between two exact ways of reading the same feature) decide
-    the split. An edge with no larger sample value is ``+inf`` (never splits).
+    Every edge lies halfway between a sample value and the next value larger by more than a
+    tolerance (``1e-5 (1 + |v|)``), never on or beside a value itself: features often take one
+    value many times (0 in a flat region), read as 0, 4e-13 or -1e-15 by two exact ways of
+    reading the same feature (crops at training, integral images at detection); an edge inside
+    such a cluster of values would let float rounding decide the split (a scan and a box score
+    of the same window then differed by 100 in margin). An edge with no larger sample value is
+    ``+inf`` (never splits).
     """
     if not 2 <= int(n_bins) <= 256:
         raise errors.ConfigError(f"n_bins must be in [2, 256], got {n_bins}")
@@ -70,10 +73,12 @@ def quantile_edges(X: torch.Tensor, n_bins: int = 256, n_sample: int = 8192) -> 
     sub = cols.index_select(1, rows).sort(dim=1).values  # (F, m)
     pos = (torch.arange(1, int(n_bins), device=cols.device) * m) // int(n_bins)
     at = sub.index_select(1, pos.clamp_max(m - 1))  # (F, n_bins - 1) sample values
-    nxt_i = torch.searchsorted(sub, at.contiguous(), right=True)  # first value > at
+    tol = 1e-5 * (1.0 + at.abs())
+    nxt_i = torch.searchsorted(sub, (at + tol).contiguous(), right=True)  # first value > at + tol
     nxt = sub.gather(1, nxt_i.clamp_max(m - 1))
-    mid = (at.double() + nxt.double()).mul_(0.5).to(torch.float32)
-    mid = torch.where(mid > at, mid, nxt)  # float rounding can land the midpoint on `at`
+    top = sub.gather(1, (nxt_i - 1).clamp_min(0))  # the cluster's largest value (>= at)
+    mid = (top.double() + nxt.double()).mul_(0.5).to(torch.float32)
+    mid = torch.where(mid > top, mid, nxt)  # float rounding can land the midpoint on `top`
     return torch.where(nxt_i < m, mid, torch.full_like(mid, math.inf)).contiguous()
 
 
@@ -459,6 +464,28 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         check_fitted(self, "leaf_")
         leaf = self.leaf_.to(torch.float64)
         return float(leaf.min(1).values.sum()), float(leaf.max(1).values.sum())
+
+    def truncated(self, n_trees: int) -> BoostedTrees:
+        """A copy made of the first ``n_trees`` trees (their running margin, as in
+        :meth:`staged_decision_function`); the input columns stay the same.
+
+        Raises:
+            ConfigError: ``n_trees`` not in ``[1, R]``.
+        """
+        check_fitted(self, "feature_")
+        r = int(self.feature_.shape[0])
+        if isinstance(n_trees, bool) or not isinstance(n_trees, int) or not 1 <= n_trees <= r:
+            raise errors.ConfigError(f"n_trees must be an integer in [1, {r}], got {n_trees!r}")
+        est = BoostedTrees(
+            n_estimators=n_trees, max_depth=self.max_depth, variant=self.variant, n_bins=self.n_bins
+        )
+        est.classes_ = self.classes_
+        est.n_features_in_ = self.n_features_in_
+        est.feature_ = self.feature_[:n_trees].clone()
+        est.threshold_ = self.threshold_[:n_trees].clone()
+        est.leaf_ = self.leaf_[:n_trees].clone()
+        est.reject_ = self.reject_[:n_trees].clone()
+        return est
 
     # -- soft cascade
     def fit_cascade(self, X_pos: Any, min_margin: float, *, quantile: float = 0.0) -> BoostedTrees:

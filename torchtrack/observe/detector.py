@@ -53,6 +53,9 @@ class DetectorObservation:
         floor: smallest likelihood used in :meth:`log_likelihood` (keeps log-weights finite
             when every window scores ~0; ``0`` allows ``-inf``).
         crop: compute the integral image only over the region the windows cover.
+        head: score with the detector's tracking head (:meth:`Detector.tracking_model`: its
+            first trees with their own Platt calibration, a fraction of the cost) when it has
+            one; ``False``: the whole classifier.
 
     Example::
 
@@ -60,7 +63,7 @@ class DetectorObservation:
         p = obs.probabilities(frames, boxes)     # frames (B, C, H, W), boxes (B, N, 4) -> (B, N)
     """
 
-    def __init__(self, detector, floor: float = 1e-6, crop: bool = True) -> None:
+    def __init__(self, detector, floor: float = 1e-6, crop: bool = True, head: bool = True) -> None:
         if detector.calibrator is None:
             from torchtrack.errors import NotFittedError
 
@@ -68,7 +71,8 @@ class DetectorObservation:
                 f"detector {detector.name!r} has no calibration; the tracker needs calibrated "
                 "probabilities (fit one with `torchtrack calibrate`)"
             )
-        self.detector = detector
+        tracking_model = getattr(detector, "tracking_model", None)
+        self.detector = tracking_model() if head and tracking_model is not None else detector
         self.floor = float(floor)
         self.crop = bool(crop)
 

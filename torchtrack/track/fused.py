@@ -243,7 +243,7 @@ class FusedTracker(DetectorTracker):
         Raises:
             ConfigError: the classifier has no bounded margin (e.g. an SVM).
         """
-        clf = self.detector.classifier
+        clf = self.observation.detector.classifier  # the tracking head when the model has one
         bounds = getattr(clf, "margin_range", None)
         if callable(bounds):  # boosted trees: the sums of each tree's smallest / largest leaf
             return bounds()
