@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from torchtrack.detect import Detector, load_detector
-from torchtrack.features.haar import haar_bank, haar_features_dense, integrals
+from torchtrack.features.haar import haar_bank, haar_features_dense
 from torchtrack.io.atomic import write_text_atomic
 from torchtrack.io.crops import load_crops, mirror
 from torchtrack.learn import BoostedStumps, PlattCalibrator, select_features
@@ -64,13 +64,11 @@ def resize_baseline(det: Detector, frame: np.ndarray, boxes: np.ndarray) -> torc
         crops[i, 0] = cv2.resize(
             frame[y : y + bh, x : x + bw], (w, h), interpolation=cv2.INTER_AREA
         )
-    # the selected features only: dense path on the bank restricted to them is not available,
-    # so compute them per crop from the integral image at scale 1 (same arithmetic as training)
-    from torchtrack.features.haar import haar_features_at
-
-    ints = integrals(torch.from_numpy(crops))
+    # the selected features of every resized crop, read at scale 1 from its own integral
+    # images (the same arithmetic as training)
+    ints = det.integrals(torch.from_numpy(crops))
     full = torch.tensor([0.0, 0.0, float(w), float(h)]).expand(crops.shape[0], 1, 4)
-    feats = haar_features_at(ints, full, det.bank, det.feature_index, check=False)[:, 0]
+    feats = det.features(ints, full, check=False)[:, 0]
     return det.proba_from_margin(det.margin_from_features(feats))
 
 
@@ -113,7 +111,7 @@ def main() -> None:
     x = torch.rand(args.boxes, generator=g) * (640 - bw)
     y = torch.rand(args.boxes, generator=g) * (480 - bh)
     boxes = torch.stack((x, y, bw, bh), 1)[None]
-    ints = integrals(frame)
+    ints = det.integrals(frame)
     n = args.boxes
     rows = []
     for label, fn in (

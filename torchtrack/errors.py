@@ -57,6 +57,10 @@ class TrackerError(TorchTrackError, RuntimeError):
     """A tracker was used wrongly (e.g. ``update`` before ``init``) or failed."""
 
 
+class TrainingWarning(UserWarning):
+    """Training finished but did not reach what was asked (e.g. a false-positive rate)."""
+
+
 class BackendError(TorchTrackError, RuntimeError):
     """A distributed backend cannot be used: Ray is not installed, its cluster cannot be reached,
     or it refused the connection."""

@@ -31,95 +31,41 @@ from pathlib import Path
 import torch
 
 from torchtrack.detect import Detector, load_detector, save_detector
-from torchtrack.detect.config import TrainConfig, load_train_config, read_name_list
-from torchtrack.detect.evaluate import crop_scores, detection_rate_at_fpr, roc_auc
+from torchtrack.detect.config import TrainConfig, load_train_config
 from torchtrack.detect.model_file import read_model_metadata
 from torchtrack.detect.signing import load_private_key
 from torchtrack.detect.training import portable_config, train_detector
 from torchtrack.io.atomic import write_text_atomic
-from torchtrack.io.crops import (
-    CropSet,
-    list_image_files,
-    load_crops,
-    load_images,
-    mirror,
-    sample_windows,
-)
 
 REPO = Path(__file__).resolve().parents[1]
-TEST_WINDOWS = 5000  # random windows of the held-out negative images (seed 1)
-
-
-def _split_entry(entry: str) -> tuple[str, str | None]:
-    p = Path(entry)
-    if any(c in p.name for c in "*?["):
-        return str(p.parent), p.name
-    return entry, None
+DATA = Path(os.environ.get("TORCHTRACK_DATA", REPO.parent / "shared" / "data"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import test_sets  # noqa: E402  (train/test_sets.py, beside this script)
 
 
 def test_split_metrics(cfg: TrainConfig, det: Detector) -> dict:
-    """Detection rate at 1% FPR and AUC on the held-out test split of ``cfg``.
+    """Detection rate at 1% FPR (with a 90% bootstrap interval over test images), AUC and the
+    calibrated probabilities' ECE on the fixed held-out test set of ``cfg.name``
+    (``train/test_sets.py``: windows scored inside their images)."""
+    from torchtrack.detect.evaluate import roc_auc
+    from torchtrack.learn import calibration_metrics
 
-    Positives: the test-split crops of ``data.positives`` (+ mirror images when the config
-    mirrors). Negatives: the test-split crops of ``data.negatives`` (+ mirrors) and
-    ``TEST_WINDOWS`` random windows of the test-split ``data.negative_images``.
-    """
-    names: set[str] = set()
-    for f in cfg.data.exclude:
-        names |= read_name_list(f)
-    window = (int(cfg.window[0]), int(cfg.window[1]))
-    d = cfg.data
-    region = tuple(d.region) if d.region else None
-    crop_size = tuple(d.crop_size) if d.crop_size else None
-    pos = CropSet.concat(
-        [
-            load_crops(folder, window, region=region, crop_size=crop_size, only=names, pattern=pat)
-            for folder, pat in map(_split_entry, d.positives)
-        ]
-    )
-    if d.mirror_positives:
-        pos = mirror(pos)
-    negs = [
-        load_crops(folder, window, only=names, pattern=pat)
-        for folder, pat in map(_split_entry, d.negatives)
-    ]
-    if d.mirror_negatives:
-        negs = [mirror(n) for n in negs]
-    img_paths: list[Path] = []
-    for e in d.negative_images:
-        p = Path(e)
-        files = list_image_files(p)[0] if p.is_dir() else [p]
-        img_paths += [f for f in files if f.name in names]
-    n_windows = 0
-    if img_paths:
-        images, sources, _ = load_images(img_paths)
-        gen = torch.Generator().manual_seed(1)
-        negs.append(
-            sample_windows(
-                images,
-                sources,
-                window,
-                TEST_WINDOWS,
-                min_scale=d.negative_min_scale,
-                max_scale=d.negative_max_scale,
-                generator=gen,
-            )
-        )
-        n_windows = TEST_WINDOWS
-    neg = CropSet.concat(negs)
-    m = torch.cat((crop_scores(det, pos.images), crop_scores(det, neg.images)))
-    y = torch.cat((torch.ones(len(pos)), torch.zeros(len(neg))))
-    dr, fpr, _ = detection_rate_at_fpr(m, y, 0.01)
-    return {
-        "set": "fixed test split (configs/splits), never used for training or calibration",
-        "positives": len(pos),
-        "negatives": len(neg),
-        "negative_windows": n_windows,
-        "negative_images": len(img_paths),
-        "dr_at_1pct_fpr": dr,
-        "fpr": fpr,
-        "auc": roc_auc(m, y),
+    ts = test_sets.test_set(cfg.name, DATA)
+    pos, neg, pg, ng = test_sets.score_test_set(lambda i, b: det.decision_function(i, b), ts)
+    lo, hi = test_sets.bootstrap_dr(pos, neg, pg, ng)
+    y = torch.cat((torch.ones(pos.numel()), torch.zeros(neg.numel())))
+    out = {
+        "set": ts.what + "; never used for training or calibration",
+        "positives": int(pos.numel()),
+        "negatives": int(neg.numel()),
+        "dr_at_1pct_fpr": test_sets.dr_at_fpr(pos, neg, 0.01),
+        "dr_interval_90": [lo, hi],
+        "auc": roc_auc(torch.cat((pos, neg)), y),
     }
+    if det.calibrator is not None:
+        pp, pn, _, _ = test_sets.score_test_set(lambda i, b: det.score(i, b), ts)
+        out["ece"] = calibration_metrics(torch.cat((pp, pn)).clamp(0, 1), y.long())["ece"]
+    return out
 
 
 def _norm(v):
@@ -147,13 +93,16 @@ def write_readme(models_dir: Path) -> Path:
         "# Bundled detectors",
         "",
         "Usable by name wherever a model path is accepted (`torchtrack detect pedestrian ...`,",
-        '`torchtrack.detect.bundled.load_model("vehicle")`). Both are Chateau et al. (2006)',
-        "detectors: Haar wavelets from integral images, 40 AdaBoost-selected features, boosted",
-        "stumps on them (variant and rounds per model below), Platt calibration on a 30% hold-out.",
-        "This file is written by",
-        "`python train/default_models.py` from the models' own metadata.",
+        '`torchtrack.detect.bundled.load_model("vehicle")`). Both are integral channel feature',
+        "detectors (Dollár et al. 2009: box and Haar-like features over colour / gray, gradient",
+        "magnitude and oriented-gradient channels, read from integral images at any box size)",
+        "with boosted depth-2 trees, rounds of hard-negative mining, a constant soft cascade for",
+        "scanning and Chateau et al.'s Platt calibration on a 30% hold-out. Chateau et al.'s grey",
+        "Haar bank with 40 AdaBoost-selected stumps is one config key away (`[features] kind =",
+        '"haar"`). This file is written by `python train/default_models.py` from the models\' own',
+        "metadata.",
         "",
-        "Rebuild both (about 25 minutes on 2 busy cores; the seed fixes every random draw):",
+        "Rebuild both (about 10 minutes on 2 busy cores; the seed fixes every random draw):",
         "",
         "```",
         "python train/default_models.py            # = torchtrack train --config configs/<name>.toml",
@@ -173,15 +122,35 @@ def write_readme(models_dir: Path) -> Path:
         t = meta["training"]
         c, d, lr, mi = t["config"], t["config"]["data"], t["config"]["learn"], t["config"]["mining"]
         cnt, held = t["counts"], t["held_out"]
+        fc = c["features"]
+        if fc.get("kind", "haar") == "channels":
+            fs = t.get("features", {})
+            casc = t.get("cascade", {})
+            what = (
+                f"channels {fc['channels']} ({fc['orientations']} orientations), {fc['cell']}-px "
+                f"cells; a pool of {fs.get('pool', '?')} features ("
+                + ("every cell, " if fc["cells"] else "")
+                + f"{fc['boxes']} random boxes, {fc['haar']} random Haar filters), "
+                f"{fs.get('used', '?')} used by {lr['n_trees']} depth-{lr['tree_depth']} trees "
+                f"({lr['variant'] or 'real'} AdaBoost); soft cascade: {casc.get('method')}"
+                + (f" at {casc['threshold']:g}" if "threshold" in casc else "")
+                + f"; {mi['rounds']} mining round(s) of at most {mi['per_round']}"
+                + f" (positives also at scales {d.get('positive_scales', [1.0])})"
+            )
+        else:
+            what = (
+                f"Haar bank, {lr['n_features']} features, {lr['classifier']} "
+                f"({lr['variant']}, {lr.get('n_estimators') or lr['n_features']} rounds), "
+                f"{mi['rounds']} hard-negative mining round(s) of {mi['per_round']}"
+            )
         lines += [
             f"## `{meta['name']}` ({f.name}, {f.stat().st_size:,} bytes)",
             "",
             f"* Recipe: `torchtrack train --config configs/{meta['name']}.toml -o {f.name}` "
             f"(via `train/default_models.py`), seed {c['seed']}, window {c['window'][0]}x"
-            f"{c['window'][1]} (HxW), {lr['n_features']} features, {lr['classifier']} "
-            f"({lr['variant']}, {lr.get('n_estimators') or lr['n_features']} rounds), "
-            f"{lr['calibration']} calibration on {lr['calibration_fraction']:.0%}"
-            f" of the crops, {mi['rounds']} hard-negative mining round(s) of {mi['per_round']}.",
+            f"{c['window'][1]} (HxW), {what}; {lr['calibration']} calibration on "
+            f"{lr['calibration_fraction']:.0%} of the crops; trained in "
+            f"{t.get('train_seconds', float('nan')):.0f} s.",
             "* Positives: "
             + ", ".join(f"`{_rel(p, d.get('root'))}`" for p in d["positives"])
             + (" + mirror images" if d["mirror_positives"] else "")
@@ -205,23 +174,50 @@ def write_readme(models_dir: Path) -> Path:
             f"* Training counts: {cnt['positives_train']} positive / {cnt['negatives_train']} "
             f"negative crops (incl. {cnt['hard_negatives']} mined), calibration "
             f"{cnt['positives_calibration']} / {cnt['negatives_calibration']}.",
+            *(
+                [
+                    "* Mining: false positives per scanned window of the training images (margin "
+                    ">= 0) after each round: "
+                    + ", ".join(f"{r['fpr']:.1e}" for r in t["rounds"] if "fpr" in r)
+                    + f" (mining.target_fpr {mi.get('target_fpr', 0):g}"
+                    + (
+                        "; not reached: training warned"
+                        if t["rounds"] and t["rounds"][-1].get("fpr", 0) > mi.get("target_fpr", 1)
+                        else ""
+                    )
+                    + ")."
+                ]
+                if any("fpr" in r for r in t["rounds"])
+                else []
+            ),
             f"* Calibration hold-out: detection rate {held['dr_at_1pct_fpr']:.1%} at 1% FPR, "
             f"AUC {held['auc']:.4f}; Platt NLL {held['calibrated_in_sample']['nll']:.4f}, "
             f"ECE {held['calibrated_in_sample']['ece']:.4f}.",
         ]
-        ts = t.get("test_split")
-        if ts:
+        th = t.get("tracking_head")
+        by = (th or {}).get("held_out_by_trees", {})
+        if th and str(th.get("trees")) in by:
+            h = by[str(th["trees"])]
             lines.append(
-                f"* Test split: detection rate **{ts['dr_at_1pct_fpr']:.1%} at 1% FPR**, AUC "
-                f"{ts['auc']:.4f} ({ts['positives']} positive crops incl. mirrors, "
-                f"{ts['negatives']} negatives"
-                + (
-                    f" incl. {ts['negative_windows']} random windows of {ts['negative_images']} "
-                    "held-out images"
-                    if ts["negative_windows"]
-                    else ""
+                f"* Tracking head (what the particle-filter trackers score windows with): the "
+                f"first {th['trees']} trees, {h['features']} features, their own Platt "
+                f"calibration; calibration hold-out: detection rate {h['dr_at_1pct_fpr']:.1%} "
+                f"at 1% FPR, AUC {h['auc']:.4f}, ECE {h['ece']:.4f} (other sizes: "
+                + ", ".join(
+                    f"{k} trees {v['dr_at_1pct_fpr']:.1%} / AUC {v['auc']:.4f}"
+                    for k, v in sorted(by.items(), key=lambda kv: int(kv[0]))
+                    if k != str(th["trees"])
                 )
                 + ")."
+            )
+        ts = t.get("test_split")
+        if ts and "dr_interval_90" in ts:
+            lo, hi = ts["dr_interval_90"]
+            lines.append(
+                f"* Test split: detection rate **{ts['dr_at_1pct_fpr']:.1%} at 1% FPR** (90% "
+                f"bootstrap interval {lo:.1%} - {hi:.1%}), AUC {ts['auc']:.4f}"
+                + (f", ECE {ts['ece']:.4f}" if "ece" in ts else "")
+                + f"; {ts['set']}."
             )
         lines.append("")
     path = models_dir / "README.md"

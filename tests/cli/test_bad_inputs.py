@@ -232,7 +232,7 @@ FORGERIES = {
     "bankwin": {
         "meta_edit": lambda m: (
             m.update(window=[100000, 100000]),
-            m["bank"].update(window=[100000, 100000]),
+            m["features"].update(window=[100000, 100000]),
         )
     },
     "platt_sign": {"meta_edit": lambda m: m["calibration"].update(a=-m["calibration"]["a"])},

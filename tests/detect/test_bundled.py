@@ -63,15 +63,19 @@ def test_scan_batch_equals_single_frames():
     g = torch.Generator().manual_seed(0)
     frames = (torch.rand((3, 1, 60, 140), generator=g) * 255).to(torch.uint8)
     frames[1] = frames[1].flip(-1)
-    kw = {"threshold": None, "stride": 0.2, "scale_step": 1.3, "nms_iou": 0.3}
+    # every window scored (no cascade: random frames would lose most windows to it)
+    kw = {"threshold": None, "stride": 0.2, "scale_step": 1.3, "nms_iou": 0.3, "cascade": False}
     batch = scan_batch(det, frames, **kw)
-    assert len(batch) == 3
+    assert len(batch) == 3 and all(b[0].shape[0] > 0 for b in batch)
     for f in range(3):
         boxes, scores = scan(det, frames[f], **kw)
         torch.testing.assert_close(batch[f][0], boxes)
         torch.testing.assert_close(batch[f][1], scores)
-    # Detector.scan dispatches on the input's rank
+    # Detector.scan dispatches on the input's rank (the vehicle's object box is its window)
     torch.testing.assert_close(det.scan(frames[0], **kw)[1], batch[0][1])
+    with_cascade = dict(kw, cascade=True)
+    for f, (_b, s) in enumerate(scan_batch(det, frames, **with_cascade)):
+        torch.testing.assert_close(scan(det, frames[f], **with_cascade)[1], s)
     assert len(det.scan(frames, **kw)) == 3
 
 
@@ -80,6 +84,8 @@ def test_scan_below_training_scale_and_small_frames():
     frame = torch.full((1, 100, 60), 100, dtype=torch.uint8)
     with pytest.raises(ShapeError, match=r"smaller than the detector window 128x64"):
         scan(det, frame)
-    boxes, _ = scan(det, frame, threshold=None, nms_iou=None, min_scale=0.5, max_scale=0.5)
+    boxes, _ = scan(
+        det, frame, threshold=None, nms_iou=None, min_scale=0.5, max_scale=0.5, cascade=False
+    )
     assert boxes.shape[0] > 0
     assert torch.allclose(boxes[:, 2:], torch.tensor([32.0, 64.0]))

@@ -234,9 +234,9 @@ def test_malformed_header_is_a_typed_error(tmp_path, model_path, forge_model, he
         (None, "format"),  # metadata that is a list (meta_replace below)
         (lambda m: m.update(window=[100000, 100000]), "window height"),
         (lambda m: m.update(window=[16.5, 8]), "window height"),
-        (lambda m: m["bank"].update(window=[100000, 100000]), "bank window"),
-        (lambda m: m["bank"].update(sizes=[4], stride=1, min_std=1e-9), "min_std"),
-        (lambda m: m["bank"].update(sizes=[6]), "multiple of 4"),
+        (lambda m: m["features"].update(window=[100000, 100000]), "bank window"),
+        (lambda m: m["features"].update(sizes=[4], stride=1, min_std=1e-9), "min_std"),
+        (lambda m: m["features"].update(sizes=[6]), "multiple of 4"),
         (lambda m: m["classifier"].update(n_features_in=3), "n_features_in"),
         (lambda m: m["classifier"].update(kind="forest"), "unknown classifier kind"),
         (lambda m: m["calibration"].update(a=-m["calibration"]["a"]), "Platt slope"),
@@ -324,8 +324,8 @@ def test_huge_window_is_refused_before_allocating(tmp_path, model_path, forge_mo
 
     def huge(m):
         m["window"] = [100000, 100000]
-        m["bank"]["window"] = [100000, 100000]
-        m["bank"]["sizes"] = [64, 32, 16]
+        m["features"]["window"] = [100000, 100000]
+        m["features"]["sizes"] = [64, 32, 16]
 
     bad = forge_model(model_path, tmp_path / "bad.safetensors", meta_edit=huge)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -337,7 +337,7 @@ def test_huge_window_is_refused_before_allocating(tmp_path, model_path, forge_mo
 def test_bank_too_large_for_a_model_file(tmp_path, model_path, forge_model):
     def big(m):
         m["window"] = [512, 512]
-        m["bank"].update(window=[512, 512], sizes=[4, 8, 12, 16, 20, 24, 28, 32])
+        m["features"].update(window=[512, 512], sizes=[4, 8, 12, 16, 20, 24, 28, 32])
 
     bad = forge_model(model_path, tmp_path / "bad.safetensors", meta_edit=big)
     with pytest.raises(ModelFormatError, match="more than a model file may ask for"):

@@ -80,8 +80,9 @@ def test_naive_calibration_is_the_papers_fixed_range_rescale():
     tr = FusedTracker("pedestrian", n_particles=20, calibration="naive")
     clf = tr.detector.classifier
     lo, hi = tr.margin_range()
-    assert lo == pytest.approx(float(torch.minimum(clf.left_, clf.right_).double().sum()))
-    assert hi == pytest.approx(float(torch.maximum(clf.left_, clf.right_).double().sum()))
+    # the bundled pedestrian has boosted trees: the sums of each tree's smallest / largest leaf
+    assert lo == pytest.approx(float(clf.leaf_.double().min(1).values.sum()))
+    assert hi == pytest.approx(float(clf.leaf_.double().max(1).values.sum()))
     g = torch.Generator().manual_seed(1)
     frame = (torch.rand(3, 96, 64, generator=g) * 255).to(torch.uint8)
     tr.init(frame, (16.0, 16.0, 32.0, 64.0))
@@ -96,11 +97,12 @@ def test_naive_calibration_is_the_papers_fixed_range_rescale():
 
 def test_naive_calibration_needs_a_bounded_margin():
     tr = FusedTracker("pedestrian", n_particles=20, calibration="naive")
-    tr.detector = type(tr.detector)(
-        bank=tr.detector.bank,
-        feature_index=tr.detector.feature_index,
-        classifier=type("Unbounded", (), {"n_features_in_": tr.detector.feature_index.numel()})(),
-        calibrator=tr.detector.calibrator,
+    det = tr.observation.detector  # what scores the particles (the margins come from it)
+    tr.observation.detector = type(det)(
+        bank=det.bank,
+        feature_index=det.feature_index,
+        classifier=type("Unbounded", (), {"n_features_in_": det.feature_index.numel()})(),
+        calibrator=det.calibrator,
     )
     with pytest.raises(ConfigError, match="bounded margin"):
         tr.margin_range()

@@ -6,14 +6,21 @@ Writes one JSON line per frame::
      "boxes": [[x, y, w, h], ...], "probabilities": [p, ...]}
 
 (``source``: the image file for folders and single images; ``time``: seconds from the start of
-a video, ``frame / fps``). Boxes are x, y, w, h in pixels (top-left corner, 0-based),
-probabilities are the model's calibrated P(object | window) (Platt, Chateau et al. eq. 8),
-sorted in decreasing order, after non-maximum suppression.
+a video, ``frame / fps``). Boxes are the objects' boxes, x, y, w, h in pixels (top-left corner,
+0-based): the part of each detection window where the model's training crops hold the object
+(:meth:`~torchtrack.detect.Detector.window_to_object`; the pedestrian model's 64x128 window holds
+a person 96 px tall with 16 px of margin); ``--windows`` reports the windows themselves.
+Probabilities are the model's calibrated P(object | window) (Platt, Chateau et al. eq. 8), sorted
+in decreasing order, after non-maximum suppression.
 
-Colour: detectors work on luma (ITU-R BT.601, the training crops are converted the same way), so
-a model trained on grayscale crops (the UIUC cars) runs on colour footage and a model trained on
-colour crops runs on grayscale images; there is no channel mismatch to report. Annotated output
-keeps the input's colours (grayscale images are drawn as gray RGB).
+Scales: ``--min-height PX`` (default 32) is the smallest object height looked for, in frame
+pixels; ``--min-scale`` (window / model window) overrides it.
+
+Colour: Chateau's grey Haar models work on luma (ITU-R BT.601); channel models trained on colour
+(the bundled pedestrian) read LUV, and a grayscale image is taken as R = G = B (no colour
+information, so lower scores); a model trained on grayscale crops (the UIUC cars) reads the
+luma of colour footage. There is no channel mismatch to report. Annotated output keeps the
+input's colours (grayscale images are drawn as gray RGB).
 """
 
 from __future__ import annotations
@@ -23,6 +30,14 @@ import json
 import sys
 from pathlib import Path
 
+# Default scan settings (docs/benchmarks/scan.md says how they were chosen).
+THRESHOLD = 0.5
+MIN_HEIGHT = 32.0
+SCALE_STEP = 1.2
+STRIDE = 0.1
+NMS_IOU = 0.3
+NMS_OVERLAP = "union"
+
 _EPILOG = """\
 examples:
   torchtrack detect pedestrian street.jpg
@@ -30,8 +45,9 @@ examples:
   torchtrack detect pedestrian demo --min-scale 0.35 --threshold 0.9 --video demo_detections.mp4
   torchtrack detect my_model.safetensors clip.avi --stride 0.05 --scale-step 1.1
 
-MODEL is a model file or a bundled name (pedestrian, vehicle). Objects smaller than the model
-window (pedestrian: 128x64, the person about 96 px tall; vehicle: 40x100) need --min-scale < 1.
+MODEL is a model file or a bundled name (pedestrian, vehicle). Objects are looked for from
+--min-height pixels tall (default 32) up to what fits the frame; --min-scale (window / model
+window: pedestrian 128x64 holding a person 96 px tall, vehicle 40x100) sets the range directly.
 Unreadable images in a folder are skipped and listed on stderr (--strict: fail instead).
 """
 
@@ -61,24 +77,60 @@ def register(subparsers) -> None:
     p.add_argument(
         "--threshold",
         type=float,
-        default=0.5,
+        default=THRESHOLD,
         metavar="P",
-        help="keep detections with calibrated probability >= P (default 0.5)",
+        help=f"keep detections with calibrated probability >= P (default {THRESHOLD:g})",
     )
     p.add_argument("--annotate", metavar="DIR", help="write annotated frames (PNG) to DIR")
     p.add_argument("--video", metavar="MP4", help="write an annotated video (mp4v)")
     p.add_argument(
-        "--min-scale", type=float, default=1.0, help="smallest window / model window (default 1)"
+        "--min-height",
+        type=float,
+        default=MIN_HEIGHT,
+        metavar="PX",
+        help=f"smallest object height in frame pixels (default {MIN_HEIGHT:g})",
+    )
+    p.add_argument(
+        "--min-scale",
+        type=float,
+        help="smallest window / model window (overrides --min-height)",
     )
     p.add_argument("--max-scale", type=float, help="largest window / model window")
     p.add_argument(
-        "--scale-step", type=float, default=1.2, help="ratio of successive scales (default 1.2)"
+        "--scale-step",
+        type=float,
+        default=SCALE_STEP,
+        help=f"ratio of successive scales (default {SCALE_STEP:g})",
     )
     p.add_argument(
-        "--stride", type=float, default=0.1, help="window step / window size (default 0.1)"
+        "--stride",
+        type=float,
+        default=STRIDE,
+        help=f"window step / window size (default {STRIDE:g})",
     )
     p.add_argument(
-        "--nms-iou", type=float, default=0.3, help="NMS IoU threshold (default 0.3; 1: off)"
+        "--nms-iou",
+        type=float,
+        default=NMS_IOU,
+        help=f"non-maximum suppression overlap threshold (default {NMS_IOU:g}; 1: off)",
+    )
+    p.add_argument(
+        "--nms-overlap",
+        choices=("union", "min"),
+        default=NMS_OVERLAP,
+        help="overlap of two object boxes: intersection over union, or over the smaller box "
+        f"(drops detections of body parts inside a detected person; default {NMS_OVERLAP})",
+    )
+    p.add_argument(
+        "--windows",
+        action="store_true",
+        help="report the detection windows instead of the object boxes",
+    )
+    p.add_argument(
+        "--no-cascade",
+        action="store_true",
+        help="score every window with every tree (channel models: slower; the soft cascade "
+        "drops a window as soon as its running score falls below the model's threshold)",
     )
     p.add_argument(
         "--batch", type=int, default=4, metavar="B", help="frames scored together (default 4)"
@@ -96,9 +148,15 @@ def _check_args(args: argparse.Namespace) -> None:
 
     if not 0.0 <= args.threshold <= 1.0:
         raise ConfigError(f"--threshold is a probability in [0, 1], got {args.threshold}")
-    if not args.min_scale > 0:
+    if args.min_scale is not None and not args.min_scale > 0:
         raise ConfigError(f"--min-scale must be > 0, got {args.min_scale}")
-    if args.max_scale is not None and args.max_scale < args.min_scale:
+    if not args.min_height > 0:
+        raise ConfigError(f"--min-height must be > 0 pixels, got {args.min_height}")
+    if (
+        args.max_scale is not None
+        and args.min_scale is not None
+        and args.max_scale < args.min_scale
+    ):
         raise ConfigError(f"--max-scale {args.max_scale} is below --min-scale {args.min_scale}")
     if not 0.0 < args.nms_iou <= 1.0:
         raise ConfigError(f"--nms-iou must be in (0, 1], got {args.nms_iou}")
@@ -115,6 +173,12 @@ def _check_args(args: argparse.Namespace) -> None:
     check_output_dir(args.annotate, "--annotate")
     source = args.source if Path(args.source).is_file() else None
     check_distinct({"SOURCE": source, "--out": args.out, "--video": args.video})
+
+
+def object_height(det) -> float:
+    """Height in pixels of the object in the detector's window at scale 1 (the whole window
+    when the model has no object box)."""
+    return det.window[0] * (det.object_box[3] if det.object_box is not None else 1.0)
 
 
 def _open(source: str):
@@ -231,8 +295,7 @@ def run(args: argparse.Namespace) -> int:
 
     from torchtrack.cli._common import apply_threads, show_progress
     from torchtrack.detect.bundled import load_model
-    from torchtrack.detect.scan import scan_batch
-    from torchtrack.errors import DataError, NotFittedError, ShapeError
+    from torchtrack.errors import ConfigError, DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
 
     _check_args(args)
@@ -247,13 +310,24 @@ def run(args: argparse.Namespace) -> int:
     fps = src.fps
     skipped: list[tuple[int, str]] = []
     n_frames = n_det = 0
+    min_scale = args.min_scale
+    if min_scale is None:
+        min_scale = args.min_height / object_height(det)
+        if args.max_scale is not None and args.max_scale < min_scale:
+            raise ConfigError(
+                f"--max-scale {args.max_scale} is below the scale of --min-height "
+                f"{args.min_height:g} px ({min_scale:.3g})"
+            )
     scan_kw = {
         "threshold": args.threshold,
         "scale_step": args.scale_step,
         "stride": args.stride,
-        "min_scale": args.min_scale,
+        "min_scale": min_scale,
         "max_scale": args.max_scale,
         "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
+        "nms_overlap": args.nms_overlap,
+        "windows": args.windows,
+        "cascade": not args.no_cascade,
     }
     total = len(src) or None
     if args.max_frames is not None and total is not None:
@@ -275,7 +349,7 @@ def run(args: argparse.Namespace) -> int:
                 return
             frames = torch.stack([f for _, f in pending])
             try:
-                results = scan_batch(det, frames, **scan_kw)
+                results = det.scan(frames, **scan_kw)
             except ShapeError as exc:
                 if files is not None and len(files) > 1 and not args.strict:
                     # one small image in a folder: skip it like an unreadable one

@@ -60,7 +60,13 @@ def register(subparsers) -> None:
     p.add_argument("--window", nargs=2, type=int, metavar=("H", "W"), help="window size")
     p.add_argument("--name", help="detector name stored in the model")
     p.add_argument("--features", type=int, metavar="T", help="selected features (default 40)")
-    p.add_argument("--classifier", choices=("adaboost", "svm"))
+    p.add_argument(
+        "--bank",
+        choices=("haar", "channels"),
+        help="feature bank: Chateau's grey Haar bank (default without --config) or integral "
+        "channel features with boosted trees",
+    )
+    p.add_argument("--classifier", choices=("auto", "adaboost", "trees", "svm"))
     p.add_argument("--variant", choices=("discrete", "real", "gentle"), help="boosting variant")
     p.add_argument("--calibration", choices=("platt", "isotonic"))
     p.add_argument(
@@ -93,6 +99,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         ("window", "window"),
         ("name", "name"),
         ("features", "learn.n_features"),
+        ("bank", "features.kind"),
         ("classifier", "learn.classifier"),
         ("variant", "learn.variant"),
         ("calibration", "learn.calibration"),

@@ -45,7 +45,20 @@ class DataConfig:
             this part of its window as the object's box (INRIA 96x160: ``[32, 32, 32, 96]``, a
             person 96 px tall with 16 px of margin on every side of the 64x128 window).
             ``None``: the object fills the window.
-        mirror_positives, mirror_negatives: add left-right mirror images.
+        positive_scales: channel features: also train on every positive crop downscaled by
+            these factors (<= 1; e.g. ``[1.0, 0.5]``): the detector then sees objects at the
+            resolution of people smaller than the window (the scan reads small windows from
+            the frame at its own resolution). ``cell * factor`` must be a whole number.
+        positive_jitter: channel models: also train on a copy of every positive crop moved by
+            a random whole number of pixels up to this in x and y (the window then sits off the
+            object by that much: a detector tolerant to the misaligned windows a particle filter
+            scores; the crop's margin must be larger than the shift).
+        gray_copies: colour channel models: also train on gray copies (R = G = B) of the
+            positives and the negative images, so that the model also works on grayscale
+            footage (where U = V = 0).
+        mirror_positives, mirror_negatives: add left-right mirror images (channel features:
+            ``mirror_negatives`` also mirrors the negative images, for random windows and
+            mining).
         random_negatives: number of random windows drawn from ``negative_images``.
         negative_min_scale, negative_max_scale: scale range of those windows (x window size).
         exclude: files listing file names (one per line, ``#`` comments) never to train or
@@ -59,6 +72,9 @@ class DataConfig:
     crop_size: list[int] | None = None
     region: list[int] | None = None
     object: list[float] | None = None
+    positive_scales: list[float] = field(default_factory=lambda: [1.0])
+    positive_jitter: int = 0
+    gray_copies: bool = False
     mirror_positives: bool = True
     mirror_negatives: bool = False
     random_negatives: int = 0
@@ -70,12 +86,51 @@ class DataConfig:
 
 @dataclass
 class FeatureConfig:
-    """Haar bank (see :func:`torchtrack.features.haar_bank`)."""
+    """The feature bank.
 
+    Attributes:
+        kind: ``"haar"``: Chateau et al.'s grey Haar bank with AdaBoost feature selection (the
+            paper setting, see :func:`torchtrack.features.haar.haar_bank`); ``"channels"``:
+            integral channel features (:func:`torchtrack.features.channels.channel_bank`).
+        n_scales, sizes, stride, min_std: the Haar bank.
+        channels: channel names (``L``, ``U``, ``V``, ``gray``, ``grad``, ``orient``).
+        orientations, norm_radius, norm_const, gradient_lambda: see
+            :class:`~torchtrack.features.channels.ChannelSet`.
+        cell: lattice step in window pixels (ACF's shrink).
+        cells: include every single cell of every channel.
+        boxes, haar: random rectangles and random Haar filters over channels in the pool.
+    """
+
+    kind: str = "haar"
     n_scales: int = 3
     sizes: list[int] | None = None
     stride: int = 1
     min_std: float = 1.0
+    channels: list[str] = field(default_factory=lambda: ["L", "U", "V", "grad", "orient"])
+    orientations: int = 6
+    norm_radius: int = 5
+    norm_const: float = 0.005
+    gradient_lambda: float = 0.1
+    cell: int = 4
+    cells: bool = True
+    boxes: int = 2000
+    haar: int = 0
+
+    def channel_set(self):
+        """The :class:`~torchtrack.features.channels.ChannelSet` of ``channels`` (validated)."""
+        from torchtrack.features.channels import ChannelSet
+
+        return ChannelSet(
+            names=tuple(self.channels) if isinstance(self.channels, list) else self.channels,
+            orientations=self.orientations,
+            norm_radius=self.norm_radius,
+            norm_const=float(self.norm_const) if _isnum(self.norm_const) else self.norm_const,
+            gradient_lambda=(
+                float(self.gradient_lambda)
+                if _isnum(self.gradient_lambda)
+                else self.gradient_lambda
+            ),
+        )
 
 
 @dataclass
@@ -83,11 +138,36 @@ class LearnConfig:
     """Feature selection, classifier and calibration (paper defaults).
 
     Attributes:
-        n_features: features kept by AdaBoost selection (paper: 40).
+        n_features: features kept by AdaBoost selection (paper: 40; Haar banks).
         selection_bins: threshold bins per feature during selection.
-        classifier: ``"adaboost"`` (boosted stumps on the selected features) or ``"svm"``.
-        variant: boosting variant, ``"discrete"`` (paper eq. 9), ``"real"`` or ``"gentle"``.
-        n_estimators: boosting rounds on the selected features (default: ``n_features``).
+        classifier: ``"auto"`` (Haar banks: ``"adaboost"``, the paper; channel banks:
+            ``"trees"``), ``"adaboost"`` (boosted stumps on the selected features), ``"trees"``
+            (boosted depth-``tree_depth`` trees over the whole pool, with a soft cascade) or
+            ``"svm"``.
+        variant: boosting variant, ``"discrete"`` (paper eq. 9), ``"real"`` or ``"gentle"``;
+            ``None``: discrete for stumps, real for trees (Dollár's ACF).
+        n_estimators: boosting rounds of stumps on the selected features (default:
+            ``n_features``).
+        n_trees, tree_depth: trees of the final round (mining rounds train fewer, see
+            :class:`MiningConfig`) and their depth.
+        feature_fraction, weight_trimming: share of the pool searched per tree, and share of
+            the weight left out of the split search (see :class:`torchtrack.learn.BoostedTrees`).
+        cascade: the soft cascade stored in the model (used by scans; scoring boxes always
+            evaluates every tree): ``"constant"`` (Dollár's constant soft cascade: a window is
+            dropped as soon as its running margin falls below ``cascade_threshold``; ACF uses
+            -1), ``"backward"`` (Bourdev & Brandt's direct backward pruning on the held-out
+            positives, see ``cascade_probability``) or ``"none"``.
+        cascade_threshold: the constant cascade's threshold on the running margin.
+        tracking_trees: trees of the model's tracking head (:attr:`Detector.tracking_head`):
+            the first ``tracking_trees`` trees with a Platt calibration of their own, fitted on
+            the same held-out windows; the particle-filter trackers score windows with it
+            (0, or at least ``n_trees``: no head, trackers use the whole classifier).
+        cascade_probability, cascade_miss: backward pruning: the rejection threshold after
+            each tree is the ``cascade_miss`` quantile of the running margins of the held-out
+            positives whose calibrated probability reaches ``cascade_probability``
+            (``cascade_miss = 0``: none of them is ever rejected). Held-out crops are cleaner
+            than objects in real scenes, so these thresholds reject more real objects than the
+            constant cascade (docs/benchmarks/uiuc.md).
         svm_kernel, svm_c: SVM kernel (``"rbf"`` / ``"linear"``) and C.
         calibration: ``"platt"`` (paper eq. 5-8) or ``"isotonic"``.
         calibration_fraction: share of the training crops held out for calibration (paper: 0.3).
@@ -100,9 +180,18 @@ class LearnConfig:
 
     n_features: int = 40
     selection_bins: int = 256
-    classifier: str = "adaboost"
-    variant: str = "discrete"
+    classifier: str = "auto"
+    variant: str | None = None
     n_estimators: int | None = None
+    n_trees: int = 1024
+    tree_depth: int = 2
+    feature_fraction: float = 0.5
+    weight_trimming: float = 0.02
+    cascade: str = "constant"
+    cascade_threshold: float = -1.0
+    tracking_trees: int = 64
+    cascade_probability: float = 0.5
+    cascade_miss: float = 0.01
     svm_kernel: str = "rbf"
     svm_c: float = 1.0
     calibration: str = "platt"
@@ -116,19 +205,35 @@ class MiningConfig:
     """Hard-negative mining: after training, scan ``negative_images`` densely, add the
     ``per_round`` highest-scoring windows as negatives and retrain, ``rounds`` times.
 
+    Channel detectors: round ``r`` of ``R`` trains ``max(32, n_trees / 4^(R - r))`` trees
+    (Dollár's ACF schedule: 32, 128, 512, 2048), scans the training images with the constant
+    soft cascade ``margin`` (windows whose running margin drops below it are dropped), and adds
+    the windows that end at or above ``margin``, at most ``per_round`` (the highest first, no
+    image more than twice its share). Mining stops early once the share of scanned windows
+    that are false positives is at most ``target_fpr``; when the last round ends above it,
+    training warns (:class:`~torchtrack.errors.TrainingWarning`).
+
     Attributes:
         rounds: number of mining rounds (0: off).
         per_round: hard negatives added per round.
         scale_step: ratio between successive scan scales.
         stride: scan step as a fraction of the window width at each scale.
+        min_scale: smallest scan scale (channel detectors; default: the data's
+            ``negative_min_scale``).
         max_scale: largest scan scale (x window); default: what fits the image.
+        margin: channel detectors: the margin from which a window counts as a false positive.
+        target_fpr: channel detectors: stop mining when false positives per scanned window
+            reach this.
     """
 
     rounds: int = 0
     per_round: int = 1000
     scale_step: float = 1.2
     stride: float = 0.1
+    min_scale: float | None = None
     max_scale: float | None = None
+    margin: float = -1.0
+    target_fpr: float = 1e-4
 
 
 @dataclass
@@ -162,16 +267,96 @@ class TrainConfig:
             raise ConfigError("data.region and data.crop_size go together (give both or neither)")
         if d.object is not None:
             self.object_box()
+        if (
+            not isinstance(d.positive_scales, list)
+            or not d.positive_scales
+            or not all(_isnum(q) and 0 < q <= 1 for q in d.positive_scales)
+        ):
+            raise ConfigError(
+                f"data.positive_scales must be a non-empty list of numbers in (0, 1], got "
+                f"{d.positive_scales!r}"
+            )
+        if (
+            not isinstance(d.positive_jitter, int)
+            or isinstance(d.positive_jitter, bool)
+            or not 0 <= d.positive_jitter <= 64
+        ):
+            raise ConfigError(
+                f"data.positive_jitter must be an integer in [0, 64] pixels, got {d.positive_jitter!r}"
+            )
+        f = self.features
+        if f.kind not in ("haar", "channels"):
+            raise ConfigError(f"features.kind must be 'haar' or 'channels', got {f.kind!r}")
+        if f.kind == "channels":
+            f.channel_set()  # unknown channel names and bad values raise here
+            from torchtrack.features.channels import _check_geometry
+
+            _check_geometry(tuple(w), f.cell)
+            for name in ("boxes", "haar"):
+                v = getattr(f, name)
+                if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                    raise ConfigError(f"features.{name} must be a non-negative integer, got {v!r}")
+            if not isinstance(f.cells, bool):
+                raise ConfigError(f"features.cells must be true or false, got {f.cells!r}")
+            for q in d.positive_scales:
+                if abs(f.cell * q - round(f.cell * q)) > 1e-9:
+                    raise ConfigError(
+                        f"data.positive_scales: features.cell {f.cell} x {q} is not a whole "
+                        "number of pixels"
+                    )
         if not (d.negative_min_scale > 0 and math.isfinite(d.negative_min_scale)):
             raise ConfigError("data.negative_min_scale must be a positive number")
         lr = self.learn
-        if lr.classifier not in ("adaboost", "svm"):
+        if lr.classifier not in ("auto", "adaboost", "trees", "svm"):
             raise ConfigError(
-                f"learn.classifier must be 'adaboost' or 'svm', got {lr.classifier!r}"
+                f"learn.classifier must be 'auto', 'adaboost', 'trees' or 'svm', got "
+                f"{lr.classifier!r}"
             )
-        if lr.variant not in ("discrete", "real", "gentle"):
+        if lr.classifier == "trees" and f.kind != "channels":
+            raise ConfigError("learn.classifier = 'trees' needs features.kind = 'channels'")
+        if f.kind == "channels" and lr.classifier not in ("auto", "trees"):
+            raise ConfigError(
+                f"features.kind = 'channels' trains boosted trees: learn.classifier must be "
+                f"'auto' or 'trees', got {lr.classifier!r}"
+            )
+        if lr.variant not in (None, "discrete", "real", "gentle"):
             raise ConfigError(
                 f"learn.variant must be 'discrete', 'real' or 'gentle', got {lr.variant!r}"
+            )
+        for name in ("n_trees", "tree_depth"):
+            if not _posint(getattr(lr, name)):
+                raise ConfigError(
+                    f"learn.{name} must be a positive integer, got {getattr(lr, name)!r}"
+                )
+        if lr.tree_depth > 4:
+            raise ConfigError(f"learn.tree_depth must be at most 4, got {lr.tree_depth}")
+        if not (_isnum(lr.feature_fraction) and 0 < lr.feature_fraction <= 1):
+            raise ConfigError(
+                f"learn.feature_fraction must be in (0, 1], got {lr.feature_fraction!r}"
+            )
+        if not (_isnum(lr.weight_trimming) and 0 <= lr.weight_trimming < 1):
+            raise ConfigError(
+                f"learn.weight_trimming must be in [0, 1), got {lr.weight_trimming!r}"
+            )
+        if lr.cascade not in ("constant", "backward", "none"):
+            raise ConfigError(
+                f"learn.cascade must be 'constant', 'backward' or 'none', got {lr.cascade!r}"
+            )
+        if isinstance(lr.tracking_trees, bool) or not (
+            isinstance(lr.tracking_trees, int) and lr.tracking_trees >= 0
+        ):
+            raise ConfigError(
+                f"learn.tracking_trees must be a non-negative integer, got {lr.tracking_trees!r}"
+            )
+        if not _isnum(lr.cascade_threshold):
+            raise ConfigError(
+                f"learn.cascade_threshold must be a number, got {lr.cascade_threshold!r}"
+            )
+        if not (_isnum(lr.cascade_miss) and 0 <= lr.cascade_miss < 0.5):
+            raise ConfigError(f"learn.cascade_miss must be in [0, 0.5), got {lr.cascade_miss!r}")
+        if not (_isnum(lr.cascade_probability) and 0 <= lr.cascade_probability < 1):
+            raise ConfigError(
+                f"learn.cascade_probability must be in [0, 1), got {lr.cascade_probability!r}"
             )
         if lr.svm_kernel not in ("rbf", "linear"):
             raise ConfigError(f"learn.svm_kernel must be 'rbf' or 'linear', got {lr.svm_kernel!r}")
@@ -202,7 +387,26 @@ class TrainConfig:
             raise ConfigError(f"mining.stride must be in (0, 1], got {m.stride}")
         if m.rounds > 0 and not d.negative_images:
             raise ConfigError("mining.rounds > 0 needs data.negative_images to scan")
+        if m.min_scale is not None and not (_isnum(m.min_scale) and m.min_scale > 0):
+            raise ConfigError(f"mining.min_scale must be a positive number, got {m.min_scale!r}")
+        if not _isnum(m.margin):
+            raise ConfigError(f"mining.margin must be a number, got {m.margin!r}")
+        if not (_isnum(m.target_fpr) and 0 <= m.target_fpr < 1):
+            raise ConfigError(f"mining.target_fpr must be in [0, 1), got {m.target_fpr!r}")
         return self
+
+    def classifier(self) -> str:
+        """``learn.classifier`` with ``"auto"`` resolved (Haar: adaboost, channels: trees)."""
+        c = self.learn.classifier
+        if c == "auto":
+            return "trees" if self.features.kind == "channels" else "adaboost"
+        return c
+
+    def variant(self) -> str:
+        """``learn.variant`` with ``None`` resolved (stumps: discrete, trees: real)."""
+        if self.learn.variant is not None:
+            return self.learn.variant
+        return "real" if self.classifier() == "trees" else "discrete"
 
     def object_box(self) -> tuple[float, float, float, float] | None:
         """``data.object`` as fractions of the detector window (see
@@ -237,6 +441,10 @@ class TrainConfig:
 
 def _posint(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v > 0
+
+
+def _isnum(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _asdict(obj: Any) -> Any:

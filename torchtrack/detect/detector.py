@@ -1,8 +1,15 @@
-"""The class detector: window + selected Haar features + classifier + calibrator.
+"""The class detector: window + feature bank + selected features + classifier + calibrator.
 
 ``Detector.score(frames, boxes)`` returns the calibrated probability that each box holds an
 object of the class (Chateau et al. eq. 11), for boxes of any size and position, straight from
-one integral image per frame. This is the likelihood a particle filter uses.
+integral images computed once per frame (:meth:`Detector.integrals`). This is the likelihood a
+particle filter uses.
+
+The bank is Chateau et al.'s grey Haar bank (:class:`~torchtrack.features.haar.HaarBank`, the
+paper setting) or integral channel features (:class:`~torchtrack.features.channels.ChannelBank`:
+Haar-like features over LUV, gradient magnitude and oriented gradients); the classifier is
+boosted stumps, boosted trees (:class:`~torchtrack.learn.BoostedTrees`, with a soft cascade used
+by :meth:`Detector.scan`) or an SVM.
 """
 
 from __future__ import annotations
@@ -13,7 +20,8 @@ from typing import Any
 import torch
 
 from torchtrack.errors import ModelFormatError, NotFittedError, ShapeError
-from torchtrack.features.haar import HaarBank, Integrals, haar_features_at, integrals
+from torchtrack.features.channels import ChannelBank
+from torchtrack.features.haar import HaarBank
 
 __all__ = ["Detector", "check_object_box"]
 
@@ -51,12 +59,16 @@ class Detector:
     """A trained detector.
 
     Attributes:
-        bank: the full Haar bank of the training window.
+        bank: the feature bank: the full Haar bank of the training window
+            (:class:`~torchtrack.features.haar.HaarBank`) or channel features
+            (:class:`~torchtrack.features.channels.ChannelBank`, usually only those the
+            classifier uses).
         feature_index: ``(K,)`` int64, the selected features (indices into ``bank``); the
             classifier sees them in this order.
-        classifier: a fitted :class:`torchtrack.learn.BoostedStumps` or
-            :class:`torchtrack.learn.SVMClassifier` (anything with a torch
-            ``decision_function`` on ``(..., K)``, ``n_features_in_`` and ``to_state()``).
+        classifier: a fitted :class:`torchtrack.learn.BoostedStumps`,
+            :class:`~torchtrack.learn.BoostedTrees` or :class:`~torchtrack.learn.SVMClassifier`
+            (anything with a torch ``decision_function`` on ``(..., K)``, ``n_features_in_`` and
+            ``to_state()``).
         calibrator: a fitted :class:`torchtrack.learn.PlattCalibrator` or
             :class:`~torchtrack.learn.IsotonicCalibrator`; ``None`` until calibrated.
         name: a label, e.g. ``"pedestrian"``.
@@ -67,18 +79,26 @@ class Detector:
             (INRIA pedestrians: ``(0.25, 0.125, 0.5, 0.75)``, a 32x96 person in the 64x128
             window, Dalal and Triggs' 16-px margin on every side); detections and tracks are
             reported as object boxes (:meth:`window_to_object`).
+        tracking_head: ``(n_trees, calibrator)``: the first ``n_trees`` trees of a boosted-trees
+            classifier with a Platt calibration of their own running margin, fitted on the same
+            held-out windows as ``calibrator`` (``None``: no head). A particle filter scores
+            hundreds of windows per target and frame; the head reads the few features those
+            trees use (:meth:`tracking_model`), so its calibrated probability costs a fraction
+            of the full classifier's, and it is smoother around the object (a likelihood that
+            still rises as a window nears the object), which a particle filter needs.
 
     Save and load it with :func:`torchtrack.detect.save_detector` /
     :func:`~torchtrack.detect.load_detector`.
     """
 
-    bank: HaarBank
+    bank: HaarBank | ChannelBank
     feature_index: torch.Tensor
     classifier: Any
     calibrator: Any = None
     name: str = "detector"
     summary: dict[str, Any] = field(default_factory=dict)
     object_box: tuple[float, float, float, float] | None = None
+    tracking_head: tuple[int, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.object_box is not None:
@@ -131,14 +151,99 @@ class Detector:
         return torch.stack((cx - win_w / 2, cy - win_h / 2, win_w, win_h), -1)
 
     def with_calibrator(self, calibrator: Any) -> Detector:
-        """A copy with another fitted calibrator (``predict_proba`` on margins)."""
-        return replace(self, calibrator=calibrator)
+        """A copy with another fitted calibrator (``predict_proba`` on margins); the tracking
+        head, calibrated for the old classifier's margins, is dropped."""
+        return replace(self, calibrator=calibrator, tracking_head=None)
 
-    def features(self, frames: torch.Tensor | Integrals, boxes: torch.Tensor) -> torch.Tensor:
+    def tracking_model(self) -> Detector:
+        """The detector the trackers score particle windows with: :attr:`tracking_head`'s
+        first trees, reading only the features they use, with the head's calibration; this
+        detector itself when it has no head.
+
+        Example::
+
+            det = load_model("pedestrian")          # 1024 trees, ~1,850 features
+            fast = det.tracking_model()             # e.g. 64 trees, ~120 features
+            p = fast.score(frames, boxes)           # calibrated P(object | window)
+        """
+        if self.tracking_head is None:
+            return self
+        n_trees, calibrator = self.tracking_head
+        head = self.classifier.truncated(int(n_trees))
+        used = torch.unique(head.feature_)
+        remap = torch.full((self.feature_index.numel(),), -1, dtype=torch.long)
+        remap[used] = torch.arange(used.numel())
+        head.feature_ = remap[head.feature_]
+        head.n_features_in_ = int(used.numel())
+        return replace(
+            self,
+            feature_index=self.feature_index[used],
+            classifier=head,
+            calibrator=calibrator,
+            name=f"{self.name}[:{n_trees}]",
+            tracking_head=None,
+        )
+
+    @property
+    def colour(self) -> bool:
+        """Whether the features read colour (LUV channels): such a model gives lower scores on
+        grayscale frames (they are taken as R = G = B, so U = V = 0)."""
+        chans = getattr(self.bank, "channels", None)
+        return bool(getattr(chans, "colour", False))
+
+    def integrals(self, frames: torch.Tensor) -> Any:
+        """The integral images every box on ``frames (B, C, H, W)`` (0..255, C = 1 or RGB) is
+        read from: compute them once per frame batch and pass them to :meth:`features`,
+        :meth:`decision_function` or :meth:`score` in place of the frames."""
+        return self.bank.integrals(frames)
+
+    def integrals_for(
+        self, frames: torch.Tensor, boxes: torch.Tensor, ok: torch.Tensor | None = None
+    ) -> tuple[Any, torch.Tensor]:
+        """Integral images over only the part of ``frames (B, C, H, W)`` that ``boxes
+        (B, N, 4)`` need (the boxes' in-frame parts plus the context the features need, e.g.
+        the gradient normalisation radius of channel features), and the boxes shifted into that
+        crop. Scores read from them equal those of the whole frames; a tracker's particles
+        cover a small part of the frame, so this is much cheaper.
+
+        Args:
+            ok: ``(B, N)`` bool, the boxes to consider (default all).
+
+        Returns:
+            ``(integrals, boxes (B, N, 4) in crop pixels)``.
+        """
+        import math
+
+        fh, fw = int(frames.shape[-2]), int(frames.shape[-1])
+        if ok is None:
+            ok = torch.ones(boxes.shape[:2], dtype=torch.bool, device=boxes.device)
+        if not bool(ok.any()):
+            return self.integrals(frames), boxes
+        x, y, w, h = boxes.unbind(-1)
+        big = math.inf
+        x0 = float(torch.where(ok, x.clamp(0, fw), big).min())
+        y0 = float(torch.where(ok, y.clamp(0, fh), big).min())
+        x1 = float(torch.where(ok, (x + w).clamp(0, fw), -big).max())
+        y1 = float(torch.where(ok, (y + h).clamp(0, fh), -big).max())
+        margin, align = self.bank.crop_context(boxes[ok])
+        ix0 = max(0, math.floor(x0) - margin) // align * align
+        iy0 = max(0, math.floor(y0) - margin) // align * align
+        ix1 = min(fw, math.ceil(x1) + margin)
+        iy1 = min(fh, math.ceil(y1) + margin)
+        ix1, iy1 = max(ix1, ix0 + 1), max(iy1, iy0 + 1)
+        sub = frames[:, :, iy0:iy1, ix0:ix1]
+        shift = boxes.new_tensor([float(ix0), float(iy0), 0.0, 0.0])
+        return self.integrals(sub), boxes - shift
+
+    def features(self, frames: Any, boxes: torch.Tensor, *, check: bool = True) -> torch.Tensor:
         """Selected features ``(B, N, K)`` of ``boxes (B, N, 4)`` (x, y, w, h pixels) on
-        ``frames (B, C, H, W)`` (0..255, C = 1 or RGB) or on precomputed :class:`Integrals`."""
-        ints = frames if isinstance(frames, Integrals) else integrals(frames)
-        return haar_features_at(ints, boxes, self.bank, self.feature_index)
+        ``frames (B, C, H, W)`` (0..255, C = 1 or RGB) or on their :meth:`integrals`.
+
+        Args:
+            check: validate the boxes (finite, at least one pixel, overlapping the frame).
+        """
+        ints = self.integrals(frames) if isinstance(frames, torch.Tensor) else frames
+        return self.bank.features_at(ints, boxes, self.feature_index, check=check)
 
     def margin_from_features(self, feats: torch.Tensor) -> torch.Tensor:
         """Raw classifier margins ``m(f)`` of selected features ``(..., K)`` -> ``(...)``."""
@@ -157,17 +262,15 @@ class Detector:
             )
         return self.calibrator.predict_proba(margin)
 
-    def decision_function(
-        self, frames: torch.Tensor | Integrals, boxes: torch.Tensor
-    ) -> torch.Tensor:
+    def decision_function(self, frames: Any, boxes: torch.Tensor) -> torch.Tensor:
         """Raw margins ``(B, N)`` of ``boxes (B, N, 4)``."""
         return self.margin_from_features(self.features(frames, boxes))
 
-    def score(self, frames: torch.Tensor | Integrals, boxes: torch.Tensor) -> torch.Tensor:
+    def score(self, frames: Any, boxes: torch.Tensor) -> torch.Tensor:
         """Calibrated probabilities ``(B, N)`` that each box of ``boxes (B, N, 4)`` (x, y, w, h
         in pixels, any size) holds the class, on ``frames (B, C, H, W)`` or their
-        :class:`Integrals` (compute once per frame with :func:`~torchtrack.features.integrals`
-        when scoring several box sets).
+        :meth:`integrals` (compute once per frame when scoring several box sets). Every window
+        gets the full classifier (no cascade).
 
         Raises:
             BoxError: a box is not finite, under one pixel, or entirely outside its frame.
@@ -175,19 +278,32 @@ class Detector:
         """
         return self.proba_from_margin(self.decision_function(frames, boxes))
 
-    def scan(self, frames: torch.Tensor, **kwargs: Any):
+    def scan(self, frames: torch.Tensor, *, windows: bool = False, **kwargs: Any):
         """Multi-scale sliding-window detection with NMS (paper section 4.2).
 
         ``frames (C, H, W)`` -> ``(boxes (K, 4), probabilities (K,))``;
-        ``frames (B, C, H, W)`` -> a list of B such pairs (one batched integral image).
-        Keyword arguments (threshold, stride, scale_step, min_scale, max_scale, nms_iou, ...)
-        are those of :func:`torchtrack.detect.scan.scan_batch`.
-        """
-        from torchtrack.detect.scan import scan, scan_batch
+        ``frames (B, C, H, W)`` -> a list of B such pairs (batched integral images).
 
-        if frames.ndim == 3:
-            return scan(self, frames, **kwargs)
-        return scan_batch(self, frames, **kwargs)
+        Args:
+            windows: report the detector windows instead of the object boxes (by default the
+                boxes are :meth:`window_to_object` of the windows, and non-maximum suppression
+                compares object boxes, so that people close together are not merged by the
+                margins of their windows).
+            kwargs: threshold, stride, scale_step, min_scale, max_scale, nms_iou, cascade, ...
+                of :func:`torchtrack.detect.scan.scan_batch`.
+        """
+        from torchtrack.detect.scan import scan_batch
+
+        if not isinstance(frames, torch.Tensor) or frames.ndim not in (3, 4):
+            got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
+            raise ShapeError(f"scan takes frames (C, H, W) or (B, C, H, W), got {got}")
+        single = frames.ndim == 3
+        batch = frames[None] if single else frames
+        kwargs.setdefault("nms_on", "window" if windows else "object")
+        out = scan_batch(self, batch, **kwargs)
+        if not windows:
+            out = [(self.window_to_object(b), p) for b, p in out]
+        return out[0] if single else out
 
     def selected_features(self) -> list[dict[str, Any]]:
         """The selected features as ``{"kind", "size", "y", "x"}`` records, in order."""

@@ -7,6 +7,12 @@ any tensor is read, so nothing is allocated for a file that fails; the value che
 the tensors (:attr:`Description.checks`) run after they are read. Each failure is a
 :class:`~torchtrack.errors.ModelFormatError` naming the field.
 
+Version 1: Chateau's grey Haar bank under ``bank``. Version 2 (written now): the bank under
+``features`` with a ``kind`` (``haar`` or ``channels``: integral channel features, whose
+channel set and geometry the features layer validates, :meth:`ChannelBank.check_header
+<torchtrack.features.channels.ChannelBank.check_header>`), and boosted trees among the
+classifiers.
+
 **Adding a format version.** Write ``_validate_vN(meta, entries) -> Description`` from the
 section functions: reuse the unchanged ones and add one per new section (a section check takes
 its part of the description and the tensor entries, checks JSON types and ranges and that the
@@ -40,7 +46,7 @@ __all__ = [
 ]
 
 FORMAT = "torchtrack-detector"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -196,7 +202,12 @@ def _check_window(meta: dict) -> tuple[int, int]:
 
 def _check_bank(meta: dict, window: tuple[int, int]) -> tuple[int, float]:
     """The bank's feature count (computed, not built) and the bound on its feature values."""
-    b = _mapping(meta["bank"], "bank", {"window", "sizes"}, {"stride", "min_std", "kinds"})
+    return _check_haar_bank(meta["bank"], window)
+
+
+def _check_haar_bank(bank: Any, window: tuple[int, int]) -> tuple[int, float]:
+    """A Haar bank description's feature count (computed, not built) and value bound."""
+    b = _mapping(bank, "bank", {"window", "sizes"}, {"stride", "min_std", "kinds"})
     if b["window"] != list(window):
         raise ModelFormatError(f"bank window {b['window']!r} disagrees with window {list(window)}")
     if "kinds" in b and b["kinds"] != list(KINDS):
@@ -286,6 +297,46 @@ def _check_stumps(c: dict, entries: dict[str, TensorEntry], k: int, bound: float
     return values
 
 
+def _check_trees(c: dict, entries: dict[str, TensorEntry], k: int, bound: float):
+    from torchtrack.learn.boosting import VARIANTS
+
+    _mapping(
+        c,
+        "classifier",
+        {"kind", "variant", "max_depth", "n_estimators", "n_features_in", "classes"},
+    )
+    if c["variant"] not in VARIANTS:
+        raise ModelFormatError(f"classifier.variant {c['variant']!r} is not one of {VARIANTS}")
+    depth = _int_in(c["max_depth"], "classifier.max_depth", 1, 4)
+    _int_in(c["n_estimators"], "classifier.n_estimators", 1, LIMITS.stumps)
+    if c["n_features_in"] != k:
+        raise ModelFormatError(
+            f"classifier.n_features_in is {c['n_features_in']!r} but {k} features are selected"
+        )
+    _check_classes(c["classes"])
+    n_int = (1 << depth) - 1
+    r, _ = _entry(entries, "classifier.feature", "I64", (None, n_int))
+    if not 1 <= r <= LIMITS.stumps:
+        raise ModelFormatError(f"classifier has {r} trees, expected 1 to {LIMITS.stumps}")
+    _entry(entries, "classifier.threshold", "F32", (r, n_int))
+    _entry(entries, "classifier.leaf", "F32", (r, n_int + 1))
+    _entry(entries, "classifier.reject", "F32", (r,))
+    _no_extra(entries, "classifier.", {"feature", "threshold", "leaf", "reject"})
+    big = float(torch.finfo(torch.float32).max)  # "never go right" / "never reject"
+
+    def values(t: dict[str, torch.Tensor]) -> None:
+        f = t["classifier.feature"]
+        if bool(((f < 0) | (f >= k)).any()):
+            raise ModelFormatError(f"classifier.feature: indices outside [0, {k})")
+        thr = t["classifier.threshold"]
+        _finite_within(thr[thr != big], "classifier.threshold", bound)
+        _finite_within(t["classifier.leaf"], "classifier.leaf", LIMITS.stump_output)
+        rej = t["classifier.reject"]
+        _finite_within(rej[rej != -big], "classifier.reject", LIMITS.stump_output * r)
+
+    return values
+
+
 def _check_svm(c: dict, entries: dict[str, TensorEntry], k: int, bound: float):
     from torchtrack.learn.svm import KERNELS
 
@@ -362,7 +413,11 @@ def _check_isotonic(c: dict, entries: dict[str, TensorEntry]):
 
 
 #: classifier kind -> section check(classifier meta, entries, K, feature value bound)
-_CLASSIFIER_SECTIONS: dict[str, Callable] = {"boosted_stumps": _check_stumps, "svm": _check_svm}
+_CLASSIFIER_SECTIONS: dict[str, Callable] = {
+    "boosted_stumps": _check_stumps,
+    "boosted_trees": _check_trees,
+    "svm": _check_svm,
+}
 #: calibration kind -> section check(calibration meta, entries)
 _CALIBRATION_SECTIONS: dict[str, Callable] = {"platt": _check_platt, "isotonic": _check_isotonic}
 
@@ -438,8 +493,142 @@ def _validate_v1(meta: dict, entries: dict[str, TensorEntry]) -> Description:
     return Description(1, meta, window, meta["bank"], n_bank, bound, k, checks)
 
 
+def _check_features(
+    meta: dict, entries: dict[str, TensorEntry], window: tuple[int, int]
+) -> tuple[int, float, Callable | None]:
+    """Version 2's ``features`` section: the bank (Chateau's grey Haar bank, or integral
+    channel features whose description the features layer validates) and its tables. Returns
+    the bank size, the bound on its feature values and the value check of its tables."""
+    from torchtrack.errors import ConfigError
+    from torchtrack.features import BANK_KINDS
+    from torchtrack.features.channels import ChannelBank
+
+    d = meta["features"]
+    if not isinstance(d, dict) or d.get("kind") not in BANK_KINDS:
+        kind = d.get("kind") if isinstance(d, dict) else type(d).__name__
+        raise ModelFormatError(f"features.kind {kind!r} is not one of {', '.join(BANK_KINDS)}")
+    if d["kind"] == "haar":
+        n, bound = _check_haar_bank({k: v for k, v in d.items() if k != "kind"}, window)
+        _no_extra(entries, "features.", {"index"})
+        return n, bound, None
+    try:
+        cs, win, cell, n = ChannelBank.check_header(d)
+    except ConfigError as exc:
+        raise ModelFormatError(f"features: {exc}") from None
+    if list(win) != list(window):
+        raise ModelFormatError(f"features window {list(win)} disagrees with window {list(window)}")
+    _entry(entries, "features.rects", "I32", (n, 4, 5))
+    _entry(entries, "features.channel", "I64", (n,))
+    _no_extra(entries, "features.", {"index", "rects", "channel"})
+    # A feature sums at most four weighted (|w| <= 4) rectangle means of one channel, times
+    # the power-law factor r ** lambda: LUV is within [-2, 2]; a normalised gradient channel
+    # within norm_radius + 1 (unnormalised: sqrt(2) / norm_const).
+    grad = (cs.norm_radius + 1.0) if cs.norm_radius > 0 else 1.5 / cs.norm_const
+    bound = 16.0 * max(2.0, grad) * 8.0
+
+    def values(t: dict[str, torch.Tensor]) -> None:
+        try:
+            ChannelBank(win, cs, t["features.rects"], t["features.channel"], cell)
+        except ConfigError as exc:
+            raise ModelFormatError(f"features: {exc}") from None
+
+    return n, bound, values
+
+
+_V2_KEYS = {
+    "format",
+    "format_version",
+    "name",
+    "window",
+    "features",
+    "classifier",
+    "calibration",
+    "training",
+}
+
+
+def _check_tracking_head(meta: dict, entries: dict[str, TensorEntry]) -> None:
+    """``tracking_head``: the first ``trees`` trees of a boosted-trees classifier, Platt."""
+    head = _mapping(meta["tracking_head"], "tracking_head", {"trees", "calibration"})
+    c = meta["classifier"]
+    if c.get("kind") != "boosted_trees":
+        raise ModelFormatError("tracking_head belongs to boosted-trees classifiers only")
+    r = entries["classifier.feature"].shape[0]
+    _int_in(head["trees"], "tracking_head.trees", 1, r)
+    cal = head["calibration"]
+    if not isinstance(cal, dict) or cal.get("kind") != "platt":
+        raise ModelFormatError("tracking_head.calibration must be a Platt calibration")
+    try:
+        _check_platt(cal, {})
+    except ModelFormatError as exc:
+        raise ModelFormatError(f"tracking_head: {exc}") from None
+
+
+def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
+    """Version 2: the feature bank under ``features`` with a ``kind`` (``haar``: the version 1
+    bank plus its ``selected_features``; ``channels``: channel set, lattice and feature tables
+    ``features.rects`` / ``features.channel``); classifiers include boosted trees."""
+    _mapping(
+        meta, "the description", _V2_KEYS, {"object_box", "selected_features", "tracking_head"}
+    )
+    name = meta["name"]
+    if not isinstance(name, str) or not 0 < len(name) <= LIMITS.name_chars:
+        raise ModelFormatError(f"name must be a string of 1 to {LIMITS.name_chars} characters")
+    if not isinstance(meta["training"], dict):
+        raise ModelFormatError("training must be a JSON object")
+    if "object_box" in meta:
+        check_object_box(meta["object_box"])
+    window = _check_window(meta)
+    n_bank, bound, table_check = _check_features(meta, entries, window)
+    haar = meta["features"]["kind"] == "haar"
+    if haar:
+        if "selected_features" not in meta:
+            raise ModelFormatError(
+                "the description lacks ['selected_features'] (a Haar model lists them)"
+            )
+        k = _check_selected(meta, entries, n_bank)
+    else:
+        if "selected_features" in meta:
+            raise ModelFormatError("selected_features belongs to Haar models only")
+        (k,) = _entry(entries, "features.index", "I64", (None,))
+        if not 1 <= k <= min(LIMITS.selected, n_bank):
+            raise ModelFormatError(
+                f"features.index selects {k} features; expected 1 to {min(LIMITS.selected, n_bank)}"
+            )
+    checks: dict[str, Callable] = {}
+
+    def index_values(t: dict[str, torch.Tensor]) -> None:
+        idx = t["features.index"]
+        if bool(((idx < 0) | (idx >= n_bank)).any()):
+            raise ModelFormatError(f"features.index: indices outside the bank [0, {n_bank})")
+        if table_check is not None:
+            table_check(t)
+
+    checks["features"] = index_values
+    clf = _check_kinded("classifier", meta["classifier"], _CLASSIFIER_SECTIONS)
+    if (v := clf(meta["classifier"], entries, k, bound)) is not None:
+        checks["classifier"] = v
+    if meta["calibration"] is not None:
+        cal = _check_kinded("calibration", meta["calibration"], _CALIBRATION_SECTIONS)
+        if (v := cal(meta["calibration"], entries)) is not None:
+            checks["calibration"] = v
+    else:
+        _no_extra(entries, "calibration.", set())
+    if "tracking_head" in meta:
+        _check_tracking_head(meta, entries)
+    extra = sorted(
+        n for n in entries if not n.startswith(("features.", "classifier.", "calibration."))
+    )
+    if extra:
+        raise ModelFormatError(f"unexpected tensor(s) {extra}")
+    return Description(2, meta, window, meta["features"], n_bank, bound, k, checks)
+
+
 #: format version -> validator(meta, entries) -> Description
-_VALIDATORS: dict[int, Callable[[dict, dict[str, TensorEntry]], Description]] = {1: _validate_v1}
+_VALIDATORS: dict[int, Callable[[dict, dict[str, TensorEntry]], Description]] = {
+    1: _validate_v1,
+    2: _validate_v2,
+}
 
 
 def validate_description(meta: Any, entries: dict[str, TensorEntry]) -> Description:

@@ -1,19 +1,28 @@
 """Detector model files: safetensors tensors + a JSON description, checksummed, optionally
 signed, never pickle.
 
-Layout: a standard safetensors file. Its tensors are ``features.index``, ``classifier.*`` and
+Layout: a standard safetensors file. Its tensors are ``features.index``, the channel bank's
+tables ``features.rects`` / ``features.channel`` (channel models), ``classifier.*`` and
 ``calibration.*``; its ``__metadata__`` holds ``torchtrack``, whose value is a JSON document::
 
-    {"format": "torchtrack-detector", "format_version": 1,
-     "name": ..., "window": [H, W], "bank": {...}, "selected_features": [{kind, size, y, x}, ...],
-     "classifier": {"kind": "boosted_stumps" | "svm", ...},
+    {"format": "torchtrack-detector", "format_version": 2,
+     "name": ..., "window": [H, W],
+     "features": {"kind": "haar", "window", "sizes", "stride", "min_std", "kinds"}
+               | {"kind": "channels", "window", "cell", "n_features",
+                  "channels": {"names", "orientations", "norm_radius", "norm_const",
+                               "gradient_lambda"}},
+     "selected_features": [{kind, size, y, x}, ...]   (Haar banks only),
+     "classifier": {"kind": "boosted_stumps" | "boosted_trees" | "svm", ...},
      "calibration": {"kind": "platt" | "isotonic", ...} | null,
      "training": {...data counts, split, held-out metrics...},
      "object_box": [x, y, w, h] fractions of the window | absent (the object fills the window),
+     "tracking_head": {"trees": n, "calibration": {"kind": "platt", "a", "b"}} | absent
+               (boosted trees: the first n trees and their own Platt, for particle filters),
      "sha256": hex digest of the JSON without this key plus every tensor's name, dtype, shape
                and bytes}
 
-and, in a signed file, ``torchtrack.signature`` (:mod:`torchtrack.detect.signing`).
+and, in a signed file, ``torchtrack.signature`` (:mod:`torchtrack.detect.signing`). Version 1
+files (the grey Haar bank under ``"bank"``, no ``"features"``) still load.
 
 **Loading validates before it allocates.** :func:`load_detector` reads the file (its size is
 capped), then
@@ -74,6 +83,7 @@ from torchtrack.detect.model_checks import (
 )
 from torchtrack.detect.signing import SIGNATURE_KEY, TrustPolicy, check_signature, sign_digest
 from torchtrack.errors import ConfigError, ModelFormatError
+from torchtrack.features import bank_from_dict, bank_to_dict
 from torchtrack.features.haar import HaarBank
 from torchtrack.io.atomic import atomic_path
 
@@ -231,7 +241,9 @@ def save_detector(
 
     key = _private_key(signing_key)
     sc_t, sc_m = det.classifier.to_state()
+    bank_d, bank_t = bank_to_dict(det.bank)
     tensors = {"features.index": det.feature_index.contiguous()}
+    tensors.update({f"features.{k}": v.contiguous() for k, v in bank_t.items()})
     tensors.update({f"classifier.{k}": v.contiguous() for k, v in sc_t.items()})
     cal_m = None
     if det.calibrator is not None:
@@ -242,14 +254,21 @@ def save_detector(
         "format_version": FORMAT_VERSION,
         "name": det.name,
         "window": list(det.window),
-        "bank": det.bank.to_dict(),
-        "selected_features": det.selected_features(),
+        "features": bank_d,
         "classifier": sc_m,
         "calibration": cal_m,
         "training": det.summary,
     }
+    if isinstance(det.bank, HaarBank):
+        meta["selected_features"] = det.selected_features()
     if det.object_box is not None:
         meta["object_box"] = list(det.object_box)
+    if det.tracking_head is not None:
+        n_trees, head_cal = det.tracking_head
+        head_t, head_m = head_cal.to_state()
+        if head_t:
+            raise ConfigError("a tracking head's calibration must be Platt (no tensors)")
+        meta["tracking_head"] = {"trees": int(n_trees), "calibration": head_m}
     try:
         meta = json.loads(json.dumps(meta, allow_nan=False))
     except (TypeError, ValueError) as exc:
@@ -359,8 +378,47 @@ def _build_v1(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
     return det
 
 
+def _tracking_head(meta: dict) -> tuple[int, Any] | None:
+    """``(n_trees, Platt calibrator)`` of a validated description's ``tracking_head``."""
+    from torchtrack.learn import calibrator_from_state
+
+    head = meta.get("tracking_head")
+    if head is None:
+        return None
+    return int(head["trees"]), calibrator_from_state({}, head["calibration"])
+
+
+def _build_v2(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
+    """A :class:`Detector` from a validated version-2 description (any feature bank)."""
+    from torchtrack.learn import calibrator_from_state, classifier_from_state
+
+    meta = desc.meta
+    tables = {k: v for k, v in _section(tensors, "features.").items() if k != "index"}
+    bank = bank_from_dict(meta["features"], tables)
+    clf = classifier_from_state(_section(tensors, "classifier."), meta["classifier"])
+    cal = None
+    if meta["calibration"] is not None:
+        cal = calibrator_from_state(_section(tensors, "calibration."), meta["calibration"])
+    det = Detector(
+        bank,
+        tensors["features.index"],
+        clf,
+        cal,
+        name=meta["name"],
+        summary=meta["training"],
+        object_box=meta.get("object_box"),
+        tracking_head=_tracking_head(meta),
+    )
+    if isinstance(bank, HaarBank) and det.selected_features() != meta["selected_features"]:
+        raise ModelFormatError("selected feature descriptions disagree with the feature index")
+    return det
+
+
 #: format version -> builder(description, tensors) -> Detector
-_BUILDERS: dict[int, Callable[[Description, dict[str, torch.Tensor]], Detector]] = {1: _build_v1}
+_BUILDERS: dict[int, Callable[[Description, dict[str, torch.Tensor]], Detector]] = {
+    1: _build_v1,
+    2: _build_v2,
+}
 
 
 def _load(p: Path, trust: TrustPolicy | None) -> tuple[Detector, SignatureStatus]:

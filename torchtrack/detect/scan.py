@@ -1,7 +1,21 @@
 """Scanning a detector over images: multi-scale sliding windows and non-maximum suppression.
 
 Used for hard-negative mining and for detection (paper section 4.2: the first frame is scanned
-over translations and scales). Every window is scored from one integral image per frame.
+over translations and scales). Windows are scored straight from integral images; no image is
+resized per scale.
+
+Two paths give the same scores for the same windows:
+
+* **Channel features + boosted trees** (the fast path): channels are computed once per octave
+  (:class:`~torchtrack.features.channels.ChannelIntegrals`); for every scale the frame's cell
+  lattice is sampled once (:func:`~torchtrack.features.channels.scale_lattice`), every window
+  on it reads its features with integer offsets, and the soft cascade of
+  :meth:`~torchtrack.learn.BoostedTrees.cascade` drops most windows after a few trees
+  (Dollár et al., "The Fastest Pedestrian Detector in the West"; Bourdev & Brandt's soft
+  cascade). Window steps are whole cells: ``round(stride * W / cell)`` horizontally and
+  ``round(stride * H / cell)`` vertically (at least one cell), times the scale.
+* **Anything else** (Chateau's grey Haar bank, stumps, SVMs): every window of
+  :func:`sliding_windows` is scored with :meth:`Detector.decision_function`.
 """
 
 from __future__ import annotations
@@ -12,9 +26,8 @@ import torch
 
 from torchtrack.boxes import xywh_to_xyxy
 from torchtrack.errors import ConfigError, ShapeError
-from torchtrack.features.haar import integrals
 
-__all__ = ["nms", "scan", "scan_batch", "sliding_windows"]
+__all__ = ["nms", "scan", "scan_batch", "scan_scales", "scan_window_count", "sliding_windows"]
 
 
 def sliding_windows(
@@ -39,21 +52,17 @@ def sliding_windows(
     Returns:
         ``(N, 4)`` float32 boxes x, y, w, h (empty when the window does not fit).
     """
-    if not scale_step > 1.0:
-        raise ConfigError(f"scale_step must be > 1, got {scale_step}")
     if not 0.0 < stride <= 1.0:
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
     fh, fw = frame_size
     h, w = window
-    top = min(fh / h, fw / w)
-    if max_scale is not None:
-        top = min(top, max_scale)
-    out = []
-    if top < min_scale:
+    scales = scan_scales(
+        frame_size, window, scale_step=scale_step, min_scale=min_scale, max_scale=max_scale
+    )
+    if not scales:
         return torch.zeros((0, 4))
-    n_scales = math.floor(math.log(top / min_scale) / math.log(scale_step) + 1e-9) + 1
-    for i in range(n_scales):
-        s = min_scale * scale_step**i
+    out = []
+    for s in scales:
         bw, bh = w * s, h * s
         step_x = max(1.0, stride * bw)
         step_y = max(1.0, stride * bh)
@@ -69,12 +78,19 @@ def sliding_windows(
     return torch.cat(out).to(torch.float32)
 
 
-def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float = 0.3) -> torch.Tensor:
-    """Greedy non-maximum suppression (kornia's ``nms`` on our x, y, w, h boxes).
+def nms(
+    boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float = 0.3, *, overlap: str = "union"
+) -> torch.Tensor:
+    """Greedy non-maximum suppression on x, y, w, h boxes.
 
     Args:
         boxes: ``(N, 4)`` x, y, w, h; scores: ``(N,)``.
-        iou_threshold: a box is dropped when its IoU with a kept, higher-scoring box exceeds this.
+        iou_threshold: a box is dropped when its overlap with a kept, higher-scoring box exceeds
+            this.
+        overlap: ``"union"``: intersection over union (kornia's ``nms``); ``"min"``:
+            intersection over the smaller box (Dollár's ``bbNms`` with ``ovrDnm = 'min'``: a
+            box lying mostly inside a better one, such as a detection of a person's legs below
+            the detection of the person, is dropped even though their IoU is small).
 
     Returns:
         ``(K,)`` int64 indices of kept boxes, by decreasing score.
@@ -86,11 +102,154 @@ def nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float = 0.3) -
             f"nms needs boxes (N, 4) and scores (N,), got {tuple(boxes.shape)} and "
             f"{tuple(scores.shape)}"
         )
+    if overlap not in ("union", "min"):
+        raise ConfigError(f"nms overlap must be 'union' or 'min', got {overlap!r}")
     if boxes.shape[0] == 0:
         return torch.zeros(0, dtype=torch.int64, device=boxes.device)
-    # kornia loops over kept boxes only and never builds the N x N IoU matrix (N can be
-    # tens of thousands of windows when no threshold is applied).
-    return kornia_nms(xywh_to_xyxy(boxes.float()), scores, iou_threshold).to(torch.int64)
+    if overlap == "union":
+        # kornia loops over kept boxes only and never builds the N x N IoU matrix (N can be
+        # tens of thousands of windows when no threshold is applied).
+        return kornia_nms(xywh_to_xyxy(boxes.float()), scores, iou_threshold).to(torch.int64)
+    order = scores.argsort(descending=True)
+    b = boxes[order].to(torch.float64)
+    x1, y1 = b[:, 0], b[:, 1]
+    x2, y2 = x1 + b[:, 2], y1 + b[:, 3]
+    area = b[:, 2] * b[:, 3]
+    alive = torch.ones(b.shape[0], dtype=torch.bool, device=b.device)
+    keep = []
+    for i in range(b.shape[0]):  # a loop over kept boxes; the rest is vectorised
+        if not bool(alive[i]):
+            continue
+        keep.append(i)
+        iw = (torch.minimum(x2[i], x2) - torch.maximum(x1[i], x1)).clamp_min(0)
+        ih = (torch.minimum(y2[i], y2) - torch.maximum(y1[i], y1)).clamp_min(0)
+        ov = iw * ih / torch.minimum(area[i], area).clamp_min(1e-12)
+        alive &= ov <= iou_threshold
+    return order[torch.tensor(keep, dtype=torch.int64, device=b.device)]
+
+
+def scan_scales(
+    frame_size: tuple[int, int],
+    window: tuple[int, int],
+    *,
+    scale_step: float = 1.2,
+    min_scale: float = 1.0,
+    max_scale: float | None = None,
+) -> list[float]:
+    """The geometric scales ``min_scale * scale_step ** i`` at which the window fits the frame
+    (and ``<= max_scale``)."""
+    if not scale_step > 1.0:
+        raise ConfigError(f"scale_step must be > 1, got {scale_step}")
+    if not (min_scale > 0 and math.isfinite(min_scale)):
+        raise ConfigError(f"min_scale must be a positive number, got {min_scale}")
+    fh, fw = frame_size
+    h, w = window
+    top = min(fh / h, fw / w)
+    if max_scale is not None:
+        top = min(top, max_scale)
+    if top < min_scale:
+        return []
+    n = math.floor(math.log(top / min_scale) / math.log(scale_step) + 1e-9) + 1
+    return [min_scale * scale_step**i for i in range(n)]
+
+
+def scan_window_count(
+    detector,
+    frame_size: tuple[int, int],
+    *,
+    scale_step: float = 1.2,
+    stride: float = 0.1,
+    min_scale: float = 1.0,
+    max_scale: float | None = None,
+) -> int:
+    """How many windows :func:`scan` scores (before any cascade rejection) on a frame of
+    ``frame_size``."""
+    if not _lattice_capable(detector):
+        return int(
+            sliding_windows(
+                frame_size,
+                detector.window,
+                scale_step=scale_step,
+                stride=stride,
+                min_scale=min_scale,
+                max_scale=max_scale,
+            ).shape[0]
+        )
+    bank = detector.bank
+    wh, ww = bank.window
+    st_i = max(1, round(stride * wh / bank.cell))
+    st_j = max(1, round(stride * ww / bank.cell))
+    fh, fw = frame_size
+    n = 0
+    for s in scan_scales(
+        frame_size, bank.window, scale_step=scale_step, min_scale=min_scale, max_scale=max_scale
+    ):
+        li = math.floor((fh - wh * s) / (bank.cell * s) + 1e-9)
+        lj = math.floor((fw - ww * s) / (bank.cell * s) + 1e-9)
+        if li >= 0 and lj >= 0:
+            n += (li // st_i + 1) * (lj // st_j + 1)
+    return n
+
+
+def _lattice_capable(detector) -> bool:
+    from torchtrack.features.channels import ChannelBank
+
+    return isinstance(detector.bank, ChannelBank) and hasattr(detector.classifier, "cascade")
+
+
+def _scan_lattice(
+    detector, frames: torch.Tensor, scales: list[float], stride: float, cascade: bool, batch: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
+    margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``)."""
+    from torchtrack.features.channels import scale_lattice
+
+    bank, clf = detector.bank, detector.classifier
+    ints = bank.integrals(frames)
+    dev = frames.device
+    pc, pi, pj, coef, lam = bank.padded_points(detector.feature_index, dev)
+    wh, ww = bank.window
+    step = (max(1, round(stride * wh / bank.cell)), max(1, round(stride * ww / bank.cell)))
+    nb = frames.shape[0]
+    out_f, out_b, out_m = [], [], []
+    for s in scales:
+        lat = scale_lattice(ints, bank, s, step)
+        if lat is None:
+            continue
+        li, lj = lat.shape
+        nc = lat.channels
+        m = lat.origins.shape[0]
+        off = (pi * lj + pj) * nc + pc  # (K, P) offsets of every feature's points
+        factor = lat.norm * torch.exp(lat.logr * lam)  # (K,)
+        base = (
+            torch.arange(nb, device=dev)[:, None] * (li * lj * nc)
+            + ((lat.origins[:, 0] * lj + lat.origins[:, 1]) * nc)[None, :]
+        ).reshape(-1)  # (B * M,)
+        values = lat.values
+
+        def read(
+            rows: torch.Tensor, f: torch.Tensor, base=base, off=off, factor=factor, values=values
+        ):
+            idx = base[rows][:, None, None] + off[f]  # (A, T, P)
+            v = (values[idx] * coef[f]).sum(-1)
+            return (v * factor[f]).to(torch.float32)
+
+        total = nb * m
+        for r0 in range(0, total, batch):
+            n_chunk = min(batch, total - r0)
+
+            def read_chunk(rows, f, r0=r0, read=read):
+                return read(rows + r0, f)
+
+            rows, marg = clf.cascade(read_chunk, n_chunk, device=dev, reject=cascade)
+            rows = rows + r0
+            out_f.append(rows // m)
+            out_b.append(lat.boxes[rows % m])
+            out_m.append(marg)
+    if not out_f:
+        z = torch.zeros(0, device=dev)
+        return z.long(), torch.zeros((0, 4), device=dev), z
+    return torch.cat(out_f), torch.cat(out_b).to(torch.float32), torch.cat(out_m)
 
 
 def scan(
@@ -105,6 +264,9 @@ def scan(
     max_scale: float | None = None,
     nms_iou: float | None = 0.3,
     batch: int = 16_384,
+    cascade: bool = True,
+    nms_on: str = "window",
+    nms_overlap: str = "union",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Detect by scoring every sliding window of one frame.
 
@@ -118,9 +280,16 @@ def scan(
             training crops: the filters shrink with the box, no image is resized).
         nms_iou: IoU for non-maximum suppression (``None``: no suppression).
         batch: windows per scoring call (bounds memory).
+        cascade: channel detectors with boosted trees: stop evaluating a window when its
+            running margin falls below the soft-cascade threshold (rejected windows are not
+            returned, also with ``threshold=None``); False scores every window fully.
+        nms_on: ``"window"`` or ``"object"``: suppress by the overlap of the windows or of the
+            object boxes (:meth:`Detector.window_to_object`); the windows are returned either way.
+        nms_overlap: ``"union"`` (IoU) or ``"min"`` (intersection over the smaller box), see
+            :func:`nms`.
 
     Returns:
-        ``boxes (K, 4)`` and ``scores (K,)``, by decreasing score.
+        ``boxes (K, 4)`` (windows) and ``scores (K,)``, by decreasing score.
 
     Raises:
         ShapeError: not one frame, or a frame smaller than the window at ``min_scale``.
@@ -142,6 +311,9 @@ def scan(
         max_scale=max_scale,
         nms_iou=nms_iou,
         batch=batch,
+        cascade=cascade,
+        nms_on=nms_on,
+        nms_overlap=nms_overlap,
     )[0]
 
 
@@ -157,9 +329,12 @@ def scan_batch(
     max_scale: float | None = None,
     nms_iou: float | None = 0.3,
     batch: int = 16_384,
+    cascade: bool = True,
+    nms_on: str = "window",
+    nms_overlap: str = "union",
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """:func:`scan` over a batch of same-size frames: one batched integral image, the same
-    windows scored on every frame in one call per chunk, then threshold and NMS per frame.
+    """:func:`scan` over a batch of same-size frames: batched integral images, the same
+    windows scored on every frame, then threshold and NMS per frame.
 
     Args:
         frames: ``(B, C, H, W)``, 0..255. Other arguments as in :func:`scan`; ``batch`` bounds
@@ -171,8 +346,15 @@ def scan_batch(
     Raises:
         ShapeError: frames not ``(B, C, H, W)``, or smaller than the window at ``min_scale``.
     """
-    if frames.ndim != 4:
-        raise ShapeError(f"scan_batch takes frames (B, C, H, W), got {tuple(frames.shape)}")
+    if not isinstance(frames, torch.Tensor) or frames.ndim != 4:
+        got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
+        raise ShapeError(f"scan_batch takes frames (B, C, H, W), got {got}")
+    if nms_on not in ("window", "object"):
+        raise ConfigError(f"nms_on must be 'window' or 'object', got {nms_on!r}")
+    if not 0.0 < stride <= 1.0:
+        raise ConfigError(f"stride must be in (0, 1], got {stride}")
+    if batch < 1:
+        raise ConfigError(f"batch must be >= 1, got {batch}")
     fh, fw = frames.shape[-2:]
     wh, ww = detector.window
     if fh < wh * min_scale or fw < ww * min_scale:
@@ -181,33 +363,46 @@ def scan_batch(
             f"smallest scan scale {min_scale:g} ({wh * min_scale:g}x{ww * min_scale:g}); "
             f"scan with min_scale <= {min(fh / wh, fw / ww):.3g} or use larger frames"
         )
-    boxes = sliding_windows(
-        (fh, fw),
-        detector.window,
-        scale_step=scale_step,
-        stride=stride,
-        min_scale=min_scale,
-        max_scale=max_scale,
-    ).to(frames.device)
     nb = frames.shape[0]
-    ints = integrals(frames)
-    parts = []
-    step = max(1, batch // nb)  # bounds memory: B x step windows per scoring call
-    for i in range(0, boxes.shape[0], step):
-        b = boxes[None, i : i + step].expand(nb, -1, -1)
-        s = detector.decision_function(ints, b) if margin else detector.score(ints, b)
-        parts.append(s)
-    all_scores = (
-        torch.cat(parts, 1) if parts else torch.zeros((nb, 0), device=frames.device)
-    )  # (B, N)
+    if _lattice_capable(detector):
+        scales = scan_scales(
+            (fh, fw),
+            detector.window,
+            scale_step=scale_step,
+            min_scale=min_scale,
+            max_scale=max_scale,
+        )
+        fidx, boxes, marg = _scan_lattice(detector, frames, scales, stride, cascade, batch)
+        scores = marg if margin else detector.proba_from_margin(marg)
+        per_frame = [(boxes[fidx == f], scores[fidx == f]) for f in range(nb)]
+    else:
+        boxes = sliding_windows(
+            (fh, fw),
+            detector.window,
+            scale_step=scale_step,
+            stride=stride,
+            min_scale=min_scale,
+            max_scale=max_scale,
+        ).to(frames.device)
+        ints = detector.integrals(frames)
+        parts = []
+        step = max(1, batch // nb)  # bounds memory: B x step windows per scoring call
+        for i in range(0, boxes.shape[0], step):
+            b = boxes[None, i : i + step].expand(nb, -1, -1)
+            s = detector.decision_function(ints, b) if margin else detector.score(ints, b)
+            parts.append(s)
+        all_scores = (
+            torch.cat(parts, 1) if parts else torch.zeros((nb, 0), device=frames.device)
+        )  # (B, N)
+        per_frame = [(boxes, all_scores[f]) for f in range(nb)]
     out = []
-    for f in range(nb):
-        bx, sc = boxes, all_scores[f]
+    for bx, sc in per_frame:
         if threshold is not None:
             keep = sc >= threshold
             bx, sc = bx[keep], sc[keep]
         if nms_iou is not None and bx.shape[0]:
-            keep = nms(bx, sc, nms_iou)
+            ref = detector.window_to_object(bx) if nms_on == "object" else bx
+            keep = nms(ref, sc, nms_iou, overlap=nms_overlap)
         else:
             keep = sc.argsort(descending=True)
         out.append((bx[keep], sc[keep]))

@@ -1,6 +1,10 @@
 """Training a calibrated class detector from crops (Chateau et al. 2006, sections 2.4, 3, 4.1).
 
-Steps of :func:`train_detector`:
+:func:`train_detector` trains the configured kind: ``features.kind = "channels"`` goes to
+:mod:`torchtrack.detect.train_channels` (integral channel features, boosted trees, mining
+rounds, soft cascade); ``"haar"`` (the paper setting) follows the steps below.
+
+Steps of the Haar path:
 
 1. Load positive crops (plus mirror images), negative crops and random windows of negative
    images; names listed in ``data.exclude`` (the held-out test split) are never read.
@@ -289,13 +293,13 @@ def _fit_classifier(
     xs = x[:, idx].contiguous()
     del x
     gc.collect()
-    if lr.classifier == "adaboost":
-        clf = BoostedStumps(n_estimators=lr.n_estimators or lr.n_features, variant=lr.variant)
+    if cfg.classifier() == "adaboost":
+        clf = BoostedStumps(n_estimators=lr.n_estimators or lr.n_features, variant=cfg.variant())
     else:
         clf = SVMClassifier(kernel=lr.svm_kernel, C=lr.svm_c)
     clf.fit(xs, y)
     t3 = time.perf_counter()
-    log(f"  selection {t2 - t1:.1f} s, {lr.classifier} {t3 - t2:.1f} s")
+    log(f"  selection {t2 - t1:.1f} s, {cfg.classifier()} {t3 - t2:.1f} s")
     times = {"features_s": t1 - t0, "selection_s": t2 - t1, "classifier_s": t3 - t2}
     return idx, clf, times
 
@@ -369,6 +373,10 @@ def train_detector(
 
     log = log or (lambda _s: None)
     cfg.validate()
+    if cfg.features.kind == "channels":
+        from torchtrack.detect.train_channels import train_channel_detector
+
+        return train_channel_detector(cfg, progress=progress, log=log, force=force)
     gen = torch.Generator().manual_seed(int(cfg.seed))
     window = (int(cfg.window[0]), int(cfg.window[1]))
     f = cfg.features

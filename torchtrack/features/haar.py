@@ -191,6 +191,26 @@ class HaarBank:
         k, t, y, x = self.table[i].tolist()
         return {"kind": KINDS[k], "size": t, "y": y, "x": x}
 
+    def integrals(self, frames: torch.Tensor) -> Integrals:
+        """:class:`Integrals` of ``frames (B, C, H, W)`` (luma and its square)."""
+        return integrals(frames)
+
+    def crop_context(self, boxes: torch.Tensor) -> tuple[int, int]:
+        """``(margin, alignment)`` in frame pixels that integral images computed over a crop
+        need around ``boxes`` to give the full frame's values: none for luma sums."""
+        return 0, 1
+
+    def features_at(
+        self,
+        ints: Integrals,
+        boxes: torch.Tensor,
+        index: torch.Tensor | None = None,
+        *,
+        check: bool = True,
+    ) -> torch.Tensor:
+        """:func:`haar_features_at` with this bank."""
+        return haar_features_at(ints, boxes, self, index, check=check)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "window": list(self.window),

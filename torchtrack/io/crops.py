@@ -4,7 +4,8 @@ Documented conversions (the same for training and for calibration crops):
 
 * **Channels.** Every image is decoded as 8-bit grayscale (``cv2.IMREAD_GRAYSCALE``: RGB and
   RGBA become BT.601 luma, 16-bit images are scaled to 8 bits), so crops with mixed channel
-  counts load into one ``(N, 1, H, W)`` uint8 tensor.
+  counts load into one ``(N, 1, H, W)`` uint8 tensor; with ``colour=True`` as 8-bit RGB
+  (``(N, 3, H, W)``; grayscale files get R = G = B), for detectors on colour channels.
 * **Sizes.** With ``region = (x, y, w, h)`` and ``crop_size = (H0, W0)`` a crop is first resized
   to ``crop_size`` when it has another size, then the region is cut out (INRIA: 96x160 crops,
   the central 64x128 window). The result is resized to the ``window`` when it differs. Resizing
@@ -38,6 +39,8 @@ __all__ = [
     "load_images",
     "mirror",
     "read_gray",
+    "read_image",
+    "sample_boxes",
     "sample_windows",
 ]
 
@@ -83,15 +86,20 @@ class CropSet:
         )
 
 
-def _decode_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
-    """``(image (H, W) uint8, "")`` or ``(None, why it cannot be used)``, through the one
-    image decoder of :mod:`torchtrack.io.video` (the frame reader uses the same one)."""
+def _decode(path: str | os.PathLike, colour: bool = False) -> tuple[np.ndarray | None, str]:
+    """``(image, "")`` or ``(None, why it cannot be used)``, through the one image decoder of
+    :mod:`torchtrack.io.video` (the frame reader uses the same one): ``(H, W)`` uint8 luma, or
+    with ``colour`` ``(H, W, 3)`` uint8 RGB (gray files replicated)."""
     from torchtrack.io.video import decode_image
 
     try:
-        img = decode_image(path, cv2.IMREAD_GRAYSCALE)
+        img = decode_image(path, cv2.IMREAD_COLOR if colour else cv2.IMREAD_GRAYSCALE)
     except DataError as exc:
         return None, str(exc)
+    if colour:
+        if img.ndim != 3 or img.shape[2] != 3:
+            return None, f"image {path} did not decode to three colour channels"
+        return np.ascontiguousarray(img[:, :, ::-1]), ""
     if img.ndim != 2:
         return None, f"image {path} did not decode to one gray channel"
     return img, ""
@@ -100,7 +108,13 @@ def _decode_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
 def read_gray(path: str | os.PathLike) -> np.ndarray | None:
     """Decode an image file as ``(H, W)`` uint8 luma; ``None`` when it is not a decodable image
     (missing, empty, truncated, corrupt)."""
-    return _decode_gray(path)[0]
+    return _decode(path, False)[0]
+
+
+def read_image(path: str | os.PathLike, colour: bool = False) -> np.ndarray | None:
+    """Decode an image file as ``(H, W)`` uint8 luma, or with ``colour`` as ``(H, W, 3)`` uint8
+    RGB (grayscale files replicated); ``None`` when it is not a decodable image."""
+    return _decode(path, colour)[0]
 
 
 def list_image_files(folder: str | os.PathLike) -> tuple[list[Path], list[tuple[str, str]]]:
@@ -132,15 +146,18 @@ def _to_window(
     window: tuple[int, int],
     region: tuple[int, int, int, int] | None,
     crop_size: tuple[int, int] | None,
+    keep_context: bool = False,
 ) -> tuple[np.ndarray, bool]:
     resized = False
     if region is not None:
-        if crop_size is not None and img.shape != tuple(crop_size):
+        if crop_size is not None and img.shape[:2] != tuple(crop_size):
             img = cv2.resize(img, (crop_size[1], crop_size[0]), interpolation=cv2.INTER_AREA)
             resized = True
+        if keep_context:
+            return np.ascontiguousarray(img), resized
         x, y, w, h = region
         img = img[y : y + h, x : x + w]
-    if img.shape != tuple(window):
+    if img.shape[:2] != tuple(window):
         img = cv2.resize(img, (window[1], window[0]), interpolation=cv2.INTER_AREA)
         resized = True
     return np.ascontiguousarray(img), resized
@@ -171,8 +188,10 @@ def load_crops(
     pattern: str | None = None,
     strict: bool = False,
     progress: bool = False,
+    colour: bool = False,
+    keep_context: bool = False,
 ) -> CropSet:
-    """Load a folder of crops as window-sized grayscale images.
+    """Load a folder of crops as window-sized grayscale (or RGB) images.
 
     Args:
         folder: a folder of image files (not searched recursively).
@@ -185,6 +204,9 @@ def load_crops(
             do not match are left out silently.
         strict: raise instead of skipping unreadable or non-image files.
         progress: show a progress bar.
+        colour: decode as RGB (``(N, 3, H, W)``).
+        keep_context: with ``region``: keep the whole crop (resized to ``crop_size``), not
+            only the region (the caller reads the window inside its context).
 
     Returns:
         a :class:`CropSet` in sorted file-name order.
@@ -210,11 +232,11 @@ def load_crops(
         files_iter = files
     imgs, sources, resized = [], [], 0
     for p in files_iter:
-        img, why = _decode_gray(p)
+        img, why = _decode(p, colour)
         if img is None:
             skipped.append((str(p), why))
             continue
-        win, was_resized = _to_window(img, window, region, crop_size)
+        win, was_resized = _to_window(img, window, region, crop_size, keep_context)
         resized += was_resized
         imgs.append(win)
         sources.append(str(p))
@@ -227,7 +249,8 @@ def load_crops(
     if not imgs:
         extra = f" ({len(skipped)} unusable file(s), e.g. {skipped[0][0]})" if skipped else ""
         raise DataError(f"crop folder {str(folder)!r} has no usable image{extra}")
-    images = torch.from_numpy(np.stack(imgs))[:, None]
+    stacked = torch.from_numpy(np.stack(imgs))
+    images = stacked.permute(0, 3, 1, 2).contiguous() if colour else stacked[:, None]
     return CropSet(images, sources, skipped, resized)
 
 
@@ -242,9 +265,10 @@ def mirror(crops: CropSet) -> CropSet:
 
 
 def load_images(
-    paths: list[str | os.PathLike], *, strict: bool = False
+    paths: list[str | os.PathLike], *, strict: bool = False, colour: bool = False
 ) -> tuple[list[np.ndarray], list[str], list[tuple[str, str]]]:
-    """Read whole images (for negative windows) as grayscale arrays.
+    """Read whole images (for negative windows) as grayscale ``(H, W)`` (or with ``colour``
+    RGB ``(H, W, 3)``) uint8 arrays.
 
     Returns:
         ``(images, paths_used, skipped)``.
@@ -254,7 +278,7 @@ def load_images(
     """
     imgs, used, skipped = [], [], []
     for p in paths:
-        img, why = _decode_gray(p)
+        img, why = _decode(p, colour)
         if img is None:
             skipped.append((str(p), why))
             continue
@@ -284,6 +308,55 @@ def crops_from_boxes(
     return out
 
 
+def sample_boxes(
+    sizes: list[tuple[int, int]],
+    window: tuple[int, int],
+    n: int,
+    *,
+    min_scale: float = 1.0,
+    max_scale: float | None = None,
+    generator: torch.Generator | None = None,
+) -> list[tuple[int, int, int, int, int]]:
+    """``n`` random windows ``(image, x, y, w, h)`` (whole pixels) of the window's aspect ratio
+    in images of ``sizes`` ``(H_i, W_i)``.
+
+    The image is drawn uniformly among those at least ``min_scale`` times the window, the scale
+    log-uniformly in ``[min_scale, max_scale]`` (capped by what fits the image), the position
+    uniformly.
+
+    Raises:
+        ConfigError: ``n < 0`` or a bad ``min_scale``.
+        DataError: no image is large enough.
+    """
+    if n < 0:
+        raise ConfigError(f"number of windows must be >= 0, got {n}")
+    if not (min_scale > 0 and math.isfinite(min_scale)):
+        raise ConfigError(f"min_scale must be a positive number, got {min_scale!r}")
+    hw, ww = window
+    fits = [i for i, (h, w) in enumerate(sizes) if h >= hw * min_scale and w >= ww * min_scale]
+    if not fits:
+        raise DataError(
+            f"no negative image is at least {min_scale:g} x the {hw}x{ww} (HxW) window; "
+            "use smaller windows or larger images"
+        )
+    u = torch.rand((n, 4), generator=generator, dtype=torch.float64)
+    pick = torch.randint(len(fits), (n,), generator=generator)
+    out = []
+    for j in range(n):
+        i = fits[int(pick[j])]
+        ih, iw = sizes[i]
+        top = min(ih / hw, iw / ww)
+        hi = top if max_scale is None else min(top, max_scale)
+        lo = min(min_scale, hi)
+        s = math.exp(math.log(lo) + float(u[j, 0]) * (math.log(hi) - math.log(lo)))
+        w = max(1, min(iw, round(ww * s)))
+        h = max(1, min(ih, round(hw * s)))
+        x = int(float(u[j, 1]) * (iw - w + 1))
+        y = int(float(u[j, 2]) * (ih - h + 1))
+        out.append((i, x, y, w, h))
+    return out
+
+
 def sample_windows(
     images: list[np.ndarray],
     sources: list[str],
@@ -294,11 +367,8 @@ def sample_windows(
     max_scale: float | None = None,
     generator: torch.Generator | None = None,
 ) -> CropSet:
-    """``n`` random windows of the window's aspect ratio from grayscale images (negatives).
-
-    The image is drawn uniformly, the scale log-uniformly in ``[min_scale, max_scale]`` (capped
-    by what fits the image), the position uniformly. Images smaller than ``min_scale`` times
-    the window are never drawn.
+    """``n`` random windows (:func:`sample_boxes`) cut out of grayscale images and resized to
+    the window (negatives).
 
     Args:
         images: grayscale ``(H_i, W_i)`` uint8 arrays.
@@ -311,36 +381,18 @@ def sample_windows(
     Raises:
         DataError: no image is large enough.
     """
-    if n < 0:
-        raise ConfigError(f"number of windows must be >= 0, got {n}")
-    if not (min_scale > 0 and math.isfinite(min_scale)):
-        raise ConfigError(f"min_scale must be a positive number, got {min_scale!r}")
+    boxes = sample_boxes(
+        [im.shape[:2] for im in images],
+        window,
+        n,
+        min_scale=min_scale,
+        max_scale=max_scale,
+        generator=generator,
+    )
     hw, ww = window
-    fits = [
-        i
-        for i, im in enumerate(images)
-        if im.shape[0] >= hw * min_scale and im.shape[1] >= ww * min_scale
-    ]
-    if not fits:
-        raise DataError(
-            f"no negative image is at least {min_scale:g} x the {hw}x{ww} (HxW) window; "
-            "use smaller windows or larger images"
-        )
-    u = torch.rand((n, 4), generator=generator, dtype=torch.float64)
-    pick = torch.randint(len(fits), (n,), generator=generator)
     out = np.empty((n, hw, ww), dtype=np.uint8)
     srcs = []
-    for j in range(n):
-        i = fits[int(pick[j])]
-        img = images[i]
-        top = min(img.shape[0] / hw, img.shape[1] / ww)
-        hi = top if max_scale is None else min(top, max_scale)
-        lo = min(min_scale, hi)
-        s = math.exp(math.log(lo) + float(u[j, 0]) * (math.log(hi) - math.log(lo)))
-        w = max(1, min(img.shape[1], round(ww * s)))
-        h = max(1, min(img.shape[0], round(hw * s)))
-        x = int(float(u[j, 1]) * (img.shape[1] - w + 1))
-        y = int(float(u[j, 2]) * (img.shape[0] - h + 1))
-        out[j] = crops_from_boxes(img, np.array([[x, y, w, h]]), window)[0]
+    for j, (i, x, y, w, h) in enumerate(boxes):
+        out[j] = crops_from_boxes(images[i], np.array([[x, y, w, h]]), window)[0]
         srcs.append(f"{sources[i]}@{x},{y},{w},{h}")
     return CropSet(torch.from_numpy(out)[:, None], srcs)

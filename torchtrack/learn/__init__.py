@@ -1,4 +1,5 @@
-"""Offline learning: boosting with feature selection, SVM export, calibration.
+"""Offline learning: boosting with feature selection, boosted trees with a soft cascade, SVM
+export, calibration.
 
 Classifiers and calibrators serialise to ``(tensors, meta)`` with ``to_state()``; the
 ``*_from_state`` functions here rebuild them from a model file, dispatching on ``meta["kind"]``.
@@ -24,11 +25,13 @@ from torchtrack.learn.calibration import (
     reliability_diagram,
 )
 from torchtrack.learn.svm import SVMClassifier
+from torchtrack.learn.trees import BoostedTrees
 
 __all__ = [
     "CALIBRATORS",
     "CLASSIFIERS",
     "BoostedStumps",
+    "BoostedTrees",
     "CalibratedFit",
     "IsotonicCalibrator",
     "NotFittedError",
@@ -45,7 +48,11 @@ __all__ = [
     "select_features",
 ]
 
-CLASSIFIERS: dict[str, type] = {"boosted_stumps": BoostedStumps, "svm": SVMClassifier}
+CLASSIFIERS: dict[str, type] = {
+    "boosted_stumps": BoostedStumps,
+    "boosted_trees": BoostedTrees,
+    "svm": SVMClassifier,
+}
 CALIBRATORS: dict[str, type] = {"platt": PlattCalibrator, "isotonic": IsotonicCalibrator}
 
 
@@ -65,7 +72,8 @@ def _dispatch(registry: dict[str, type], what: str, tensors: Any, meta: Any) -> 
 
 
 def classifier_from_state(tensors: Mapping[str, torch.Tensor], meta: Mapping[str, Any]) -> Any:
-    """Rebuild a classifier (``BoostedStumps`` or ``SVMClassifier``) from ``to_state`` output.
+    """Rebuild a classifier (``BoostedStumps``, ``BoostedTrees`` or ``SVMClassifier``) from
+    ``to_state`` output.
 
     Raises:
         ModelFormatError: unknown ``kind`` or an invalid field (named).

@@ -6,10 +6,13 @@ The likelihood of a particle is the detector's Platt-calibrated probability that
 window's selected Haar features. No tuning parameter such as the ``lambda`` of
 ``exp(-lambda d)`` likelihoods is involved: the calibration set it.
 
-Every particle window of a frame is scored from one integral image. :class:`DetectorObservation`
-computes that integral image only over the part of the frame the windows cover (``crop=True``,
-the default), which gives the same values as the full frame (parts of a window outside the frame
-read as zero intensity either way) at a fraction of the cost when the target is small.
+Every particle window of a frame is scored from one set of integral images
+(:meth:`~torchtrack.detect.Detector.integrals`). :class:`DetectorObservation` computes them only
+over the part of the frame the windows cover plus the context the detector's features need
+(``crop=True``, the default; :meth:`~torchtrack.detect.Detector.integrals_for`), which gives
+the same values as the full frame (parts of a window outside the frame read as zero either way)
+at a fraction of the cost when the target is small. Any detector works: Chateau's grey Haar
+bank or integral channel features.
 
 Windows that cannot be scored (not finite, under one pixel, or entirely outside the frame, e.g.
 particles of a target leaving the view) get probability 0 instead of an error.
@@ -22,7 +25,6 @@ import math
 import torch
 
 from torchtrack.errors import ShapeError
-from torchtrack.features.haar import Integrals, haar_features_at, integrals
 
 __all__ = ["DetectorObservation", "scorable_boxes"]
 
@@ -51,6 +53,9 @@ class DetectorObservation:
         floor: smallest likelihood used in :meth:`log_likelihood` (keeps log-weights finite
             when every window scores ~0; ``0`` allows ``-inf``).
         crop: compute the integral image only over the region the windows cover.
+        head: score with the detector's tracking head (:meth:`Detector.tracking_model`: its
+            first trees with their own Platt calibration, a fraction of the cost) when it has
+            one; ``False``: the whole classifier.
 
     Example::
 
@@ -58,7 +63,7 @@ class DetectorObservation:
         p = obs.probabilities(frames, boxes)     # frames (B, C, H, W), boxes (B, N, 4) -> (B, N)
     """
 
-    def __init__(self, detector, floor: float = 1e-6, crop: bool = True) -> None:
+    def __init__(self, detector, floor: float = 1e-6, crop: bool = True, head: bool = True) -> None:
         if detector.calibrator is None:
             from torchtrack.errors import NotFittedError
 
@@ -66,7 +71,8 @@ class DetectorObservation:
                 f"detector {detector.name!r} has no calibration; the tracker needs calibrated "
                 "probabilities (fit one with `torchtrack calibrate`)"
             )
-        self.detector = detector
+        tracking_model = getattr(detector, "tracking_model", None)
+        self.detector = tracking_model() if head and tracking_model is not None else detector
         self.floor = float(floor)
         self.crop = bool(crop)
 
@@ -103,12 +109,12 @@ class DetectorObservation:
             return out
         # Unscorable windows are replaced by a harmless in-frame one and masked afterwards.
         safe = torch.where(ok.unsqueeze(-1), boxes, boxes.new_tensor([0.0, 0.0, 1.0, 1.0]))
-        if self.crop:
-            ints, safe = self._cropped_integrals(frames, safe, ok)
-        else:
-            ints = integrals(frames)
         det = self.detector
-        feats = haar_features_at(ints, safe, det.bank, det.feature_index, check=False)
+        if self.crop:
+            ints, safe = det.integrals_for(frames, safe, ok)
+        else:
+            ints = det.integrals(frames)
+        feats = det.features(ints, safe, check=False)
         m = det.margin_from_features(feats).to(torch.float64)
         return torch.where(ok, m, out)
 
@@ -141,23 +147,3 @@ class DetectorObservation:
         if self.floor > 0:
             return p.clamp_min(self.floor).log()
         return p.log()
-
-    @staticmethod
-    def _cropped_integrals(
-        frames: torch.Tensor, boxes: torch.Tensor, ok: torch.Tensor
-    ) -> tuple[Integrals, torch.Tensor]:
-        """Integral images of the smallest integer region holding every scorable window's
-        in-frame part (one region for the whole batch), and the boxes shifted into it."""
-        fh, fw = int(frames.shape[-2]), int(frames.shape[-1])
-        x, y, w, h = boxes.unbind(-1)
-        big = math.inf
-        x0 = torch.where(ok, x.clamp(0, fw), big).min()
-        y0 = torch.where(ok, y.clamp(0, fh), big).min()
-        x1 = torch.where(ok, (x + w).clamp(0, fw), -big).max()
-        y1 = torch.where(ok, (y + h).clamp(0, fh), -big).max()
-        ix0, iy0 = math.floor(float(x0)), math.floor(float(y0))
-        ix1, iy1 = math.ceil(float(x1)), math.ceil(float(y1))
-        ix1, iy1 = max(ix1, ix0 + 1), max(iy1, iy0 + 1)
-        sub = frames[:, :, iy0:iy1, ix0:ix1]
-        shift = boxes.new_tensor([float(ix0), float(iy0), 0.0, 0.0])
-        return integrals(sub), boxes - shift

@@ -177,7 +177,9 @@ class DetectorTracker(Tracker):
             self.detector = resolve_detector(cfg.model)
         self.config = cfg
         self.generator = generator
-        self.observation = DetectorObservation(self.detector, floor=cfg.likelihood_floor)
+        self.observation = DetectorObservation(
+            self.detector, floor=cfg.likelihood_floor, head=cfg.likelihood == "head"
+        )
         self.dynamics = load_dynamics(cfg.dynamics or None)
         win_h, win_w = self.detector.window
         self._aspect = float(win_w) / float(win_h)  # detector window width / height

@@ -237,12 +237,16 @@ class FusedTracker(DetectorTracker):
 
     def margin_range(self) -> tuple[float, float]:
         """``(a_min, a_max)``: the smallest and largest margin the detector's classifier can
-        give (boosted stumps: the sums of each stump's smaller and larger output).
+        give (boosted stumps: the sums of each stump's smaller and larger output; boosted
+        trees: of each tree's smallest and largest leaf).
 
         Raises:
             ConfigError: the classifier has no bounded margin (e.g. an SVM).
         """
-        clf = self.detector.classifier
+        clf = self.observation.detector.classifier  # the tracking head when the model has one
+        bounds = getattr(clf, "margin_range", None)
+        if callable(bounds):  # boosted trees: the sums of each tree's smallest / largest leaf
+            return bounds()
         left, right = getattr(clf, "left_", None), getattr(clf, "right_", None)
         if left is None or right is None:
             raise ConfigError(

@@ -117,7 +117,9 @@ class MultiTargetTracker:
             self.detector = resolve_detector(cfg.model)
         self.config = cfg
         self.generator = generator
-        self.observation = DetectorObservation(self.detector, floor=cfg.likelihood_floor)
+        self.observation = DetectorObservation(
+            self.detector, floor=cfg.likelihood_floor, head=cfg.likelihood == "head"
+        )
         self.dynamics = load_dynamics(cfg.dynamics or None, structure="constant_velocity")
         self._estimate = get_estimator(cfg.estimator)
         self._bins = None
@@ -638,12 +640,39 @@ class MultiTargetTracker:
         )
         lost = self.since_match > cfg.max_lost
         tentative_miss = ~self.confirmed & (self.since_match >= cfg.scan_every)
-        keep = ~(gone | lost | tentative_miss)
+        dup = self._duplicates() & ~(gone | lost)
+        keep = ~(gone | lost | tentative_miss | dup)
         if not bool(keep.all()):
             self.stats["ended: left the frame"] += int((gone & self.confirmed).sum())
             self.stats["ended: lost"] += int((lost & ~gone & self.confirmed).sum())
+            self.stats["ended: duplicate"] += int(dup.sum())
             self.stats["ended: tentative"] += int((~keep & ~self.confirmed).sum())
             self._keep(keep)
+
+    def _duplicates(self) -> torch.Tensor:
+        """``(T,)`` bool: confirmed targets that sit on another confirmed target (estimated
+        boxes' IoU above ``duplicate_iou``) and were matched less recently than it (ties: the
+        younger one); ByteTrack's duplicate removal between tracked and lost tracks. Such a
+        target has drifted onto a neighbour whose detection it lost in the assignment."""
+        t = self.n_targets
+        out = torch.zeros(t, dtype=torch.bool)
+        if t < 2 or self.config.duplicate_iou >= 1.0:
+            return out
+        from torchtrack.boxes import box_iou_matrix
+
+        boxes = self._estimated_boxes()
+        iou = box_iou_matrix(boxes, boxes)
+        iou.fill_diagonal_(0.0)
+        both = self.confirmed[:, None] & self.confirmed[None, :]
+        pair = both & (iou > self.config.duplicate_iou)
+        if not bool(pair.any()):
+            return out
+        sm = self.since_match
+        # i loses to j: matched less recently, or as recently and younger (larger id)
+        worse = (sm[:, None] > sm[None, :]) | (
+            (sm[:, None] == sm[None, :]) & (self.ids[:, None] > self.ids[None, :])
+        )
+        return (pair & worse).any(1)
 
     def _report(self) -> MultiState:
         cfg = self.config

@@ -1,0 +1,302 @@
+"""Channel-feature detectors end to end on a small real subset (seconds): training with mining
+rounds, the model file (version 2, version 1 still loading, forged channel descriptions), the
+cascade scan against box scoring, object boxes, the tracker's cropped scoring, and the bad
+inputs of issue 16."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+import torch
+
+from torchtrack.detect import load_detector, save_detector
+from torchtrack.detect.config import TrainConfig
+from torchtrack.detect.model_file import read_model_metadata
+from torchtrack.detect.scan import scan_batch, scan_window_count
+from torchtrack.detect.training import train_detector
+from torchtrack.errors import ConfigError, DataError, ModelFormatError, TrainingWarning
+from torchtrack.io.video import read_image
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def close_share(a: torch.Tensor, b: torch.Tensor, atol: float = 2e-3) -> float:
+    """Share of entries equal within ``atol``."""
+    return float(((a - b).abs() <= atol).double().mean())
+
+
+def small_config(root) -> TrainConfig:
+    cfg = TrainConfig(name="person-test", window=[128, 64])
+    cfg.data.positives = [str(root / "pos")]
+    cfg.data.crop_size, cfg.data.region = [160, 96], [16, 16, 64, 128]
+    cfg.data.object = [32, 32, 32, 96]
+    cfg.data.negative_images = [str(root / "neg")]
+    cfg.data.random_negatives = 300
+    cfg.data.negative_min_scale = 0.7
+    cfg.data.gray_copies = True
+    cfg.data.positive_jitter = 2
+    cfg.features.kind = "channels"
+    cfg.features.cells = False
+    cfg.features.boxes = 300
+    cfg.features.haar = 100
+    cfg.learn.n_trees = 24
+    cfg.mining.rounds = 1
+    cfg.mining.per_round = 200
+    cfg.mining.scale_step = 1.3
+    cfg.mining.stride = 0.125
+    cfg.mining.target_fpr = 0.5
+    return cfg.validate()
+
+
+@pytest.fixture(scope="module")
+def folders(data_dir, tmp_path_factory):
+    """40 INRIA person crops and 4 person-free images."""
+    crops = data_dir / "detection_crops"
+    root = tmp_path_factory.mktemp("persons")
+    (root / "pos").mkdir()
+    (root / "neg").mkdir()
+    for p in sorted((crops / "inria_person_96x160" / "pos").glob("*.png"))[:40]:
+        shutil.copy(p, root / "pos" / p.name)
+    for p in sorted((crops / "inria_negatives" / "train").iterdir())[:4]:
+        shutil.copy(p, root / "neg" / p.name)
+    return root
+
+
+@pytest.fixture(scope="module")
+def trained(folders, tmp_path_factory):
+    det = train_detector(small_config(folders))
+    path = save_detector(tmp_path_factory.mktemp("m") / "person.safetensors", det)
+    return det, path
+
+
+@pytest.fixture(scope="module")
+def frame(data_dir):
+    return read_image(data_dir / "tracking" / "otb" / "Crossing" / "img" / "0001.jpg")
+
+
+def test_training_summary_and_model_file(trained, frame):
+    det, path = trained
+    s = det.summary
+    assert [r["round"] for r in s["rounds"]] == [0, 1]
+    assert s["rounds"][0]["trees"] == 32 and s["rounds"][1]["trees"] == 24  # max(32, ...), final
+    assert s["held_out"]["auc"] > 0.9
+    assert s["features"]["used"] == len(det.bank) <= s["features"]["pool"] == 400
+    assert s["cascade"]["method"] == "constant"
+    assert bool((det.classifier.reject_ == -1.0).all())
+    assert det.object_box == (0.25, 0.125, 0.5, 0.75)
+    meta = read_model_metadata(path)
+    assert meta["format_version"] == 2 and meta["features"]["kind"] == "channels"
+    assert "selected_features" not in meta
+    again = load_detector(path)
+    boxes = torch.tensor([[[100.0, 40.0, 40.0, 80.0], [10.5, 3.2, 64.0, 128.0], [200, 10, 30, 60]]])
+    torch.testing.assert_close(again.score(frame[None], boxes), det.score(frame[None], boxes))
+
+
+def test_scan_is_box_scoring_with_a_cascade_and_reports_object_boxes(trained, frame):
+    det, _ = trained
+    kw = {"min_scale": 0.5, "max_scale": 0.9, "scale_step": 1.25, "stride": 0.125}
+    wins, m = scan_batch(
+        det, frame[None], threshold=None, margin=True, nms_iou=None, cascade=False, **kw
+    )[0]
+    assert wins.shape[0] == scan_window_count(det, tuple(frame.shape[-2:]), **kw)
+    ref = det.decision_function(frame[None], wins[None])[0]
+    order = wins[:, 1] * 1e4 + wins[:, 0] + wins[:, 2] * 1e8
+    torch.testing.assert_close(m[order.argsort()], ref[order.argsort()], atol=2e-4, rtol=1e-5)
+    # the cascade keeps a subset, with their full margins
+    kept, mk = scan_batch(det, frame[None], threshold=None, margin=True, nms_iou=None, **kw)[0]
+    assert 0 < kept.shape[0] < wins.shape[0]
+    torch.testing.assert_close(
+        mk, det.decision_function(frame[None], kept[None])[0], atol=2e-4, rtol=1e-5
+    )
+    # Detector.scan reports object boxes; windows on request
+    obj, p = det.scan(frame, threshold=0.0, **kw)
+    win, p2 = det.scan(frame, threshold=0.0, windows=True, **kw)
+    if obj.shape[0]:
+        assert torch.equal(p, p2) or obj.shape[0] != win.shape[0]
+        inner = det.window_to_object(win)
+        assert inner.shape == win.shape
+
+
+def test_cropped_tracker_scoring_equals_the_whole_frame(trained, frame):
+    from torchtrack.observe.detector import DetectorObservation
+
+    det, _ = trained
+    g = torch.Generator().manual_seed(0)
+    wh = 20 + 60 * torch.rand(50, 2, generator=g, dtype=torch.float64)
+    xy = torch.rand(50, 2, generator=g, dtype=torch.float64) * torch.tensor([300.0, 200.0])
+    boxes = torch.cat([xy, wh * torch.tensor([0.5, 1.0], dtype=torch.float64)], 1)[None]
+    a = DetectorObservation(det, crop=True).probabilities(frame[None], boxes)
+    b = DetectorObservation(det, crop=False).probabilities(frame[None], boxes)
+    assert close_share(a, b, atol=1e-4) >= 0.95  # see the scan test: rare threshold crossings
+
+
+def test_colour_model_on_a_grayscale_image(trained, frame):
+    """Documented: a gray image is taken as R = G = B (U = V = 0); it scores like that RGB image."""
+    det, _ = trained
+    assert det.colour
+    gray = (
+        frame.float().mul(torch.tensor([0.299, 0.587, 0.114])[:, None, None]).sum(0, keepdim=True)
+    )
+    gray = gray.round().to(torch.uint8)
+    boxes = torch.tensor([[[100.0, 40.0, 40.0, 80.0], [10.0, 3.0, 64.0, 128.0]]])
+    p1 = det.score(gray[None], boxes)
+    p3 = det.score(gray.expand(3, -1, -1)[None], boxes)
+    torch.testing.assert_close(p1, p3)
+    assert bool(torch.isfinite(p1).all())
+
+
+def test_warns_when_the_false_positive_rate_is_not_reached(folders, tmp_path):
+    """Negative 'images' that show people (INRIA positive crops): mining cannot clean them."""
+    neg = tmp_path / "neg"
+    neg.mkdir()
+    for p in sorted((folders / "pos").iterdir())[:3]:
+        shutil.copy(p, neg / p.name)
+    for p in sorted((folders / "neg").iterdir())[:1]:
+        shutil.copy(p, neg / p.name)
+    cfg = small_config(folders)
+    cfg.data.negative_images = [str(neg)]
+    cfg.data.negative_min_scale = 0.5
+    cfg.mining.target_fpr = 0.0
+    cfg.learn.n_trees = 8
+    with pytest.warns(TrainingWarning, match=r"false-positive rate .* above mining.target_fpr = 0"):
+        train_detector(cfg)
+
+
+def test_bad_inputs(folders, tmp_path):
+    cfg = small_config(folders)
+    cfg.features.channels = ["L", "U", "V", "depth"]
+    with pytest.raises(ConfigError, match=r"unknown channel name 'depth'.*gray"):
+        cfg.validate()
+    empty = tmp_path / "negs"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no images")
+    (empty / "broken.png").write_bytes(b"\x89PNG not an image")
+    cfg = small_config(folders)
+    cfg.data.negative_images = [str(empty)]
+    with pytest.raises(DataError, match="negative image"):
+        train_detector(cfg)
+    cfg = small_config(folders)
+    cfg.data.positive_jitter = -1
+    with pytest.raises(ConfigError, match="positive_jitter"):
+        cfg.validate()
+    cfg = small_config(folders)
+    cfg.data.positive_scales = [1.0, 0.3]  # 4-px cells x 0.3 is not whole pixels
+    with pytest.raises(ConfigError, match="positive_scales"):
+        cfg.validate()
+
+
+def test_version_1_files_load_and_future_versions_are_named(tmp_path, forge_model):
+    from torchtrack.detect import Detector
+    from torchtrack.features.haar import haar_bank
+    from torchtrack.learn import BoostedStumps, PlattCalibrator
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(80, 4, generator=g)
+    y = (x[:, 0] > 0).long()
+    clf = BoostedStumps(n_estimators=4).fit(x, y)
+    det = Detector(
+        haar_bank((16, 8), sizes=(8, 4)),
+        torch.tensor([3, 50, 200, 360]),
+        clf,
+        PlattCalibrator().fit(clf.decision_function(x).double(), y),
+        name="old",
+    )
+    path = save_detector(tmp_path / "v2.safetensors", det)
+
+    def to_v1(m):
+        f = m.pop("features")
+        f.pop("kind")
+        m["bank"] = f
+        m["format_version"] = 1
+
+    old = forge_model(path, tmp_path / "v1.safetensors", meta_edit=to_v1)
+    assert read_model_metadata(old)["format_version"] == 1
+    frames = torch.randint(0, 256, (1, 3, 40, 30), dtype=torch.uint8, generator=g)
+    boxes = torch.tensor([[[2.0, 3.0, 8.0, 16.0]]])
+    torch.testing.assert_close(load_detector(old).score(frames, boxes), det.score(frames, boxes))
+    future = forge_model(
+        path, tmp_path / "v3.safetensors", meta_edit=lambda m: m.update(format_version=3)
+    )
+    with pytest.raises(
+        ModelFormatError, match="format version 3, newer than this torchtrack reads"
+    ):
+        load_detector(future)
+
+
+def test_forged_channel_descriptions_are_refused(trained, tmp_path, forge_model):
+    _, path = trained
+    cases = [
+        (
+            lambda m: m["features"]["channels"].update(names=["L", "U", "V", "sonar"]),
+            "unknown channel name 'sonar'",
+        ),
+        (lambda m: m["features"].update(cell=3), "multiples of the cell"),
+        (lambda m: m["features"].update(n_features=10**9), "n_features"),
+        (lambda m: m["features"].update(kind="wavelets"), "features.kind"),
+        (lambda m: m["classifier"].update(max_depth=7), "max_depth"),
+    ]
+    for edit, match in cases:
+        bad = forge_model(path, tmp_path / "bad.safetensors", meta_edit=edit)
+        with pytest.raises(ModelFormatError, match=match):
+            load_detector(bad)
+
+    def outside(t):
+        r = t["features.rects"].clone()
+        r[0, 0, 2] = 1000
+        t["features.rects"] = r
+
+    bad = forge_model(path, tmp_path / "bad2.safetensors", tensor_edit=outside)
+    with pytest.raises(ModelFormatError, match="inside the 32x16-cell window"):
+        load_detector(bad)
+    short = forge_model(
+        path,
+        tmp_path / "bad3.safetensors",
+        tensor_edit=lambda t: t.update({"features.channel": t["features.channel"][:-1]}),
+    )
+    with pytest.raises(ModelFormatError, match=r"features\.channel"):
+        load_detector(short)
+
+
+def test_tracking_head_scores_with_its_first_trees(folders, frame, tmp_path, forge_model):
+    """A model trained with ``learn.tracking_trees`` keeps a head: the first trees, reading
+    only their features, with a Platt calibration of their own; saved, loaded and checked."""
+    cfg = small_config(folders)
+    cfg.learn.tracking_trees = 8
+    det = train_detector(cfg)
+    k, cal = det.tracking_head
+    assert k == 8 and det.summary["tracking_head"]["trees"] == 8
+    assert det.summary["tracking_head"]["held_out_by_trees"]["8"]["auc"] > 0.8
+    head = det.tracking_model()
+    used = torch.unique(det.classifier.feature_[:8])
+    assert head.feature_index.numel() == used.numel() < det.feature_index.numel()
+    boxes = torch.tensor([[[100.0, 40.0, 40.0, 80.0], [10.5, 3.2, 64.0, 128.0], [200, 10, 30, 60]]])
+    staged = det.classifier.staged_decision_function(det.features(frame[None], boxes))[..., 7]
+    torch.testing.assert_close(
+        head.decision_function(frame[None], boxes), staged, atol=1e-4, rtol=0
+    )
+    torch.testing.assert_close(
+        head.score(frame[None], boxes),
+        cal.predict_proba(staged.double()).float(),
+        atol=1e-5,
+        rtol=0,
+    )
+    path = save_detector(tmp_path / "head.safetensors", det)
+    again = load_detector(path)
+    assert again.tracking_head[0] == 8
+    torch.testing.assert_close(
+        again.tracking_model().score(frame[None], boxes), head.score(frame[None], boxes)
+    )
+    # the particle filter's observation uses the head unless told otherwise
+    from torchtrack.observe.detector import DetectorObservation
+
+    assert DetectorObservation(again).detector.classifier.n_estimators == 8
+    assert DetectorObservation(again, head=False).detector is again
+    for edit, match in [
+        (lambda m: m["tracking_head"].update(trees=10**6), "tracking_head.trees"),
+        (lambda m: m["tracking_head"]["calibration"].update(a=1.0), "tracking_head"),
+        (lambda m: m["tracking_head"].update(extra=1), "tracking_head"),
+    ]:
+        bad = forge_model(path, tmp_path / "bad.safetensors", meta_edit=edit)
+        with pytest.raises(ModelFormatError, match=match):
+            load_detector(bad)
