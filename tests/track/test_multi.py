@@ -156,3 +156,12 @@ def test_bad_frames_and_detections():
     # non-finite or empty boxes are dropped, not tracked
     bad = torch.tensor([[float("nan"), 0, 10, 10], [5.0, 5.0, 0.0, 10.0]], dtype=torch.float64)
     mt.update(blank(), (bad, torch.ones(2)))
+
+
+def test_shipped_config_file_is_the_defaults():
+    from pathlib import Path
+
+    from torchtrack.track.config import MultiTrackerConfig, load_tracker_config
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "trackers" / "multi.toml"
+    assert load_tracker_config(path, MultiTrackerConfig) == MultiTrackerConfig()

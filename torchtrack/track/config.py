@@ -241,7 +241,7 @@ class MultiTrackerConfig:
     scan_stride: float = 0.08
     scan_nms: float = 0.4
     detection_threshold: float = 0.5
-    birth_threshold: float = 0.9
+    birth_threshold: float = 0.9999
     confirm_hits: int = 2
     max_lost: int = 30
     max_coast: int = 10

@@ -15,14 +15,17 @@ predicted and weighted in one call per frame. Per frame:
    overlap alone; then the tentative targets with the confident detections left.
 4. **Weight** each particle by the detector's calibrated probability of its window (the
    likelihood of Chateau et al. eq. 11, all windows of all targets scored from one integral
-   image), times the target's colour-model likelihood ``exp(-lambda (1 - BC))`` (Pérez et al.),
+   image; by default with the model's tracking head, its first trees with their own Platt
+   calibration, :meth:`~torchtrack.detect.Detector.tracking_model`), times the target's colour-model likelihood ``exp(-lambda (1 - BC))`` (Pérez et al.),
    times, for a matched target, a Gaussian around its detection (the detection as a measurement,
    as in Breitenstein et al., "Robust tracking-by-detection using a detector confidence particle
    filter", ICCV 2009). A matched target whose particles do not reach its detection is re-seeded
    around it.
 5. **Births and deaths**: a confident detection that matches nothing starts a tentative target,
    confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row;
-   a target unmatched for more than ``max_lost`` frames, or whose box has left the frame, ends.
+   a target unmatched for more than ``max_lost`` frames, or whose box has left the frame, ends;
+   so does a confirmed target that sits on another one (IoU above ``duplicate_iou``) and was
+   matched less recently (ByteTrack's duplicate removal).
    At most ``max_targets`` live at once; memory is flat however long the video.
 
 A confirmed target is reported while it is matched, and for up to ``max_coast`` frames after
