@@ -55,3 +55,8 @@ class FilterError(TorchTrackError, RuntimeError):
 
 class TrackerError(TorchTrackError, RuntimeError):
     """A tracker was used wrongly (e.g. ``update`` before ``init``) or failed."""
+
+
+class BackendError(TorchTrackError, RuntimeError):
+    """A distributed backend cannot be used: Ray is not installed, its cluster cannot be reached,
+    or it refused the connection."""

@@ -204,6 +204,26 @@ def corpus(tmp_path_factory, forge_model):
     _otb(c / "textgt" / "t", gt="11,15,14,20\nfoo,bar\n" + "11,15,14,20\n" * 4)
     (c / "noseq").mkdir()
     (c / "noseq" / "x.txt").write_text("nothing")
+    # MOTChallenge: a sequence folder, detections and results
+    mot = c / "mot" / "TOY-01"
+    _frames(mot / "img1", ext=".jpg")
+    (mot / "gt").mkdir()
+    (mot / "gt" / "gt.txt").write_text(
+        "".join(f"{t + 1},1,{11 + 2 * t},15,14,20,1,-1,-1,-1\n" for t in range(6))
+    )
+    (mot / "seqinfo.ini").write_text(
+        "[Sequence]\nname=TOY-01\nimDir=img1\nframeRate=10\nseqLength=6\nimWidth=64\n"
+        "imHeight=48\nimExt=.jpg\n"
+    )
+    (c / "det.txt").write_text(
+        "".join(f"{t + 1},-1,{11 + 2 * t},15,14,20,0.9,-1,-1,-1\n" for t in range(6))
+    )
+    (c / "det_bad.txt").write_text("1,-1,10,15,14,20,0.9,-1,-1,-1\n2,-1,ten,15,14,20,0.9\n")
+    (c / "det_zero.txt").write_text("1,-1,10,15,0,20,0.9,-1,-1,-1\n")
+    (c / "res.txt").write_text(
+        "".join(f"{t + 1},1,{11 + 2 * t},15,14,20,1,-1,-1,-1\n" for t in range(6))
+    )
+    (c / "res_bad.txt").write_text("1,1,10,15,14,20,1,-1,-1,-1\n1,1,12,15,14,20,1,-1,-1,-1\n")
     return c
 
 
@@ -832,6 +852,78 @@ CASES += [
         "eval --sequences {c}/badgt --trackers camshift --on-mismatch truncate --no-progress -o {o}/r",
         "results",
         ("r/results.json", "r/results.md", "r/sequences/short/camshift.json"),
+    ),
+]
+
+# -------------------------------------------------------- multi-target track and MOT eval
+MT = "track {c}/frames --no-progress --tracker multi"
+CASES += [
+    E(
+        "mot-out-dir",
+        f"{MT} --detections {{c}}/det.txt --mot {{c}}/frames",
+        "is an existing folder",
+    ),
+    E("mot-out-parent", f"{MT} --detections {{c}}/det.txt --mot {{o}}/x/m.txt", "does not exist"),
+    E(
+        "mot-equals-out",
+        f"{MT} --detections {{c}}/det.txt --mot {{o}}/m.txt -o {{o}}/m.txt",
+        "same file",
+    ),
+    E("mot-det-missing", f"{MT} --detections {{c}}/none.txt --mot {{o}}/m.txt", "does not exist"),
+    E("mot-det-malformed", f"{MT} --detections {{c}}/det_bad.txt --mot {{o}}/m.txt", "line 2"),
+    E("mot-det-zero-box", f"{MT} --detections {{c}}/det_zero.txt --mot {{o}}/m.txt", "line 1"),
+    E(
+        "mot-det-calibration-alone",
+        f"{MT} --det-calibration {{c}}/none.json --mot {{o}}/m.txt",
+        "apply to --detections",
+    ),
+    E(
+        "eval-mot-out-file",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt -o {c}/afile",
+        "is an existing file",
+    ),
+    E(
+        "eval-mot-out-parent",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt -o {o}/a/b",
+        "does not exist",
+    ),
+    E(
+        "eval-mot-seq-missing",
+        "eval --mot {c}/mot/NONE --results {c}/res.txt -o {o}/r",
+        "does not exist|no MOT",
+    ),
+    E(
+        "eval-mot-results-missing",
+        "eval --mot {c}/mot/TOY-01 --results {c}/none.txt -o {o}/r",
+        "does not exist|no results",
+    ),
+    E(
+        "eval-mot-results-dup-id",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res_bad.txt -o {o}/r",
+        "line 2",
+    ),
+    E("eval-mot-no-results", "eval --mot {c}/mot/TOY-01 -o {o}/r", "needs --mot SEQ"),
+    E(
+        "eval-mot-trackers-no-out",
+        "eval --mot {c}/mot/TOY-01 --trackers multi",
+        "needs -o/--out DIR",
+    ),
+    A(
+        "mot-track-ok",
+        f"{MT} --detections {{c}}/det.txt --mot {{o}}/m.txt -o {{o}}/b.csv",
+        "wrote",
+        ("m.txt", "b.csv"),
+    ),
+    A(
+        "eval-mot-ok",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt -o {o}/r",
+        "HOTA|MOTA",
+        ("r/results.json", "r/results.md"),
+    ),
+    E(
+        "eval-mot-trackers-out-file",
+        "eval --mot {c}/mot/TOY-01 --trackers multi -o {c}/afile",
+        "is an existing file",
     ),
 ]
 

@@ -64,6 +64,10 @@ def test_eval_bad_inputs(tmp_path, capsys):
     assert "no tracking sequence found" in capsys.readouterr().err
     assert main([*args, str(tmp_path / "o"), "--max-frames", "1"]) == 1
     assert "--max-frames must be >= 2" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "o"), "--jobs", "0"]) == 1
+    assert "--jobs must be >= 1" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "o"), "--address", "10.0.0.5:6379"]) == 1
+    assert "--address names a Ray cluster: use it with --backend ray" in capsys.readouterr().err
 
 
 def test_list_trackers_and_import(capsys):
@@ -175,7 +179,7 @@ def test_eval_mot_bad_inputs(tmp_path, capsys, trackeval):
     (tmp_path / "resdir").mkdir()
     (tmp_path / "resdir" / "Other.txt").write_text("")
     fails(["--mot", str(d), "--results", str(tmp_path / "resdir")], "no file for sequence(s) Tiny")
-    fails(["--mot", str(d)], "needs both --mot SEQ ... and --results")
+    fails(["--mot", str(d)], "MOT scoring needs --mot SEQ ... and either --results")
     fails(
         ["--mot", str(d), "--results", str(res), "--trackers", "mil"], "--trackers do(es) not apply"
     )
@@ -206,3 +210,26 @@ def test_eval_mot_bad_inputs(tmp_path, capsys, trackeval):
         ["--mot", str(video), "--gt", str(gt), "--results", str(res)],
         f"{gt} line 2: frame 9 is beyond",
     )
+
+
+def test_mot_runs_the_multi_target_tracker_and_scores_it(data_dir, tmp_path, capsys, trackeval):
+    """eval --mot SEQ --trackers multi --public-detections: results per tracker, then TrackEval."""
+    import json
+
+    seq = data_dir / "mot" / "TUD-Stadtmitte"
+    out = tmp_path / "ev"
+    rc = main(
+        ["eval", "--mot", str(seq), "--trackers", "multi", "multi:appearance=none",
+         "--public-detections", "--max-frames", "15", "-o", str(out), "-q"]
+    )  # fmt: skip
+    assert rc == 0
+    for label in ("multi", "multi_appearance-none"):
+        assert (out / label / "TUD-Stadtmitte.txt").is_file()
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["overall"]) == {"multi", "multi_appearance-none"}
+    assert "HOTA" in capsys.readouterr().out
+    # only the multi-target tracker runs on MOT sequences; an output folder is needed
+    assert main(["eval", "--mot", str(seq), "--trackers", "mil", "-o", str(out)]) == 1
+    assert main(["eval", "--mot", str(seq), "--trackers", "multi"]) == 1
+    assert main(["eval", "--mot", str(seq), "--results", str(out / "multi"),
+                 "--public-detections"]) == 1  # fmt: skip

@@ -24,3 +24,25 @@ class Crash(Tracker):
 
 
 register_tracker("test-crash", Crash)
+
+
+class DieOnce(Crash):
+    """Kills its process on the second update the first time it ever runs (``marker``, a file
+    path, records that it did), then tracks like a static box: a worker dying once."""
+
+    name = "test-die-once"
+
+    def __init__(self, marker: str) -> None:
+        super().__init__()
+        self.marker = marker
+
+    def _update(self, frame):
+        self.n += 1
+        if self.n == 2 and not os.path.exists(self.marker):
+            with open(self.marker, "w") as f:
+                f.write(f"{os.getpid()}\n")
+            os._exit(3)
+        return TrackState.single(self.box)
+
+
+register_tracker("test-die-once", DieOnce)

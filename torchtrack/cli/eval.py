@@ -5,6 +5,8 @@ Examples::
 
     torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
         --out runs/eval --plots --jobs 2
+    torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
+        --out runs/eval --backend ray --address 10.0.0.5:6379      # on a Ray cluster
     torchtrack eval --mot ../shared/data/mot/TUD-Stadtmitte --results tud.txt
     torchtrack eval --mot vtest.avi --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt \\
         --results pets.txt -o runs/mot
@@ -16,7 +18,7 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress, add_trust
+    from torchtrack.cli._common import add_backend, add_progress, add_trust
 
     p = subparsers.add_parser(
         "eval",
@@ -66,6 +68,12 @@ def register(subparsers) -> None:
         "<sequence name>.txt per sequence",
     )
     mot.add_argument(
+        "--public-detections",
+        action="store_true",
+        help="with --mot and --trackers multi...: the tracker takes each sequence's "
+        "det/det.txt instead of scanning (scores relative to the file's best)",
+    )
+    mot.add_argument(
         "--gt",
         nargs="+",
         metavar="FILE",
@@ -84,7 +92,6 @@ def register(subparsers) -> None:
 
     add_out(p, "DIR", "output folder (required with --sequences; optional with --mot)")
     p.add_argument("--plots", action="store_true", help="write success / precision PNG plots")
-    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument(
         "--reinit",
         action="store_true",
@@ -118,6 +125,7 @@ def register(subparsers) -> None:
         "repeatable; also imported by --jobs workers",
     )
     p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
+    add_backend(p, "(tracker, sequence, seed)")
     add_progress(p)
     add_trust(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
@@ -168,15 +176,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
-    if args.jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
-    from torchtrack.cli._common import check_output_dir
+    from torchtrack.cli._common import backend_from_args, check_output_dir
+    from torchtrack.eval.backends import check_backend
 
     check_output_dir(args.out, "--out")
-
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate
     from torchtrack.io.sequences import find_sequences
+
+    check_backend(backend_from_args(args))  # Ray installed, its address answering: fail fast
 
     seqs = []
     for path in args.sequences:
@@ -190,6 +198,9 @@ def run(args: argparse.Namespace) -> int:
         args.out,
         plots=args.plots,
         jobs=args.jobs,
+        backend=args.backend,
+        address=args.address,
+        max_retries=args.max_retries,
         reinit=args.reinit,
         invisible=args.invisible,
         seed=args.seed,
@@ -256,10 +267,20 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
 
 def run_mot(args: argparse.Namespace) -> int:
     """``torchtrack eval --mot SEQ ... --results FILE_OR_DIR ...``: score MOT results files."""
+    from torchtrack.cli._common import check_output_dir
     from torchtrack.errors import ConfigError
 
+    check_output_dir(args.out, "--out")  # before any work, on both MOT paths
+
+    if args.mot and args.trackers and not args.results:
+        return run_mot_trackers(args)
+    if args.public_detections:
+        raise ConfigError("--public-detections goes with --mot SEQ ... --trackers multi")
     if not args.mot or not args.results:
-        raise ConfigError("MOT scoring needs both --mot SEQ ... and --results FILE_OR_DIR ...")
+        raise ConfigError(
+            "MOT scoring needs --mot SEQ ... and either --results FILE_OR_DIR ... (score "
+            "files) or --trackers multi... (run the multi-target tracker, then score)"
+        )
     clash = [
         flag
         for flag, used in (
@@ -286,6 +307,73 @@ def run_mot(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_mot_trackers(args: argparse.Namespace) -> int:
+    """``torchtrack eval --mot SEQ ... --trackers multi[:key=value,...] ... -o DIR``: run the
+    multi-target tracker on every sequence (``DIR/<tracker>/<sequence>.txt``), then score."""
+    import dataclasses
+    from pathlib import Path
+
+    import torch
+
+    from torchtrack.errors import ConfigError
+    from torchtrack.eval.mot import evaluate_mot, mot_table
+    from torchtrack.io.mot import write_mot
+    from torchtrack.track.base import parse_tracker_spec
+    from torchtrack.track.multi import MultiTargetTracker, score_probabilities, track_sequence
+
+    if not args.out:
+        raise ConfigError("running trackers with --mot needs -o/--out DIR for their results")
+    clash = [f for f, used in (("--sequences", args.sequences), ("--plots", args.plots),
+                               ("--reinit", args.reinit)) if used]  # fmt: skip
+    if clash:
+        raise ConfigError(f"{', '.join(clash)} do(es) not apply to --mot")
+    specs = []
+    for spec in args.trackers:
+        name, params = parse_tracker_spec(spec)
+        if name != "multi":
+            raise ConfigError(
+                f"--mot runs the multi-target tracker ('multi' or 'multi:key=value,...'), got "
+                f"{spec!r}"
+            )
+        specs.append((spec, params))
+    labels = [spec.replace(":", "_").replace(",", "_").replace("=", "-") for spec, _ in specs]
+    if len(set(labels)) != len(labels):
+        raise ConfigError(f"--trackers given twice: {args.trackers}")
+    seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
+    full = {s.name: s for s in seqs}
+    n = args.max_frames
+    if n is not None:
+        if n < 2:
+            raise ConfigError(f"--max-frames must be >= 2, got {n}")
+        seqs = [
+            dataclasses.replace(s, n_frames=min(n, s.n_frames), gt=s.gt.select(s.gt.frames < n))
+            for s in seqs
+        ]
+    for (spec, params), label in zip(specs, labels, strict=True):
+        for seq in seqs:
+            dets = None
+            if args.public_detections:
+                d = full[seq.name].detections()
+                d = d.select(d.frames < seq.n_frames)
+                dets = dataclasses.replace(d, conf=score_probabilities(
+                    torch.from_numpy(d.conf)).numpy())  # fmt: skip
+            mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
+            with seq.open() as src:
+                rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)
+            write_mot(Path(args.out) / label / f"{seq.name}.txt", rows)
+            print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
+    summary = evaluate_mot(
+        seqs,
+        [Path(args.out) / label for label in labels],
+        args.out,
+        labels=labels,
+        command=_mot_command_line(args),
+    )
+    print(mot_table(summary))
+    print(f"results: {args.out}/results.json, {args.out}/results.md")
+    return 0
+
+
 def _mot_command_line(args: argparse.Namespace) -> str:
     import shlex
 
@@ -294,7 +382,16 @@ def _mot_command_line(args: argparse.Namespace) -> str:
         parts += ["--gt", *args.gt]
     if args.gt_scale != "auto":
         parts += ["--gt-scale", args.gt_scale]
-    parts += ["--results", *args.results]
+    if args.results:
+        parts += ["--results", *args.results]
+    if args.trackers:
+        parts += ["--trackers", *args.trackers]
+    if args.public_detections:
+        parts.append("--public-detections")
+    if args.max_frames:
+        parts += ["--max-frames", str(args.max_frames)]
+    if args.seed:
+        parts += ["--seed", str(args.seed)]
     if args.out:
         parts += ["--out", args.out]
     return " ".join(shlex.quote(str(p)) for p in parts)
@@ -308,8 +405,14 @@ def _command_line(args: argparse.Namespace) -> str:
     parts += ["--out", args.out]
     if args.plots:
         parts.append("--plots")
-    if args.jobs != 1:
+    if args.backend != "local":
+        parts += ["--backend", args.backend]
+    if args.jobs is not None:
         parts += ["--jobs", str(args.jobs)]
+    if args.address:
+        parts += ["--address", args.address]
+    if args.max_retries != 3:
+        parts += ["--max-retries", str(args.max_retries)]
     if args.reinit:
         parts.append("--reinit")
     if args.invisible != "box":

@@ -6,6 +6,7 @@ Examples::
     torchtrack track clip.mp4 --detect vehicle --mot cars.txt --out cars.csv
     torchtrack track TUD-Stadtmitte/img1 --detections TUD-Stadtmitte/det/det.txt --mot out.txt
     torchtrack track clip.mp4 --box 120,40,56,156 --out boxes.csv     # one target
+    torchtrack track footage/ --out-dir runs/tracks --write csv,mot --backend ray  # a corpus
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ examples:
   torchtrack track clip.mp4 --box 10,20,40,80 --tracker adaptive-haar --adapt global
   torchtrack track clip.mp4 --detect vehicle --tracker mil
       find the first frame's best car, then follow that one car with MIL
+  torchtrack track footage/ 'more/**/*.mp4' @list.txt --out-dir runs/tracks --write csv,mot
+      a corpus: every video, one CSV and one MOTChallenge file each, resumable (docs/scale.md)
+  torchtrack track footage/ --out-dir runs/tracks --backend ray --address 10.0.0.5:6379
+      the same on a Ray cluster, one task per video
 
 modes:
   Without --box (and with --tracker multi, the default then), every target is detected and
@@ -56,6 +61,7 @@ outputs:
 
 def register(subparsers) -> None:
     from torchtrack.cli._common import add_progress, add_threads, add_trust
+    from torchtrack.cli._corpus import add_corpus_options
 
     p = subparsers.add_parser(
         "track",
@@ -71,9 +77,11 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "source",
+        "sources",
+        nargs="+",
         metavar="SOURCE",
-        help="video file, frame folder, camera index (0, 1, ...) or 'demo' (the bundled clip)",
+        help="video file, frame folder, camera index (0, 1, ...) or 'demo' (the bundled clip); "
+        "several, a folder of videos, a glob or @list.txt: a corpus run (--out-dir)",
     )
     p.add_argument("--box", metavar="X,Y,W,H", help="follow this one target (first-frame box)")
     p.add_argument(
@@ -138,11 +146,17 @@ def register(subparsers) -> None:
     add_threads(p, default=1)
     add_progress(p)
     add_trust(p)
+    add_corpus_options(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``torchtrack track`` (returns the exit code)."""
+    from torchtrack.cli._corpus import run_corpus_command, wants_corpus
+
+    if wants_corpus(args):
+        return run_corpus_command(args)
+    args.source = args.sources[0]  # one source: the single-source command
     check_args(args)
     summary = track_source(args, args.source, out=args.out, video=args.video, mot=args.mot)
     print(summary.line())
@@ -280,7 +294,6 @@ def _finish(writers, ok: bool) -> None:
 
 
 def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
-    import sys
     import time
 
     from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
@@ -325,15 +338,29 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
             if vid is not None:
                 vid.write(draw(frame, state, tracker if args.particles else None))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
-        status = getattr(exc, "exit_code", 130)
-        what = "interrupted" if status == 130 else "terminated"
-        print(f"{what}: keeping the results so far", file=sys.stderr)
+        status = _interrupted(exc)
     finally:
         progress.close()
         _finish((csv, vid), ok=last is not None)
         src.close()
     if last is None and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
+    return _summary(source, src, n_frames, t0, t_track, status)
+
+
+def _interrupted(exc: BaseException) -> int:
+    """The exit status of a run stopped by SIGINT (130) or SIGTERM (143), said on stderr."""
+    import sys
+
+    status = getattr(exc, "exit_code", 130)
+    what = "interrupted" if status == 130 else "terminated"
+    print(f"{what}: keeping the results so far", file=sys.stderr)
+    return status
+
+
+def _summary(source, src, n_frames, t0, t_track, status, identities=None) -> TrackSummary:
+    import time
+
     return TrackSummary(
         source=str(source),
         frames=n_frames,
@@ -342,6 +369,7 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
         tracker_seconds=t_track,
         ended_early=bool(src.ended_early),
         status=status,
+        identities=identities,
     )
 
 
@@ -415,10 +443,10 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
                 f"written by `torchtrack calibrate --json` ({exc})"
             ) from None
         prob = cal.predict_proba(score).to(torch.float64)
-    elif len(score) == 0 or bool(((score >= 0) & (score <= 1)).all()):
-        prob = score
-    else:  # raw detector scores: relative to the file's best (a crude map; calibrate instead)
-        prob = (score / score.max().clamp_min(1e-12)).clamp(0.0, 1.0)
+    else:
+        from torchtrack.track.multi import score_probabilities
+
+        prob = score_probabilities(score)
     boxes = torch.from_numpy(rows.boxes)
     frames = rows.frames
     order = np.argsort(frames, kind="stable")
@@ -475,9 +503,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 parts = mt.particle_boxes() if args.particles else None
                 vid.write(draw_multi(frame, res, trails, parts))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
-        status = getattr(exc, "exit_code", 130)
-        what = "interrupted" if status == 130 else "terminated"
-        print(f"{what}: keeping the results so far", file=sys.stderr)
+        status = _interrupted(exc)
     finally:
         progress.close()
         _finish((csv, motw, vid), ok=n_frames > 0)
@@ -489,16 +515,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
             f"no {mt.detector.name!r} target was found in {source} (empty tracks written)",
             file=sys.stderr,
         )
-    return TrackSummary(
-        source=str(source),
-        frames=n_frames,
-        unreadable=src.n_bad,
-        seconds=time.perf_counter() - t0,
-        tracker_seconds=t_track,
-        ended_early=bool(src.ended_early),
-        status=status,
-        identities=len(seen),
-    )
+    return _summary(source, src, n_frames, t0, t_track, status, identities=len(seen))
 
 
 def parse_box(text: str):

@@ -29,9 +29,14 @@ Protocol
   and the run goes on; failed runs are left out of the averages and counted in ``n_failed``.
 * Trackers that take a ``generator`` argument get ``torch.Generator().manual_seed(seed)``, fresh
   for every sequence, so runs are reproducible and independent of ``jobs``.
-* With ``jobs > 1`` sequences run in spawned processes, each limited to one torch / OpenCV
-  thread (so timings are per core). A worker that crashes (a segfault in native code) is
-  recorded as a failure of its (tracker, sequence) pair only; the other pairs are rerun.
+* With ``jobs > 1`` (or ``backend="ray"``) every (tracker, sequence, seed) pass is one task of
+  :mod:`torchtrack.eval.backends`: spawned processes or Ray tasks, each limited to one torch /
+  OpenCV thread (so timings are per core), longest sequences first. A worker that crashes (a
+  segfault in native code) is recorded as a failure of its own task only: the local pool reruns
+  the tasks it took down, Ray reruns the crashed task up to ``max_retries`` times first. The
+  result files are written here, by the process that called :func:`evaluate`, once per task,
+  whichever backend ran it; every record names the host and process that ran it
+  (``worker``) and the task's wall time (``wall_seconds``).
 """
 
 from __future__ import annotations
@@ -40,20 +45,19 @@ import datetime as _dt
 import importlib
 import json
 import math
-import multiprocessing as mp
 import os
 import re
 import time
 import traceback
 from collections.abc import Callable
 from collections.abc import Sequence as Sequence_
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 from torchtrack.errors import ConfigError
+from torchtrack.eval.backends import worker_info
 from torchtrack.eval.metrics import (
     BREAK_PX,
     SCALAR_METRICS,
@@ -240,22 +244,11 @@ def run_sequence(
 # ---------------------------------------------------------------------------------------------
 # The whole evaluation
 # ---------------------------------------------------------------------------------------------
-def _worker_init(modules: tuple[str, ...] = ()) -> None:
-    torch.set_num_threads(1)
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except Exception:  # pragma: no cover - cv2 is a dependency
-        pass
-    for m in modules:
-        importlib.import_module(m)
-
-
 def _task(spec: str, seq: Sequence, reinit: bool, seed: int, invisible: str, color: str) -> dict:
-    """Run and score one (tracker, sequence) pair; returns a JSON-ready record."""
+    """Run and score one (tracker, sequence, seed) task; returns a JSON-ready record."""
+    t0 = time.perf_counter()
     res = run_sequence(spec, seq, reinit=reinit, seed=seed, color=color)
-    return _task_record(res, seq, reinit, invisible)
+    return _task_record(res, seq, reinit, invisible, wall_seconds=time.perf_counter() - t0)
 
 
 def _unique_names(seqs: list[Sequence]) -> list[Sequence]:
@@ -276,7 +269,10 @@ def evaluate(
     out_dir: str | os.PathLike,
     *,
     plots: bool = False,
-    jobs: int = 1,
+    jobs: int | None = None,
+    backend: str = "local",
+    address: str | None = None,
+    max_retries: int = 3,
     reinit: bool = False,
     invisible: str = "box",
     seed: int = 0,
@@ -292,11 +288,16 @@ def evaluate(
         trackers: tracker specs ``name[:key=value,...]``; each spec is also its label.
         out_dir: output folder (created).
         plots: write success / precision PNGs.
-        jobs: parallel processes (1 = in this process).
+        jobs: ``backend="local"``: parallel processes (``None`` or 1 = in this process);
+            ``"ray"``: CPUs of the local Ray instance started when there is no ``address``.
+        backend: ``"local"`` or ``"ray"`` (:mod:`torchtrack.eval.backends`): one task per
+            (tracker, sequence, seed) and pass.
+        address: the Ray cluster to use (``None``: ``RAY_ADDRESS``, else a new local instance).
+        max_retries: times Ray reruns a task whose worker died.
         reinit: add the re-initialising pass (Bachoo metrics).
         invisible: ``"box"`` | ``"miss"``, see :mod:`torchtrack.eval.metrics`.
         seed, color: see :func:`run_sequence`.
-        progress: show a tqdm bar over frames.
+        progress: show a tqdm bar over the frames of the whole corpus.
         command: the command line to record in the outputs.
         modules: Python modules to import first, here and in every worker process (modules
             that register their own trackers with ``register_tracker``).
@@ -305,14 +306,19 @@ def evaluate(
         The dict written to ``results.json``.
 
     Raises:
-        ConfigError: bad tracker specs, ``jobs < 1``, no sequence.
+        ConfigError: bad tracker specs, ``jobs < 1``, no sequence, an output folder that cannot
+            be written.
+        BackendError: Ray is not installed or its cluster cannot be reached.
     """
     from tqdm import tqdm
 
+    from torchtrack.eval.backends import Backend, TaskFailure, check_backend, run_tasks
     from torchtrack.eval.report import results_markdown
+    from torchtrack.io.atomic import check_writable_dir
 
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    where = Backend(
+        backend, jobs=jobs, address=address, max_retries=max_retries, modules=tuple(modules)
+    )
     if not sequences:
         raise ConfigError("no sequence to evaluate")
     if invisible not in ("box", "miss"):
@@ -323,9 +329,10 @@ def evaluate(
         except ImportError as exc:
             raise ConfigError(f"cannot import tracker module {mod!r}: {exc}") from exc
     validate_tracker_specs(trackers)
+    check_backend(where)
     seqs = _unique_names(sequences)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_writable_dir(out, "--out")
     modes = [False, True] if reinit else [False]
     tasks = [(spec, s, m) for m in modes for s in seqs for spec in trackers]
     total = sum(len(s) for _, s, _ in tasks)
@@ -342,22 +349,26 @@ def evaluate(
             bar.write(f"{rec['tracker']} failed on {rec['sequence']}: {rec['error']}")
 
     try:
-        if jobs == 1:
+        if where.in_process:
             for spec, s, m in tasks:
                 bar.set_postfix_str(f"{spec} / {s.name}", refresh=False)
+                t0 = time.perf_counter()
                 res = run_sequence(spec, s, reinit=m, seed=seed, color=color, on_frame=bar.update)
-                rec = _task_record(res, s, m, invisible)
-                done(rec)
+                done(_task_record(res, s, m, invisible, wall_seconds=time.perf_counter() - t0))
         else:
-            crashed = _run_pool(tasks, jobs, modules, (seed, invisible, color), done, bar)
-            # A worker that dies (e.g. a segfault inside OpenCV) breaks the whole pool and
-            # every unfinished task with it; rerun those one process each, so that only the
-            # culprit is recorded as crashed.
-            for task in crashed:
-                if _run_pool([task], 1, modules, (seed, invisible, color), done, bar):
-                    spec, s, m = task
-                    done(_failed_record(spec, s, m, RuntimeError(CRASH_MESSAGE)))
-                    bar.update(len(s))
+            # Longest sequences first: with several workers the last task to start is a short
+            # one, so no worker idles long at the end.
+            order = sorted(tasks, key=lambda t: -len(t[1]))
+            items = [(spec, s, m, seed, invisible, color) for spec, s, m in order]
+
+            def finished(i: int, value) -> None:
+                spec, s, m = order[i]
+                if isinstance(value, TaskFailure):
+                    value = _failed_record(spec, s, m, value.error, value.traceback)
+                done(value)
+                bar.update(len(s))
+
+            run_tasks(_task, items, where, finished)
     finally:
         bar.close()
 
@@ -372,38 +383,9 @@ def evaluate(
     return summary
 
 
-CRASH_MESSAGE = "the tracker process crashed (killed or a segmentation fault in native code)"
-
-
-def _run_pool(tasks, jobs, modules, opts, done, bar) -> list:
-    """Run ``tasks`` in a spawned pool; return the tasks lost to a crashed worker."""
-    from concurrent.futures.process import BrokenProcessPool
-
-    seed, invisible, color = opts
-    lost = []
-    ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(
-        jobs, mp_context=ctx, initializer=_worker_init, initargs=(tuple(modules),)
-    ) as pool:
-        futs = {
-            pool.submit(_task, spec, s, m, seed, invisible, color): (spec, s, m)
-            for spec, s, m in tasks
-        }
-        for f in as_completed(futs):
-            spec, s, m = futs[f]
-            try:
-                rec = f.result()
-            except BrokenProcessPool:
-                lost.append((spec, s, m))
-                continue
-            except Exception as exc:  # anything else a worker raised: record, go on
-                rec = _failed_record(spec, s, m, exc)
-            done(rec)
-            bar.update(len(s))
-    return lost
-
-
-def _task_record(res: RunResult, seq: Sequence, reinit: bool, invisible: str) -> dict:
+def _task_record(
+    res: RunResult, seq: Sequence, reinit: bool, invisible: str, wall_seconds: float = 0.0
+) -> dict:
     rec = {
         "tracker": res.tracker,
         "sequence": seq.name,
@@ -416,6 +398,8 @@ def _task_record(res: RunResult, seq: Sequence, reinit: bool, invisible: str) ->
         "update_seconds": res.update_seconds,
         "init_seconds": res.init_seconds,
         "n_updates": res.n_updates,
+        "wall_seconds": round(wall_seconds, 4),
+        "worker": worker_info(),
         "tracker_failures": res.tracker_failures,
         "bad_frames": res.bad_frames,
         "init_frames": res.init_frames,
@@ -428,19 +412,24 @@ def _task_record(res: RunResult, seq: Sequence, reinit: bool, invisible: str) ->
     return rec
 
 
-def _failed_record(spec: str, seq: Sequence, reinit: bool, exc: BaseException) -> dict:
+def _failed_record(
+    spec: str, seq: Sequence, reinit: bool, error: str, trace: str | None = None
+) -> dict:
+    """The record of a task that gave no result (its worker raised or died)."""
     return {
         "tracker": spec,
         "sequence": seq.name,
         "mode": "reinit" if reinit else "ope",
         "n_frames": len(seq),
-        "error": f"{type(exc).__name__}: {exc}",
+        "error": error,
         "error_frame": None,
-        "traceback": None,
+        "traceback": trace,
         "fps": None,
         "update_seconds": 0.0,
         "init_seconds": 0.0,
         "n_updates": 0,
+        "wall_seconds": None,
+        "worker": None,
         "tracker_failures": None,
         "bad_frames": [],
         "init_frames": [],

@@ -144,16 +144,7 @@ def fit_chateau_dynamics(
 
         a = default_chateau_A()
         resid = y - x @ a[_FREE].T
-        sigma = resid.T @ resid / m
-        return ChateauFit(
-            A=a,
-            B=default_chateau_B(),
-            Sigma=0.5 * (sigma + sigma.T),
-            n_transitions=m,
-            n_tracks=used,
-            rms=resid.square().mean(0).sqrt(),
-            A_stderr=torch.zeros(6, 6, dtype=torch.float64),
-        )
+        return _fit_result(a, resid, resid.T @ resid / m, torch.zeros(6, 6, dtype=x.dtype), used)
     # Column scaling: positions (hundreds of pixels) and scales (~1) differ by orders of
     # magnitude; scaling the regressors keeps the least-squares problem well conditioned.
     col = x.abs().amax(0).clamp_min(1e-12)
@@ -167,11 +158,17 @@ def fit_chateau_dynamics(
     inv_diag = torch.diagonal(torch.linalg.pinv(xs_.T @ xs_)) / col.square()  # (6,)
     se = torch.zeros(6, 6, dtype=torch.float64)
     se[_FREE] = torch.sqrt(torch.diagonal(sigma).clamp_min(0).unsqueeze(1) * inv_diag.unsqueeze(0))
+    return _fit_result(a, resid, sigma, se, used)
+
+
+def _fit_result(
+    a: torch.Tensor, resid: torch.Tensor, sigma: torch.Tensor, se: torch.Tensor, used: int
+) -> ChateauFit:
     return ChateauFit(
         A=a,
         B=default_chateau_B(),
         Sigma=0.5 * (sigma + sigma.T),
-        n_transitions=m,
+        n_transitions=int(resid.shape[0]),
         n_tracks=used,
         rms=resid.square().mean(0).sqrt(),
         A_stderr=se,

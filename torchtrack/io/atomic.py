@@ -9,7 +9,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_path", "atomic_write", "write_bytes_atomic", "write_text_atomic"]
+__all__ = [
+    "atomic_path",
+    "atomic_write",
+    "check_writable_dir",
+    "write_bytes_atomic",
+    "write_text_atomic",
+]
 
 
 def _umask() -> int:
@@ -66,3 +72,26 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_write(path, "wb") as f:
         f.write(data)
+
+
+def check_writable_dir(path: str | os.PathLike, what: str = "output folder") -> Path:
+    """Create ``path`` (with its parents) and check a file can be written in it, before any
+    work starts.
+
+    Raises:
+        ConfigError: naming ``what`` (the option) and why the folder cannot be written.
+    """
+    from torchtrack.errors import ConfigError
+
+    d = Path(path)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=d)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ConfigError(
+            f"{what} {str(d)!r} cannot be written: {exc.strerror or exc}"
+            + (f" ({exc.filename})" if exc.filename and str(exc.filename) != str(d) else "")
+        ) from None
+    return d

@@ -57,7 +57,7 @@ from torchtrack.track.association import association_cost, expected_iou, linear_
 from torchtrack.track.config import MultiTrackerConfig, apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import load_dynamics, resolve_detector
 
-__all__ = ["MultiState", "MultiTargetTracker"]
+__all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_sequence"]
 
 
 @dataclass
@@ -183,13 +183,6 @@ class MultiTargetTracker:
     def particle_boxes(self) -> torch.Tensor:
         """Object boxes ``(T, N, 4)`` of every live target's particles (for drawing)."""
         return self.detector.window_to_object(self._windows(self.states, self.ref))
-
-    def _visible_fraction(self, boxes: torch.Tensor) -> torch.Tensor:
-        fh, fw = self.frame_size
-        x, y, w, h = boxes.unbind(-1)
-        iw = ((x + w).clamp(0, fw) - x.clamp(0, fw)).clamp_min(0)
-        ih = ((y + h).clamp(0, fh) - y.clamp(0, fh)).clamp_min(0)
-        return iw * ih / (w * h).clamp_min(1e-9)
 
     # -- detections ----------------------------------------------------------------------------
     def detect(self, frame: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -637,7 +630,12 @@ class MultiTargetTracker:
         if not self.n_targets:
             return
         cfg = self.config
-        gone = self._visible_fraction(self._estimated_boxes()) < cfg.min_visible_fraction
+        from torchtrack.boxes import inside_fraction
+
+        # NaN (a degenerate box) compares False: such a target is gone too.
+        gone = ~(
+            inside_fraction(self._estimated_boxes(), self.frame_size) >= cfg.min_visible_fraction
+        )
         lost = self.since_match > cfg.max_lost
         tentative_miss = ~self.confirmed & (self.since_match >= cfg.scan_every)
         keep = ~(gone | lost | tentative_miss)
@@ -676,3 +674,65 @@ class MultiTargetTracker:
             f"MultiTargetTracker({self.detector.name!r}, targets={self.n_targets}, "
             f"scan_every={self.config.scan_every})"
         )
+
+
+def track_sequence(
+    tracker: MultiTargetTracker,
+    frames,
+    detections=None,
+    max_frames: int | None = None,
+):
+    """Run ``tracker`` over ``frames`` and collect the reported targets.
+
+    Args:
+        tracker: a fresh (or :meth:`~MultiTargetTracker.reset`) tracker.
+        frames: a :class:`~torchtrack.io.video.FrameSource` (or anything with ``items()``
+            yielding ``(index, frame or None)``); unreadable frames are skipped.
+        detections: optional per-frame detections: a :class:`~torchtrack.io.mot.MotRows` of
+            object boxes with scores in [0, 1] (e.g. public detections), used instead of scans.
+        max_frames: stop after this many frames.
+
+    Returns:
+        :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target.
+    """
+    import numpy as np
+
+    from torchtrack.io.mot import MotRows
+
+    per_frame = None
+    if detections is not None:
+        n = int(detections.frames.max()) + 1 if len(detections) else 0
+        per_frame = detections.split(n)
+        boxes_all = torch.from_numpy(detections.boxes)
+        conf_all = torch.from_numpy(detections.conf.astype(np.float64)).clamp(0.0, 1.0)
+    f_, i_, b_, c_ = [], [], [], []
+    empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    for i, frame in frames.items():
+        if max_frames is not None and i >= max_frames:
+            break
+        if frame is None:
+            continue
+        d = None
+        if per_frame is not None:
+            idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
+            d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
+        out = tracker.update(frame, d)
+        if len(out):
+            f_.append(torch.full((len(out),), i, dtype=torch.int64))
+            i_.append(out.ids)
+            b_.append(out.boxes)
+            c_.append(out.confidence)
+    if not f_:
+        return MotRows.empty()
+    return MotRows.from_arrays(torch.cat(f_), torch.cat(i_), torch.cat(b_), torch.cat(c_))
+
+
+def score_probabilities(scores: torch.Tensor) -> torch.Tensor:
+    """Detection scores of an outside detector as probabilities ``(M,)`` float64: scores all in
+    ``[0, 1]`` are taken as they are; raw scores (e.g. the MOT15 public detections' -0.2..122)
+    are divided by the highest one (a crude map: calibrate them with ``torchtrack calibrate
+    --scores`` when labelled scores exist)."""
+    s = torch.as_tensor(scores, dtype=torch.float64).reshape(-1)
+    if s.numel() == 0 or bool(((s >= 0) & (s <= 1)).all()):
+        return s
+    return (s / s.max().clamp_min(1e-12)).clamp(0.0, 1.0)
