@@ -208,3 +208,16 @@ def test_lost_target_is_redetected_by_the_whole_frame_search():
         AdaptiveHaarTracker(motion="fast")
     with pytest.raises(ConfigError, match="redetect_scales"):
         AdaptiveHaarTracker(redetect_scales=[])
+
+
+def test_local_negatives_lie_near_the_target_and_off_it():
+    from torchtrack.track.adaptive_haar import _random_negatives
+
+    box = torch.tensor([[100.0, 50.0, 20.0, 40.0]])
+    c = _random_negatives(box, 200, (240, 320), 0.3, torch.Generator().manual_seed(0), 0.0, 0.5)
+    near, far = c[0, :100], c[0, 100:]
+    assert (
+        float((near[:, 0] - 100).abs().max()) <= 40 and float((near[:, 1] - 50).abs().max()) <= 80
+    )
+    assert float(far[:, 0].max() - far[:, 0].min()) > 200  # the others span the frame
+    assert float(box_iou(c[0], box).max()) < 0.3

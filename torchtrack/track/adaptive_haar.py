@@ -123,6 +123,11 @@ class AdaptiveHaarConfig:
         neg_outside: strong-negative candidates may reach this fraction of their size beyond
             the frame border (their outside part reads the frame's mean colour, which the
             classifier should learn is not the target; 0: inside the frame, the paper).
+        neg_local: share of those candidates drawn near the estimate (shifted by up to
+            ``neg_radius`` times its width / height): a look-alike next to the target (a passer-by
+            about to occlude it) is learnt as background before it takes the track (0: the
+            paper's candidates from the whole frame).
+        neg_radius: their largest shift in box sides.
         scale_negatives: per adaptation, this many copies of the estimate scaled about its
             centre by ``scale_factor`` or its inverse (both sides, width or height) join the
             negatives (the first classifier gets all six; 0: the paper).
@@ -188,6 +193,8 @@ class AdaptiveHaarConfig:
     neg_candidates: int = 200
     neg_iou: float = 0.3
     neg_outside: float = 0.0
+    neg_local: float = 0.0
+    neg_radius: float = 2.0
     scale_negatives: int = 0
     scale_factor: float = 1.4
     init_positives: int = 8
@@ -245,13 +252,20 @@ class AdaptiveHaarConfig:
             raise ConfigError(f"lost_after must be >= 0 (0: never lost), got {self.lost_after}")
         _in_unit(
             self, "theta", "visible_threshold", "neg_iou", "damping", "gate_ratio", "gate_rate",
-            "gate_decay", "redetect_threshold", "anchor_doubt", "neg_outside",
+            "gate_decay", "redetect_threshold", "anchor_doubt", "neg_outside", "neg_local",
         )  # fmt: skip
         if not 0 <= self.search_fraction < 1:
             raise ConfigError(f"search_fraction must be in [0, 1), got {self.search_fraction}")
         if not 0 < self.search_eps < 1:
             raise ConfigError(f"search_eps must be in (0, 1), got {self.search_eps}")
-        for k in ("lam", "first_weight", "search_radius", "search_stride", "cotrain_floor"):
+        for k in (
+            "lam",
+            "first_weight",
+            "neg_radius",
+            "search_radius",
+            "search_stride",
+            "cotrain_floor",
+        ):
             if not getattr(self, k) > 0:
                 raise ConfigError(f"{k} must be > 0, got {getattr(self, k)}")
         for k in ("sigma_xy", "sigma_wh", "sigma_rel", "min_sigma", "sigma_scale", "aspect",
@@ -301,10 +315,31 @@ def _random_negatives(
     max_iou: float,
     generator: torch.Generator | None,
     outside: float = 0.0,
+    local: float = 0.0,
+    radius: float = 2.0,
 ) -> torch.Tensor:
     """``n`` random boxes per target, the size of ``boxes (B, 4)``, inside the frame where they
     fit (up to ``outside`` of their width / height may lie beyond its border), with IoU <
-    ``max_iou`` to the target where possible: ``(B, n, 4)``."""
+    ``max_iou`` to the target where possible: ``(B, n, 4)``. ``round(local * n)`` of them are
+    drawn near the target (shifted by up to ``radius`` times its width / height), the others
+    anywhere in the frame."""
+    n_loc = round(local * n)
+    if n_loc > 0:
+        b = boxes.shape[0]
+        tries = 4 * n_loc
+        u = torch.rand((2, b, tries), generator=generator, dtype=boxes.dtype) * 2 - 1
+        h, w = frame_size
+        bw, bh = boxes[:, 2:3].expand(b, tries), boxes[:, 3:4].expand(b, tries)
+        x = (boxes[:, 0:1] + u[0] * radius * bw).clamp(-outside * bw, w - (1 - outside) * bw)
+        y = (boxes[:, 1:2] + u[1] * radius * bh).clamp(-outside * bh, h - (1 - outside) * bh)
+        cand = torch.stack([x, y, bw, bh], -1)
+        ok = box_iou(cand, boxes[:, None, :]) < max_iou
+        order = torch.argsort((~ok).to(torch.int8), dim=1, stable=True)[:, :n_loc]
+        near = cand.gather(1, order.unsqueeze(2).expand(b, n_loc, 4))
+        if n_loc == n:
+            return near
+        rest = _random_negatives(boxes, n - n_loc, frame_size, max_iou, generator, outside)
+        return torch.cat([near, rest], 1)
     b = boxes.shape[0]
     h, w = frame_size
     tries = 4 * n
@@ -632,6 +667,8 @@ class AdaptiveHaarTracker(Tracker):
             cfg.neg_iou,
             self.generator,
             cfg.neg_outside,
+            cfg.neg_local,
+            cfg.neg_radius,
         )[target]  # (P, R, 4)
         p, nc = cand.shape[:2]
         conf = self.observation.confidence(
