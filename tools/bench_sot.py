@@ -81,8 +81,9 @@ def _ms(vals: list[float], nd: int = 3, scale: float = 1.0) -> str:
     if not vals:
         return "-"
     m = statistics.mean(vals) * scale
-    sd = statistics.stdev(vals) * scale if len(vals) > 1 else 0.0
-    return f"{m:.{nd}f} ± {sd:.{nd}f}"
+    if len(vals) == 1:
+        return f"{m:.{nd}f} (1 run)"
+    return f"{m:.{nd}f} ± {statistics.stdev(vals) * scale:.{nd}f}"
 
 
 def seed_means(runs, tracker: str, seqs: list[str], key: str = "auc") -> list[float]:
@@ -189,8 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += [a.note, ""]
     if a.results:
         runs = load_runs(a.results)
-        first = next(iter(runs.values()))
-        trackers = list(first)
+        trackers = list(dict.fromkeys(t for per in runs.values() for t in per))
         seqs = sorted({s for per in runs.values() for t in per.values() for s in t})
         gt = _gt(a.data) if a.data.exists() else {}
         lines += [f"## Dev set: {len(seqs)} sequences, {len(runs)} seeds", ""]
