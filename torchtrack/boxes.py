@@ -118,7 +118,7 @@ def check_boxes(
         i = _first_false(small)
         raise BoxError(
             f"{name}[{i}] = {boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) has a size below "
-            f"{min_size} pixel(s); boxes need a positive width and height"
+            f"{min_size} pixel(s), the smallest {name} accepted"
         )
     if frame_size is not None:
         h_img, w_img = frame_size

@@ -185,3 +185,13 @@ def test_errors():
         evaluate_sequence(torch.zeros(3, 4), torch.zeros(3, 4), torch.ones(2))
     with pytest.raises(ConfigError, match="invisible must be"):
         evaluate_sequence(torch.zeros(3, 4), torch.zeros(3, 4), invisible="skip")
+
+
+def test_losses_and_reacquisitions_count_long_miss_runs():
+    from torchtrack.eval.metrics import losses_and_reacquisitions
+
+    hit = torch.tensor([True] * 3 + [False] * 12 + [True] * 2 + [False] * 5 + [True] + [False] * 10)
+    # one run of 12 misses then a hit (lost and found), 5 misses (too short), 10 at the end
+    assert losses_and_reacquisitions(hit) == (2, 1)
+    assert losses_and_reacquisitions(hit, min_run=5) == (3, 2)
+    assert losses_and_reacquisitions(torch.ones(20, dtype=torch.bool)) == (0, 0)

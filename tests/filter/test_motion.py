@@ -134,3 +134,42 @@ def test_confine_keeps_particles_from_running_away(model):
     nan = s.clone()
     nan[0, 0, 0] = float("nan")
     assert torch.isfinite(model.confine(nan, frame)[..., :2]).all()
+
+
+def test_klein_relative_noise_follows_the_size_and_keeps_the_shape():
+    # relative: velocity noise sigma * sqrt(w h) (floored at min_sigma pixels); sizes change by
+    # exp(common +- aspect), so the log aspect ratio moves less than the log scale
+    m = KleinAR(0.1, 0.02, relative=True, aspect=0.25, min_sigma=1.5)
+    g = torch.Generator().manual_seed(3)
+    n = 200_000
+    s = m.from_boxes(BOXES).unsqueeze(1).repeat(1, n, 1)
+    q = m.predict(s, g)
+    dv = q[..., 4]
+    assert abs(dv[0].std().item() - 0.1 * (30 * 60) ** 0.5) < 0.05
+    assert abs(dv[1].std().item() - 1.5) < 0.02  # 0.1 * sqrt(8 * 16) = 1.13 < min_sigma
+    ls = 0.5 * (q[..., 2].log() + q[..., 3].log()) - 0.5 * (s[..., 2].log() + s[..., 3].log())
+    la = 0.5 * (q[..., 2].log() - q[..., 3].log()) - 0.5 * (s[..., 2].log() - s[..., 3].log())
+    assert abs(ls.std().item() - 0.02) < 0.001 and abs(la.std().item() - 0.005) < 0.0003
+    # noise_scale multiplies the velocity noise per row
+    q2 = m.predict(s, g, noise_scale=torch.tensor([2.0, 1.0], dtype=torch.float64))
+    assert abs(q2[0, :, 4].std().item() - 2 * 0.1 * (30 * 60) ** 0.5) < 0.1
+    # damping shrinks the velocity before the noise
+    d = KleinAR(0.0, 0.0, relative=True, damping=0.5)
+    s[..., 4] = 4.0
+    torch.testing.assert_close(d.predict(s, g)[..., 4], torch.full_like(s[..., 4], 2.0))
+    with pytest.raises(ConfigError, match="damping must be in"):
+        KleinAR(damping=1.5)
+
+
+def test_klein_paper_mode_is_eq1_unchanged():
+    # the paper mode draws the same numbers as before the relative mode existed
+    m = KleinAR()
+    s = m.init(BOXES, 16, torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(5)
+    e = torch.randn((2, 16, 4), generator=g, dtype=torch.float64)
+    e *= torch.tensor([6.4, 6.4, 0.64, 0.64], dtype=torch.float64)
+    ref = s.clone()
+    ref[..., 4:6] += e[..., 0:2]
+    ref[..., 0:2] += ref[..., 4:6]
+    ref[..., 2:4] = (ref[..., 2:4] + e[..., 2:4]).clamp_min(1.0)
+    torch.testing.assert_close(m.predict(s, torch.Generator().manual_seed(5)), ref)

@@ -61,3 +61,28 @@ def test_errors():
     lik = CoTrainLikelihood(torch.zeros(3, 3), (0, 0), (2, 2), (0, 0), (1, 1))
     with pytest.raises(ShapeError, match="states"):
         lik(torch.zeros(4, 2))
+
+
+def test_mean_positive_confidence_and_the_cue():
+    from torchtrack.features.integral import integral_image
+    from torchtrack.learn.cotrain import CoTrainer
+    from torchtrack.observe.cotrain import CoTrainCue, mean_positive_confidence
+
+    conf = torch.zeros(20, 30, dtype=torch.float64)
+    conf[5:10, 10:20] = 0.8  # a 10 x 5 object, region origin (100, 50) in the frame
+    ii = integral_image(conf[None, None])[0, 0]
+    boxes = torch.tensor([[110.0, 55, 10, 5], [110.0, 55, 20, 10], [100.0, 50, 4, 4]])
+    m = mean_positive_confidence(ii, (100.0, 50.0), boxes)
+    torch.testing.assert_close(m, torch.tensor([0.8, 0.2, 0.0], dtype=torch.float64))
+    with pytest.raises(ConfigError, match="search_scale"):
+        CoTrainCue(CoTrainer(), search_scale=0.5)
+    cue = CoTrainCue(CoTrainer(n_selectors=4), floor=1e-3)
+    assert float(cue.log_likelihood(boxes).abs().max()) == 0  # no maps yet: no evidence
+    g = torch.Generator().manual_seed(0)
+    f = torch.randint(0, 60, (3, 60, 80), dtype=torch.uint8, generator=g)
+    f[0, 20:40, 30:50] = 230
+    cue.init(f, (30.0, 20.0, 20.0, 20.0), (60, 80), g)
+    assert cue.score(f, (40.0, 30.0), (20.0, 20.0), (60, 80))
+    ll = cue.log_likelihood(torch.tensor([[30.0, 20, 20, 20], [0.0, 0, 20, 20]]))
+    assert ll[0] > ll[1] and ll[1] >= math.log(1e-3)
+    assert cue.update(g)[0]

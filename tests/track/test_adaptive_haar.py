@@ -81,12 +81,13 @@ def test_no_adaptation_below_theta():
     frames = _toy_frames()
     tr = AdaptiveHaarTracker(n_particles=100, theta=1.0, generator=torch.Generator().manual_seed(2))
     tr.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
-    before = (tr.ensemble.right.clone(), tr.training.x.clone())
+    before = tr.training.x.clone()
     for f in frames[1:]:
         tr.update(f)
         # a confidence of exactly 1 is the only one allowed to adapt with theta = 1
         if not bool(tr.adapted.any()):
-            assert torch.equal(tr.training.x, before[1])
+            assert torch.equal(tr.training.x, before)
+        before = tr.training.x.clone()
     tr2 = AdaptiveHaarTracker(
         n_particles=100, theta=0.0, generator=torch.Generator().manual_seed(2)
     )
@@ -158,3 +159,67 @@ def test_paper_single_positive_and_jittered_positives():
         AdaptiveHaarTracker(init_positives=20)
     with pytest.raises(ConfigError, match="init_jitter must be in"):
         AdaptiveHaarTracker(init_jitter=0.7)
+
+
+def _block_frames(xs, size=(80, 120)):
+    """A red 15x20 block at x = each of ``xs`` (None: absent) over fixed noise."""
+    g = torch.Generator().manual_seed(0)
+    bg = torch.randint(0, 256, (3, *size), dtype=torch.uint8, generator=g)
+    out = []
+    for x in xs:
+        f = bg.clone()
+        if x is not None:
+            f[0, 30:50, x : x + 15] = 250
+            f[1:, 30:50, x : x + 15] = 10
+        out.append(f)
+    return out
+
+
+def test_search_proposal_follows_a_jump_the_motion_noise_cannot_reach():
+    # the block jumps 40 px in one frame; the relative motion noise (0.03 of the size) does not
+    # reach it, the coarse-to-fine search proposal does
+    frames = _block_frames([10, 12, 14, 54, 56, 58])
+    gt = torch.tensor([58.0, 30.0, 15.0, 20.0])
+    ious = {}
+    for frac in (0.0, 0.2):
+        tr = AdaptiveHaarTracker(
+            n_particles=300, motion="relative", sigma_rel=0.03, search_fraction=frac,
+            search_radius=3.0, scale_negatives=2, generator=torch.Generator().manual_seed(0),
+        )  # fmt: skip
+        tr.init(frames[0], torch.tensor([10.0, 30.0, 15.0, 20.0]))
+        for f in frames[1:]:
+            st = tr.update(f)
+        ious[frac] = float(box_iou(st.box[0], gt))
+    assert ious[0.2] > 0.5 > ious[0.0]
+
+
+def test_lost_target_is_redetected_by_the_whole_frame_search():
+    frames = _block_frames([20, 21, 22, None, None, None, 95, 95, 95])
+    tr = AdaptiveHaarTracker(
+        n_particles=200, lost_after=2, redetect_threshold=0.7, cotrain_weight=0.5,
+        motion="klein", speed_gain=0.0, lost_growth=0.0,  # the particles alone do not reach it
+        estimator="mode", gate_ratio=0.9, generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    tr.init(frames[0], torch.tensor([20.0, 30.0, 15.0, 20.0]))
+    states = [tr.update(f) for f in frames[1:]]
+    assert not bool(states[4].visible[0]) and int(tr.reacquisitions[0]) == 1
+    assert float(box_iou(states[-1].box[0], torch.tensor([95.0, 30.0, 15.0, 20.0]))) > 0.5
+    with pytest.raises(ConfigError, match="search_fraction"):
+        AdaptiveHaarTracker(search_fraction=1.0)
+    with pytest.raises(ConfigError, match="motion must be"):
+        AdaptiveHaarTracker(motion="fast")
+    with pytest.raises(ConfigError, match="redetect_scales"):
+        AdaptiveHaarTracker(redetect_scales=[])
+
+
+def test_local_negatives_lie_near_the_target_and_off_it():
+    from torchtrack.track.adaptive_haar import _random_negatives
+
+    box = torch.tensor([[100.0, 50.0, 20.0, 40.0]])
+    c = _random_negatives(box, 200, (240, 320), 0.3, torch.Generator().manual_seed(0), 0.0, 0.5)
+    near, far = c[0, :100], c[0, 100:]
+    assert (
+        float((near[:, 0] - 100).abs().max()) <= 40 and float((near[:, 1] - 50).abs().max()) <= 80
+    )
+    assert float(far[:, 0].max() - far[:, 0].min()) > 200  # the others span the frame
+    assert float(box_iou(c[0], box).max()) < 0.3

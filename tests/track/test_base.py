@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import torchtrack.track.base as base
+from torchtrack.boxes import box_iou
 from torchtrack.errors import BoxError, ConfigError, ShapeError, TrackerError
 from torchtrack.track.base import (
     Tracker,
@@ -87,6 +88,10 @@ def test_bad_init_boxes():
     t = Shift()
     with pytest.raises(BoxError, match="size below"):
         t.init(FRAME, [1, 1, 0, 4])
+    # the documented minimum: a box of 1-2 pixels is refused, 3 pixels is tracked
+    with pytest.raises(BoxError, match=r"size below 3.0 pixel\(s\), the smallest init box"):
+        t.init(FRAME, [1, 1, 2, 5])
+    t.init(FRAME, [1, 1, 3, 3])
     with pytest.raises(BoxError, match="outside the 30x20 frame"):
         t.init(FRAME, [40, 1, 4, 4])
     with pytest.raises(BoxError, match="not finite"):
@@ -265,3 +270,31 @@ def test_issue_12_bobot_case_lost_target_is_not_visible_outside(data_dir, one_th
     assert not bool((visible & (frac < 0.5)).any())
     cx, cy = boxes[:, 0] + boxes[:, 2] / 2, boxes[:, 1] + boxes[:, 3] / 2
     assert bool(((cx >= 0) & (cx <= 320) & (cy >= 0) & (cy <= 240)).all())
+
+
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("adaptive-haar", {"n_particles": 100}),
+        ("cotrain", {"n_selectors": 6, "max_samples": 400, "particles": 100}),
+        ("histogram", {"n_particles": 100}),
+        ("template", {}),
+    ],
+)
+def test_colour_trackers_follow_a_gray_sequence(name, params):
+    # the documented behaviour on C = 1 frames (docs/tracking.md, "Gray frames"): every tracker
+    # runs on the single channel and follows a target that differs from the background in
+    # brightness
+    g = torch.Generator().manual_seed(0)
+    bg = torch.randint(0, 120, (1, 60, 80), dtype=torch.uint8, generator=g)
+    frames = []
+    for t in range(5):
+        f = bg.clone()
+        f[0, 20:40, 20 + 2 * t : 36 + 2 * t] = 240
+        frames.append(f)
+    tr = create_tracker(name, generator=torch.Generator().manual_seed(1), **params)
+    tr.init(frames[0], [20, 20, 16, 20])
+    for f in frames[1:]:
+        st = tr.update(f)
+    gt = torch.tensor([28.0, 20.0, 16.0, 20.0], dtype=torch.float64)
+    assert float(box_iou(st.box[0].to(torch.float64), gt)) > 0.5

@@ -131,3 +131,29 @@ def test_replayed_positives_stop_the_classifier_collapse(data_dir):
         seen[replay] = [bool(t.update(f).visible[0]) for f in frames[1:]]
     assert not any(seen[0][4:])
     assert all(seen[500])
+
+
+def test_velocity_widening_and_scale_options():
+    # a fast target (7 px / frame, beyond the random walk's reach for a 20 px target) with the
+    # running velocity and the lost-target widening; the scale search keeps a 20 px box sane
+    t = create_tracker(
+        "cotrain",
+        generator=torch.Generator().manual_seed(0),
+        velocity=0.5,
+        lost_growth=0.2,
+        scale_step=0.05,
+        **SMALL,
+    )
+    path = [(20 + 7 * i, 45) for i in range(12)]
+    states = run(t, path)
+    gt = torch.tensor([path[-1][0] - 10, 35, 20, 20], dtype=torch.float64)
+    assert float(box_iou(states[-1].box[0], gt)) > 0.4
+    assert t.velocity[0] > 3 and 10 < t.size[0] < 40
+    for bad, match in (
+        ({"velocity": 1.5}, "velocity must be in"),
+        ({"lost_growth": 1.0}, "lost_growth must be in"),
+        ({"max_search_scale": 1.0}, "max_search_scale"),
+        ({"scale_ring": 1.0}, "scale_ring must be"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            CoTrainTracker(**bad)

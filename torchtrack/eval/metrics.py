@@ -32,6 +32,10 @@ Definitions
   ``0, 0.01, ..., 0.5``; ``norm_precision`` is the mean of that curve (its AUC on [0, 0.5]).
 * Klein et al. 2010, sec. IV: ``mean_iou`` = average IoU over ``P`` ("average score"),
   ``miss_rate`` = fraction of ``P`` with ``IoU < 1/3``.
+* Losses and re-acquisitions (the tracker-independent count behind a tracker's own re-detection):
+  a *loss* is a run of at least ``LOSS_FRAMES`` (10) consecutive present frames with
+  ``IoU < 1/3``; ``losses`` counts them, ``reacquisitions`` those after which the tracker's box
+  overlaps the target again (``IoU >= 1/3``) on a later present frame.
 * Bachoo et al., sec. 4: ``x_error`` / ``y_error`` = mean +- std (population) of
   ``|x_gt - x_est|`` of the box centres over ``P``, also split by the tracker's belief
   (``target`` = visible, ``no_target`` = not visible); a track *breaks* on a present frame whose
@@ -55,6 +59,7 @@ from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
     "BREAK_PX",
+    "LOSS_FRAMES",
     "MISS_IOU",
     "NORM_PRECISION_THRESHOLDS",
     "PRECISION_THRESHOLDS",
@@ -65,6 +70,7 @@ __all__ = [
     "evaluate_sequence",
     "frame_ious",
     "longest_run",
+    "losses_and_reacquisitions",
     "normalised_centre_errors",
     "precision_curve",
     "success_curve",
@@ -75,6 +81,7 @@ PRECISION_THRESHOLDS = torch.arange(0, 51, dtype=torch.float64)
 NORM_PRECISION_THRESHOLDS = torch.linspace(0.0, 0.5, 51, dtype=torch.float64)
 MISS_IOU = 1.0 / 3.0
 BREAK_PX = 100.0
+LOSS_FRAMES = 10
 
 
 def _check(pred: torch.Tensor, gt: torch.Tensor) -> None:
@@ -145,6 +152,23 @@ def longest_run(mask: torch.Tensor) -> int:
     return best
 
 
+def losses_and_reacquisitions(hit: torch.Tensor, min_run: int = LOSS_FRAMES) -> tuple[int, int]:
+    """``(losses, reacquisitions)`` of a 1-D bool sequence over present frames (``hit``: the
+    tracker overlaps the target): runs of at least ``min_run`` misses, and those of them that
+    are followed by a hit."""
+    losses = found = run = 0
+    for v in hit.tolist():  # a loop over frames
+        if v:
+            if run >= min_run:
+                found += 1
+            run = 0
+        else:
+            run += 1
+            if run == min_run:
+                losses += 1
+    return losses, found
+
+
 def _mean_std(x: torch.Tensor) -> tuple[float, float]:
     if x.numel() == 0:
         return math.nan, math.nan
@@ -180,6 +204,8 @@ class SequenceMetrics:
     n_reinit: int | None
     present_visible_rate: float
     absent_rejection_rate: float
+    losses: int
+    reacquisitions: int
     success: list[float] = field(repr=False)
     precision: list[float] = field(repr=False)
     norm_precision_curve: list[float] = field(repr=False)
@@ -276,6 +302,7 @@ def evaluate_sequence(
     if n_reinit is not None:
         reinit_rate = 100.0 * n_reinit / n_e if n_e else math.nan
     n_a = int(absent.sum())
+    n_lost, n_found = losses_and_reacquisitions(iou_p >= MISS_IOU)
     return SequenceMetrics(
         n_frames=t,
         n_evaluated=n_e,
@@ -300,6 +327,8 @@ def evaluate_sequence(
         absent_rejection_rate=(
             float((~visible[absent]).to(torch.float64).mean()) if n_a else math.nan
         ),
+        losses=n_lost,
+        reacquisitions=n_found,
         success=succ.tolist(),
         precision=prec.tolist(),
         norm_precision_curve=nprec.tolist(),
@@ -318,6 +347,8 @@ SCALAR_METRICS = (
     "reinit_per_100",
     "present_visible_rate",
     "absent_rejection_rate",
+    "losses",
+    "reacquisitions",
 )
 
 

@@ -80,8 +80,17 @@ class KleinAR:
     """Klein et al. eq. (1): ``v += N(0, sigma^2)``, ``x += v``; w, h random walks.
 
     State ``(cx, cy, w, h, vx, vy)``, D = 6 (box centre, size, centre velocity in pixels per
-    frame). Defaults are the paper's ``sigma_x = sigma_y = 6.4``, ``sigma_w = sigma_h = 0.64``.
-    ``min_size`` keeps w, h positive (a box of non-positive size has no features).
+    frame). Defaults are the paper's ``sigma_x = sigma_y = 6.4``, ``sigma_w = sigma_h = 0.64``
+    in pixels. ``min_size`` keeps w, h positive (a box of non-positive size has no features).
+
+    ``relative=True`` makes the noise follow the target's size (a departure used by the
+    trackers' robust defaults; the paper's pixels are right for its 320 x 240 sequences only):
+    the velocity noise is ``sigma_xy * sqrt(w h)`` of each particle (a fraction of its size per
+    frame), and the size changes multiplicatively, ``w *= exp(n_s + n_a)``,
+    ``h *= exp(n_s - n_a)`` with a common scale noise ``n_s ~ N(0, sigma_wh^2)`` and an aspect
+    noise ``n_a ~ N(0, (aspect * sigma_wh)^2)``, so a box grows or shrinks as a whole and keeps
+    its shape unless the evidence says otherwise. ``damping`` multiplies the velocity before
+    the noise is added (1: eq. 1's random walk; below 1 a lost target's particles stop drifting).
     """
 
     dim = 6
@@ -91,10 +100,21 @@ class KleinAR:
         sigma_xy: float = 6.4,
         sigma_wh: float = 0.64,
         min_size: float = 1.0,
+        *,
+        relative: bool = False,
+        aspect: float = 0.5,
+        damping: float = 1.0,
+        min_sigma: float = 0.0,
     ) -> None:
         self.sigma_xy = _positive("sigma_xy", sigma_xy)
         self.sigma_wh = _positive("sigma_wh", sigma_wh)
         self.min_size = _positive("min_size", min_size)
+        self.relative = bool(relative)
+        self.aspect = _positive("aspect", aspect)
+        if not 0.0 <= float(damping) <= 1.0:
+            raise ConfigError(f"damping must be in [0, 1], got {damping}")
+        self.damping = float(damping)
+        self.min_sigma = _positive("min_sigma", min_sigma)
 
     def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
         """``(B, 4)`` x, y, w, h -> ``(B, 6)`` states with zero velocity."""
@@ -108,6 +128,13 @@ class KleinAR:
         cx, cy, w, h = states[..., 0], states[..., 1], states[..., 2], states[..., 3]
         return torch.stack([cx - w / 2, cy - h / 2, w, h], -1)
 
+    def _velocity_sigma(self, states: torch.Tensor) -> torch.Tensor:
+        """``(B, N, 1)`` velocity noise std of each particle (pixels per frame)."""
+        if not self.relative:
+            return states.new_full((*states.shape[:2], 1), self.sigma_xy)
+        s = (states[..., 2:3] * states[..., 3:4]).clamp_min(0).sqrt()
+        return (self.sigma_xy * s).clamp_min(self.min_sigma)
+
     def init(self, boxes: torch.Tensor, n: int, generator: GeneratorLike = None) -> torch.Tensor:
         """Klein et al. sec. II-B: every particle on the first box, velocities ~ N(0, sigma^2).
 
@@ -116,20 +143,40 @@ class KleinAR:
         """
         s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
         noise = randn((boxes.shape[0], n, 2), generator, boxes.dtype, boxes.device)
-        s[..., 4:6] = noise * self.sigma_xy
+        s[..., 4:6] = noise * self._velocity_sigma(s)
         return s
 
-    def predict(self, states: torch.Tensor, generator: GeneratorLike = None) -> torch.Tensor:
-        """One step of eq. (1): ``(B, N, 6) -> (B, N, 6)``."""
+    def predict(
+        self,
+        states: torch.Tensor,
+        generator: GeneratorLike = None,
+        noise_scale: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """One step of eq. (1): ``(B, N, 6) -> (B, N, 6)``.
+
+        Args:
+            noise_scale: optional ``(B,)`` factor on the velocity noise of each row (a tracker
+                widens the search while its evidence is low, or for a fast target); ``None``
+                is eq. (1) as configured.
+        """
         _check_states(states, 6, "KleinAR")
         b, n, _ = states.shape
         e = randn((b, n, 4), generator, states.dtype, states.device)
-        sig = states.new_tensor([self.sigma_xy, self.sigma_xy, self.sigma_wh, self.sigma_wh])
-        e.mul_(sig)
+        sv = self._velocity_sigma(states)
+        if noise_scale is not None:
+            sv = sv * noise_scale.to(sv).reshape(-1, 1, 1)
         out = states.clone()  # one output buffer, updated in place (no concatenation)
-        out[..., 4:6] += e[..., 0:2]  # v_t = v_{t-1} + G(0, sigma^2)
+        if self.damping != 1.0:
+            out[..., 4:6] *= self.damping
+        out[..., 4:6] += e[..., 0:2] * sv  # v_t = v_{t-1} + G(0, sigma^2)
         out[..., 0:2] += out[..., 4:6]  # x_t = x_{t-1} + v_t
-        out[..., 2:4] += e[..., 2:4]
+        if self.relative:
+            common = e[..., 2:3] * self.sigma_wh
+            shape = e[..., 3:4] * (self.sigma_wh * self.aspect)
+            out[..., 2:3] *= torch.exp(common + shape)
+            out[..., 3:4] *= torch.exp(common - shape)
+        else:
+            out[..., 2:4] += e[..., 2:4] * self.sigma_wh
         out[..., 2:4].clamp_(min=self.min_size)
         return out
 

@@ -101,3 +101,123 @@ class CoTrainLikelihood:
         dx = (states[..., 0].to(torch.float64) - self.mean[0]) / self.gate_sigma[0]
         dy = (states[..., 1].to(torch.float64) - self.mean[1]) / self.gate_sigma[1]
         return (log_l - 0.5 * (dx * dx + dy * dy)).to(states.dtype)
+
+
+def mean_positive_confidence(
+    ii: torch.Tensor, origin: tuple[float, float], boxes: torch.Tensor
+) -> torch.Tensor:
+    """Mean positive confidence of boxes: window sums of the positive fused map over each box's
+    pixels, divided by the box area.
+
+    Args:
+        ii: ``(h + 1, w + 1)`` float64 integral image of ``max(conf, 0)`` of a region.
+        origin: ``(x0, y0)`` frame position of the region's top-left pixel.
+        boxes: ``(..., 4)`` x, y, w, h in frame pixels (rounded to whole pixels; the parts outside
+            the region count as zero confidence).
+
+    Returns:
+        ``(...)`` float64 in [0, max conf].
+    """
+    b = boxes.to(torch.float64)
+    x0 = torch.round(b[..., 0] - origin[0]).long()
+    y0 = torch.round(b[..., 1] - origin[1]).long()
+    w = torch.round(b[..., 2]).long().clamp_min(1)
+    h = torch.round(b[..., 3]).long().clamp_min(1)
+    s = window_sums(ii.to(boxes.device), x0, y0, x0 + w, y0 + h)
+    return s / (w * h).to(torch.float64)
+
+
+class CoTrainCue:
+    """Jin et al.'s co-trained pixel classifier as one cue of a box particle filter.
+
+    ``log L(box) = log max(m(box), floor)`` with ``m`` the mean positive fused confidence of the
+    pixels in the box (:func:`mean_positive_confidence`), so that the cue prefers a box that is
+    filled with object pixels at any size (a window *sum*, eq. 13, grows with the box). Per
+    frame: :meth:`score` computes the maps of a candidate region ``search_scale`` times the
+    target around a centre, :meth:`log_likelihood` reads them for any boxes, :meth:`update`
+    retrains the classifiers on the most confident blob (Algorithm 2, as the ``cotrain``
+    tracker). Used by the ``fused`` tracker (with a calibrated detector) and by the
+    ``adaptive-haar`` tracker's ``cotrain_weight`` (with the adaptive Haar classifier).
+
+    Args:
+        trainer: the :class:`~torchtrack.learn.cotrain.CoTrainer`.
+        search_scale: candidate region side over the target's (>= 1).
+        floor: smallest ``m`` in the log (keeps it finite off the object).
+    """
+
+    def __init__(self, trainer, search_scale: float = 2.0, floor: float = 1e-4) -> None:
+        if not search_scale >= 1:
+            raise ConfigError(f"search_scale must be >= 1, got {search_scale}")
+        if not floor > 0:
+            raise ConfigError(f"floor must be > 0, got {floor}")
+        self.trainer = trainer
+        self.search_scale = float(search_scale)
+        self.floor = float(floor)
+        self.maps = None
+        self._ii: torch.Tensor | None = None
+
+    def init(
+        self,
+        frame: torch.Tensor,
+        box: tuple[float, float, float, float],
+        frame_size: tuple[int, int],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        """Train on the first frame's ``box`` (x, y, w, h).
+
+        Raises:
+            ConfigError: the box leaves no region to learn from.
+        """
+        from torchtrack.learn.cotrain import region_around
+
+        x, y, w, h = (float(v) for v in box)
+        region = region_around((x + w / 2, y + h / 2), (w, h), self.search_scale, frame_size)
+        if region is None:
+            raise ConfigError(f"init box {(x, y, w, h)} leaves no region to learn from")
+        self.trainer.init(frame, (x, y, w, h), region, generator)
+        self.maps, self._ii = None, None
+
+    def score(
+        self,
+        frame: torch.Tensor,
+        centre: tuple[float, float],
+        size: tuple[float, float],
+        frame_size: tuple[int, int],
+    ) -> bool:
+        """Score the candidate region around ``centre`` for a target of ``size`` (w, h);
+        False when the region left the frame (no evidence this frame)."""
+        from torchtrack.learn.cotrain import region_around
+
+        region = region_around(centre, size, self.search_scale, frame_size)
+        if region is None:
+            self.maps, self._ii = None, None
+            return False
+        self.maps = self.trainer.score(frame, region)
+        self._ii = integral_image(self.maps.opened.clamp_min(0)[None, None].to(torch.float64))[0, 0]
+        return True
+
+    def mean_confidence(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``m(box)`` of ``boxes (..., 4)`` on this frame's maps (zeros without maps)."""
+        if self.maps is None:
+            return torch.zeros(boxes.shape[:-1], dtype=torch.float64, device=boxes.device)
+        return mean_positive_confidence(self._ii, self.maps.region[:2], boxes)
+
+    def log_likelihood(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``(..., 4) -> (...)`` float64 ``log max(m, floor)``; 0 everywhere when this frame has
+        no maps (a cue without evidence does not weigh)."""
+        if self.maps is None:
+            return torch.zeros(boxes.shape[:-1], dtype=torch.float64, device=boxes.device)
+        return self.mean_confidence(boxes).clamp_min(self.floor).log()
+
+    def update(
+        self,
+        generator: torch.Generator | None = None,
+        within: tuple[float, float, float, float] | None = None,
+    ) -> tuple[bool, bool]:
+        """Retrain on this frame's most confident blob: ``(blob found, positives accepted)``."""
+        if self.maps is None:
+            return False, False
+        blob = self.trainer.locate(self.maps)
+        if blob is None:
+            return False, False
+        return True, bool(self.trainer.update(self.maps, blob, generator, within))

@@ -127,12 +127,16 @@ class Tracker(abc.ABC):
     * ``auto_init``: ``init(frame, box=None)`` finds the target itself (e.g. a detector scan).
     * ``min_visible_inside``: a target whose box has less than this fraction of its area inside
       the frame is reported not visible (the module's one rule; 0.5).
+    * ``min_box_size``: the smallest init box side in pixels (3): a box of 1-2 pixels holds no
+      appearance to learn (a histogram of a few pixels, sub-pixel Haar cells) and is refused
+      with a :class:`BoxError` rather than tracked as noise.
     """
 
     name: ClassVar[str] = "tracker"
     max_targets: ClassVar[int | None] = 1
     auto_init: ClassVar[bool] = False
     min_visible_inside: ClassVar[float] = 0.5
+    min_box_size: ClassVar[float] = 3.0
 
     def __init__(self) -> None:
         self._initialised = False
@@ -154,7 +158,8 @@ class Tracker(abc.ABC):
         Raises:
             ShapeError: ``frame`` is not ``(C, H, W)`` uint8 with C in {1, 3}, or ``box`` is not
                 ``(4,)`` / ``(B, 4)``.
-            BoxError: a box has no area, is not finite or lies outside the frame.
+            BoxError: a box side is below ``min_box_size`` (3 pixels), is not finite, or the
+                box lies outside the frame.
             TrackerError: ``box`` is ``None`` and the tracker cannot initialise itself, or more
                 targets than ``max_targets`` are given.
         """
@@ -174,7 +179,7 @@ class Tracker(abc.ABC):
                 raise ShapeError(
                     f"init box must be (4,) or (B, 4) x, y, w, h, got {tuple(boxes.shape)}"
                 )
-            check_boxes(boxes, (h, w), name="init box")
+            check_boxes(boxes, (h, w), name="init box", min_size=self.min_box_size)
             if self.max_targets is not None and boxes.shape[0] > self.max_targets:
                 raise TrackerError(
                     f"tracker {self.name!r} follows at most {self.max_targets} target(s) per "

@@ -76,6 +76,16 @@ class CoTrainConfig:
         positives: ``"ellipse"`` (the blob's ellipse, sec. 3.3) or ``"ellipse_box"`` (further
             restricted to the tracker's estimated box).
         estimator: particle-filter estimate, ``"mean"``, ``"best"`` or ``"mode"``.
+        velocity: rate of the running mean of the estimate's displacement per frame that is
+            added to the prediction (a constant-velocity term; 0: eq. 4's pure random walk).
+        lost_growth, max_search_scale: per frame without a blob, the candidate region and the
+            motion noise grow by ``lost_growth`` (the search widens while the target is lost),
+            the region up to ``max_search_scale`` times the box (0: fixed, the paper).
+        scale_step: on frames with a blob the box is rescaled by ``1 +- scale_step`` when that
+            raises the contrast of the pixel map, mean positive confidence inside the box minus
+            inside the ring up to ``scale_ring`` times the box (0: the first box's size
+            throughout, Jin's location-only state).
+        scale_ring: outer side of that ring over the box's.
     """
 
     particles: int = 300
@@ -103,6 +113,11 @@ class CoTrainConfig:
     pool_size: int = 4000
     positives: str = "ellipse"
     estimator: str = "mean"
+    velocity: float = 0.0
+    lost_growth: float = 0.0
+    max_search_scale: float = 4.0
+    scale_step: float = 0.0
+    scale_ring: float = 1.5
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -125,6 +140,18 @@ class CoTrainConfig:
             )
         if self.search_scale < 1:
             raise ConfigError(f"cotrain: search_scale must be >= 1, got {self.search_scale}")
+        if not 0 <= self.velocity <= 1:
+            raise ConfigError(f"cotrain: velocity must be in [0, 1], got {self.velocity}")
+        for name in ("lost_growth", "scale_step"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ConfigError(f"cotrain: {name} must be in [0, 1), got {getattr(self, name)}")
+        if self.max_search_scale < self.search_scale:
+            raise ConfigError(
+                f"cotrain: max_search_scale ({self.max_search_scale}) must be >= search_scale "
+                f"({self.search_scale})"
+            )
+        if not self.scale_ring > 1:
+            raise ConfigError(f"cotrain: scale_ring must be > 1, got {self.scale_ring}")
 
 
 def load_cotrain_config(path: str | Path, **overrides: Any) -> CoTrainConfig:
@@ -225,12 +252,44 @@ class CoTrainTracker(Tracker):
         self.states = states
         self.log_weights = uniform_log_weights(states)
         self.history = []
+        self.velocity = (0.0, 0.0)
+        self.lost_frames = 0
         return TrackState.single(box, 1.0, True, particles=states, log_weights=self.log_weights)
 
+    def _widen(self) -> float:
+        """Factor on the region and the motion noise while no blob is found (1 when tracked)."""
+        c = self.config
+        return min(1.0 + c.lost_growth * self.lost_frames, c.max_search_scale / c.search_scale)
+
     def _motion(self, states: torch.Tensor, generator) -> torch.Tensor:
-        # Jin et al. eq. (4): X_k = X_{k-1} + delta_k, delta_k ~ N(0, sigma^2 I).
+        # Jin et al. eq. (4): X_k = X_{k-1} + delta_k, delta_k ~ N(0, sigma^2 I); plus the
+        # running velocity (0 unless ``velocity > 0``) and the lost-target widening.
         e = randn(tuple(states.shape), generator, states.dtype, states.device)
-        return states + e * (self.config.motion_std * self.scale)
+        v = states.new_tensor(self.velocity)
+        return states + v + e * (self.config.motion_std * self.scale * self._widen())
+
+    def _rescale(self, maps) -> None:
+        """One step of the scale search on the pixel map (see ``scale_step``)."""
+        from torchtrack.features.integral import integral_image
+        from torchtrack.observe.cotrain import mean_positive_confidence
+
+        c = self.config
+        ii = integral_image(maps.opened.clamp_min(0)[None, None].to(torch.float64))[0, 0]
+        f = torch.tensor([1.0 / (1.0 + c.scale_step), 1.0, 1.0 + c.scale_step], dtype=torch.float64)
+        w, h = self.size
+        cx, cy = self.centre
+        ws, hs = w * f, h * f
+        inner = torch.stack([cx - ws / 2, cy - hs / 2, ws, hs], 1)
+        ow, oh = ws * c.scale_ring, hs * c.scale_ring
+        outer = torch.stack([cx - ow / 2, cy - oh / 2, ow, oh], 1)
+        origin = maps.region[:2]
+        m_in = mean_positive_confidence(ii, origin, inner)
+        a_in, a_out = ws * hs, ow * oh
+        m_out = (mean_positive_confidence(ii, origin, outer) * a_out - m_in * a_in) / (a_out - a_in)
+        k = int(torch.argmax(m_in - m_out))
+        hh, ww = self.frame_size
+        self.size = (min(float(ws[k]), 2.0 * ww), min(float(hs[k]), 2.0 * hh))
+        self.scale = math.sqrt(self.size[0] * self.size[1])
 
     def _state(self, visible: bool, confidence: float) -> TrackState:
         cx, cy = self.centre
@@ -245,7 +304,9 @@ class CoTrainTracker(Tracker):
 
     def _update(self, frame: torch.Tensor) -> TrackState:
         c = self.config
-        region = region_around(self.centre, self.size, c.search_scale, self.frame_size)
+        grow = self._widen()
+        pred = (self.centre[0] + self.velocity[0], self.centre[1] + self.velocity[1])
+        region = region_around(pred, self.size, c.search_scale * grow, self.frame_size)
         if region is None:  # the prediction left the frame: nothing to see, nothing to learn
             self.last_maps = None
             self.history.append(
@@ -257,6 +318,7 @@ class CoTrainTracker(Tracker):
                     "blob_score": 0.0,
                 }
             )
+            self.lost_frames += 1
             return self._state(False, 0.0)
         maps = self.trainer.score(frame, region)
         self.last_maps = maps
@@ -264,8 +326,8 @@ class CoTrainTracker(Tracker):
             maps.opened,
             region[:2],
             self.size,
-            self.centre,
-            (c.gate_scale * self.size[0], c.gate_scale * self.size[1]),
+            pred,
+            (c.gate_scale * self.size[0] * grow, c.gate_scale * self.size[1] * grow),
             c.sharpness,
         )
         if c.resampler == "seir":
@@ -292,10 +354,23 @@ class CoTrainTracker(Tracker):
         self.states, self.log_weights = step.states, step.log_weights
         est = step.estimate[0]
         hh, ww = self.frame_size
+        old = self.centre
         # Keep the centre inside the frame, so the next candidate region is never empty.
         self.centre = (float(est[0].clamp(0, ww - 1)), float(est[1].clamp(0, hh - 1)))
         blob = self.trainer.locate(maps)
         visible = blob is not None and not bool(step.recovered[0])
+        if visible:
+            a = c.velocity
+            d = (self.centre[0] - old[0], self.centre[1] - old[1])
+            self.velocity = (
+                (1 - a) * self.velocity[0] + a * d[0],
+                (1 - a) * self.velocity[1] + a * d[1],
+            )
+            self.lost_frames = 0
+            if c.scale_step > 0:
+                self._rescale(maps)
+        else:
+            self.lost_frames += 1
         within = None
         if c.positives == "ellipse_box":
             w, h = self.size

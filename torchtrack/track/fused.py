@@ -46,8 +46,8 @@ import torch
 
 from torchtrack.errors import ConfigError
 from torchtrack.filter.sir import sir_step
-from torchtrack.learn.cotrain import CoTrainer, region_around
-from torchtrack.observe.cotrain import CoTrainLikelihood
+from torchtrack.learn.cotrain import CoTrainer
+from torchtrack.observe.cotrain import CoTrainCue
 from torchtrack.track.base import TrackState, register_tracker
 from torchtrack.track.config import apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import DetectorTracker
@@ -223,6 +223,7 @@ class FusedTracker(DetectorTracker):
         self.trainer = CoTrainer(
             mode=cfg.cotrain_mode, n_selectors=cfg.n_selectors, n_candidates=cfg.n_candidates
         )
+        self.cue = CoTrainCue(self.trainer, cfg.search_scale, cfg.cot_floor)
         self.history: list[dict[str, Any]] = []
         self._size: tuple[float, float] | None = None
         self._centre: tuple[float, float] | None = None
@@ -275,19 +276,18 @@ class FusedTracker(DetectorTracker):
         lo, hi = self.margin_range()
         return ((m - lo) / max(hi - lo, 1e-12)).clamp(0.0, 1.0), p  # -inf (unscorable) -> 0
 
-    def cotrain_term(self, maps, states: torch.Tensor) -> torch.Tensor:
-        """``log L_cot (B, N)``: log mean positive confidence in the object box (floored) minus
-        the gate's squared distance / 2."""
+    def cotrain_term(self, states: torch.Tensor) -> torch.Tensor:
+        """``log L_cot (B, N)``: log mean positive confidence in each particle's object box
+        (floored; :class:`~torchtrack.observe.cotrain.CoTrainCue`) minus the gate's squared
+        distance / 2; 0 when this frame has no co-training maps (the region left the frame)."""
         cfg = self.fused_config
-        size = self._size
-        if maps is None:  # the region left the frame: no co-training evidence
+        if self.cue.maps is None:
             return torch.zeros(states.shape[:2], dtype=torch.float64)
+        size = self._size
         gate = (cfg.gate_scale * size[0], cfg.gate_scale * size[1])
-        lik = CoTrainLikelihood(maps.opened, maps.region[:2], size, self._centre, gate)
-        acc = lik.accumulated(states) / max(size[0] * size[1], 1.0)
         dx = (states[..., 0].to(torch.float64) - self._centre[0]) / gate[0]
         dy = (states[..., 1].to(torch.float64) - self._centre[1]) / gate[1]
-        return acc.clamp_min(cfg.cot_floor).log() - 0.5 * (dx * dx + dy * dy)
+        return self.cue.log_likelihood(self.object_boxes(states)) - 0.5 * (dx * dx + dy * dy)
 
     # -- Tracker API ---------------------------------------------------------------------------
     def _init(self, frame: torch.Tensor, boxes: torch.Tensor | None) -> TrackState:
@@ -297,27 +297,20 @@ class FusedTracker(DetectorTracker):
         self._centre = (x + w / 2, y + h / 2)
         self.history = []
         if self.fused_config.cotrain_weight > 0:
-            region = region_around(
-                self._centre, self._size, self.fused_config.search_scale, self.frame_size
-            )
-            if region is None:
-                raise ConfigError(f"init box {st.box[0].tolist()} leaves no region to learn from")
-            self.trainer.init(frame, (x, y, w, h), region, self.generator)
+            self.cue.init(frame, (x, y, w, h), self.frame_size, self.generator)
         return st
 
     def _update(self, frame: torch.Tensor) -> TrackState:
         cfg = self.fused_config
-        maps = None
         if cfg.cotrain_weight > 0:
-            region = region_around(self._centre, self._size, cfg.search_scale, self.frame_size)
-            maps = self.trainer.score(frame, region) if region is not None else None
+            self.cue.score(frame, self._centre, self._size, self.frame_size)
         hold: dict[str, torch.Tensor] = {}
 
         def log_likelihood(states: torch.Tensor) -> torch.Tensor:
             p = None
             if cfg.det_weight > 0:
                 p, hold["p"] = self.detector_term(frame, states)
-            lc = self.cotrain_term(maps, states) if cfg.cotrain_weight > 0 else None
+            lc = self.cotrain_term(states) if cfg.cotrain_weight > 0 else None
             zeros = torch.zeros(states.shape[:2], dtype=torch.float64)
             return fused_log_weights(
                 p if p is not None else zeros,
@@ -343,19 +336,14 @@ class FusedTracker(DetectorTracker):
         self._size = (max(w, 1.0), max(h, 1.0))
         self._centre = (min(max(x + w / 2, 0.0), ww - 1.0), min(max(y + h / 2, 0.0), hh - 1.0))
         evidence = hold["p"].mean(1).to(torch.float64) if "p" in hold else torch.ones(1)
-        blob = None
-        accepted = False
-        if maps is not None:
-            blob = self.trainer.locate(maps)
-            if blob is not None:
-                accepted = self.trainer.update(maps, blob, self.generator)
+        blob, accepted = self.cue.update(self.generator) if cfg.cotrain_weight > 0 else (0, 0)
         visible = True
         if cfg.det_weight > 0:
             visible = visible and bool(evidence[0] >= cfg.visible_threshold)
         if cfg.cotrain_weight > 0:
-            visible = visible and blob is not None
+            visible = visible and blob
         self.history.append(
-            {"p_mean": float(evidence[0]), "blob": blob is not None, "accepted": accepted}
+            {"p_mean": float(evidence[0]), "blob": bool(blob), "accepted": accepted}
         )
         return TrackState(
             box=box.to(torch.float64),
