@@ -526,6 +526,7 @@ def bench_sequence(spec: SeqSpec, args, tt, cache, results, has_mot, has_dets):
                 Row(name, key, label, note="not available in this version", available=False)
             )
             continue
+        out.parent.mkdir(parents=True, exist_ok=True)  # the CLI refuses a missing folder
         wall, tail = run_cli(cmd, args.cli_repeats)
         m = score_sequence(seq, out).to_dict()
         note = f"whole command {1000 * wall / seq.n_frames:.0f} ms/frame wall; CLI: {tail}"

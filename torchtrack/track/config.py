@@ -184,7 +184,10 @@ class MultiTrackerConfig:
             between it and ``birth_threshold`` only extend existing targets (ByteTrack's
             second association, made meaningful by calibration).
         birth_threshold: detections at least this confident start targets and take part in the
-            first association.
+            first association (the model's own scans: its calibrated probability on crops
+            under-states how rare a person-like window is in a whole frame, hence 0.9999).
+        external_birth_threshold: the same for detections given from outside (``--detections``:
+            another detector's scores, mapped to [0, 1]).
         confirm_hits: a new target is reported once it was matched on this many scans in a row
             (counting the one that started it); a miss before that ends it.
         max_lost: a target unmatched for more than this many frames ends.
@@ -242,6 +245,7 @@ class MultiTrackerConfig:
     scan_nms: float = 0.4
     detection_threshold: float = 0.5
     birth_threshold: float = 0.9999
+    external_birth_threshold: float = 0.9
     confirm_hits: int = 2
     max_lost: int = 30
     max_coast: int = 10
@@ -276,6 +280,7 @@ class MultiTrackerConfig:
             self,
             "detection_threshold",
             "birth_threshold",
+            "external_birth_threshold",
             "visible_threshold",
             "overlap_gate",
             "appearance_rate",
@@ -285,6 +290,11 @@ class MultiTrackerConfig:
             "scan_stride",
             "birth_overlap",
         )
+        if self.external_birth_threshold < self.detection_threshold:
+            raise ConfigError(
+                f"external_birth_threshold ({self.external_birth_threshold}) must be >= "
+                f"detection_threshold ({self.detection_threshold})"
+            )
         if self.birth_threshold < self.detection_threshold:
             raise ConfigError(
                 f"birth_threshold ({self.birth_threshold}) must be >= detection_threshold "

@@ -405,7 +405,7 @@ class MultiTargetTracker:
 
             app = bhattacharyya(self.hist[:, None, :], det_hist[None, :, :]).to(torch.float64)
         matched = torch.full((t,), -1, dtype=torch.int64)
-        high = det_p >= cfg.birth_threshold
+        high = det_p >= self._birth_threshold()
         conf_rows = torch.nonzero(self.confirmed).flatten()
         tent_rows = torch.nonzero(~self.confirmed).flatten()
         free_det = torch.ones(det_boxes.shape[0], dtype=torch.bool)
@@ -530,7 +530,7 @@ class MultiTargetTracker:
             rows = torch.nonzero(hit).flatten()
             if rows.numel():
                 boxes = det_boxes[matched[rows]]
-                ok = det_p[matched[rows]] >= cfg.birth_threshold
+                ok = det_p[matched[rows]] >= self._birth_threshold()
                 if rows.numel() > 1:  # no update while another target overlaps (occlusion)
                     from torchtrack.boxes import box_iou_matrix
 
@@ -551,7 +551,7 @@ class MultiTargetTracker:
         bin_map: torch.Tensor | None,
     ) -> None:
         cfg = self.config
-        cand = [j for j in free if float(det_p[j]) >= cfg.birth_threshold]
+        cand = [j for j in free if float(det_p[j]) >= self._birth_threshold()]
         if not cand:
             return
         boxes = det_boxes[cand]
@@ -651,6 +651,16 @@ class MultiTargetTracker:
             self.stats["ended: duplicate"] += int(dup.sum())
             self.stats["ended: tentative"] += int((~keep & ~self.confirmed).sum())
             self._keep(keep)
+
+    def _birth_threshold(self) -> float:
+        """``birth_threshold`` for the model's own scans; ``external_birth_threshold`` once
+        detections come from outside (another detector's scores, on another scale)."""
+        cfg = self.config
+        return (
+            cfg.external_birth_threshold
+            if getattr(self, "_external", False)
+            else cfg.birth_threshold
+        )
 
     def _duplicates(self) -> torch.Tensor:
         """``(T,)`` bool: confirmed targets that sit on another confirmed target (estimated
