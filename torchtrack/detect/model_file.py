@@ -354,51 +354,15 @@ def _section(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.T
     return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
 
 
-def _build_v1(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
-    """A :class:`Detector` from a validated version-1 description and its checked tensors."""
+def _build(meta: dict, bank: Any, tensors: dict[str, torch.Tensor]) -> Detector:
+    """A :class:`Detector` of ``bank`` from a validated description and its checked tensors."""
     from torchtrack.learn import calibrator_from_state, classifier_from_state
 
-    meta = desc.meta
-    bank = HaarBank.from_dict(meta["bank"])
     clf = classifier_from_state(_section(tensors, "classifier."), meta["classifier"])
     cal = None
     if meta["calibration"] is not None:
         cal = calibrator_from_state(_section(tensors, "calibration."), meta["calibration"])
-    det = Detector(
-        bank,
-        tensors["features.index"],
-        clf,
-        cal,
-        name=meta["name"],
-        summary=meta["training"],
-        object_box=meta.get("object_box"),
-    )
-    if det.selected_features() != meta["selected_features"]:
-        raise ModelFormatError("selected feature descriptions disagree with the feature index")
-    return det
-
-
-def _tracking_head(meta: dict) -> tuple[int, Any] | None:
-    """``(n_trees, Platt calibrator)`` of a validated description's ``tracking_head``."""
-    from torchtrack.learn import calibrator_from_state
-
     head = meta.get("tracking_head")
-    if head is None:
-        return None
-    return int(head["trees"]), calibrator_from_state({}, head["calibration"])
-
-
-def _build_v2(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
-    """A :class:`Detector` from a validated version-2 description (any feature bank)."""
-    from torchtrack.learn import calibrator_from_state, classifier_from_state
-
-    meta = desc.meta
-    tables = {k: v for k, v in _section(tensors, "features.").items() if k != "index"}
-    bank = bank_from_dict(meta["features"], tables)
-    clf = classifier_from_state(_section(tensors, "classifier."), meta["classifier"])
-    cal = None
-    if meta["calibration"] is not None:
-        cal = calibrator_from_state(_section(tensors, "calibration."), meta["calibration"])
     det = Detector(
         bank,
         tensors["features.index"],
@@ -407,11 +371,26 @@ def _build_v2(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
         name=meta["name"],
         summary=meta["training"],
         object_box=meta.get("object_box"),
-        tracking_head=_tracking_head(meta),
+        tracking_head=(
+            None
+            if head is None
+            else (int(head["trees"]), calibrator_from_state({}, head["calibration"]))
+        ),
     )
     if isinstance(bank, HaarBank) and det.selected_features() != meta["selected_features"]:
         raise ModelFormatError("selected feature descriptions disagree with the feature index")
     return det
+
+
+def _build_v1(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
+    """Version 1: Chateau's grey Haar bank under ``bank``."""
+    return _build(desc.meta, HaarBank.from_dict(desc.meta["bank"]), tensors)
+
+
+def _build_v2(desc: Description, tensors: dict[str, torch.Tensor]) -> Detector:
+    """Version 2: any feature bank under ``features`` (tables in ``features.*`` tensors)."""
+    tables = {k: v for k, v in _section(tensors, "features.").items() if k != "index"}
+    return _build(desc.meta, bank_from_dict(desc.meta["features"], tables), tensors)
 
 
 #: format version -> builder(description, tensors) -> Detector

@@ -44,9 +44,10 @@ from torch.nn import functional as F
 from torchtrack.detect.config import TrainConfig, read_name_list
 from torchtrack.detect.detector import Detector
 from torchtrack.detect.evaluate import detection_rate_at_fpr, roc_auc
+from torchtrack.detect.training import _image_paths
 from torchtrack.errors import ConfigError, DataError, TrainingWarning
 from torchtrack.features.channels import ChannelBank, channel_bank, window_features
-from torchtrack.io.crops import CropSet, list_image_files, load_crops, load_images, sample_boxes
+from torchtrack.io.crops import CropSet, load_crops, load_images, sample_boxes
 
 __all__ = ["WindowSet", "channel_window_features", "mine_windows", "train_channel_detector"]
 
@@ -229,18 +230,8 @@ def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelDat
     images: list[torch.Tensor] = []
     sources: list[str] = []
     if d.negative_images:
-        paths: list[Path] = []
-        for e in d.negative_images:
-            p = Path(e)
-            if p.is_dir():
-                files, sk = list_image_files(p)
-                skipped += sk
-                paths += [f for f in files if f.name not in exclude]
-            elif p.is_file():
-                if p.name not in exclude:
-                    paths.append(p)
-            else:
-                raise DataError(f"negative image path {e!r} does not exist")
+        paths, sk = _image_paths(d.negative_images, exclude)
+        skipped += sk
         if not paths:
             raise DataError(f"no negative images found in {d.negative_images}")
         arrs, sources, sk = load_images(paths, strict=d.strict, colour=colour)
