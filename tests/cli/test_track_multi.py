@@ -85,13 +85,13 @@ def test_raw_scores_and_calibrated_scores(clip, dets, tmp_path):
     from torchtrack.learn import PlattCalibrator, calibrator_to_dict
 
     s = torch.tensor([10.0, 20.0, 50.0, 60.0, 80.0, 90.0], dtype=torch.float64)
-    cal = PlattCalibrator().fit(s, torch.tensor([0, 0, 0, 1, 1, 1]))
+    cal = PlattCalibrator().fit(s, torch.tensor([0, 0, 0, 0, 1, 1]))
     js = tmp_path / "cal.json"
     js.write_text(json.dumps(calibrator_to_dict(cal)))
-    assert float(cal.predict_proba(torch.tensor([55.0], dtype=torch.float64))) < 0.9
+    assert float(cal.predict_proba(torch.tensor([55.0], dtype=torch.float64))) < 0.5
     args = ["track", str(clip), "--detections", str(raw), "--mot", str(out), "-q"]
     assert main([*args, "--det-calibration", str(js)]) == 0
-    assert out.read_text() == ""  # p(55) is below the birth threshold: nobody starts
+    assert out.read_text() == ""  # p(55) is below external_birth_threshold: nobody starts
     js.write_text("{}")
     assert main([*args, "--det-calibration", str(js)]) == 1
 

@@ -95,7 +95,7 @@ def test_target_walking_out_of_the_frame_is_ended_not_reported_outside():
 
 
 def test_low_probability_detections_extend_but_never_start_targets():
-    mt = make(detection_threshold=0.3, birth_threshold=0.8)
+    mt = make(detection_threshold=0.3, birth_threshold=0.8, external_birth_threshold=0.8)
     for t in range(5):
         out = mt.update(blank(), (people(t), torch.full((3,), 0.5)))
     assert mt.n_targets == 0 and len(out) == 0

@@ -243,9 +243,9 @@ class MultiTrackerConfig:
     scan_scale_step: float = 1.15
     scan_stride: float = 0.08
     scan_nms: float = 0.4
-    detection_threshold: float = 0.5
+    detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
-    external_birth_threshold: float = 0.9
+    external_birth_threshold: float = 0.5
     confirm_hits: int = 2
     max_lost: int = 30
     max_coast: int = 10

@@ -209,6 +209,7 @@ class MultiTargetTracker:
             min_scale=cfg.scan_min_scale,
             max_scale=cfg.scan_max_scale or None,
             nms_iou=cfg.scan_nms,
+            nms_on="object",  # as Detector.scan: window margins must not merge neighbours
         )
         return self.detector.window_to_object(wins.double()), p.double()
 
