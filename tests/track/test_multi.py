@@ -127,6 +127,19 @@ def test_same_seed_same_tracks():
         assert torch.equal(a, b)
 
 
+def test_reset_forgets_outside_detections():
+    """After a video tracked on outside detections, reset() scans the next video again."""
+    mt = make()
+    calls = []
+    mt.detect = lambda frame: calls.append(1) or (torch.zeros((0, 4)), torch.zeros(0))
+    mt.update(blank(), (people(0), torch.ones(3)))
+    mt.update(blank())
+    assert calls == []  # outside detections given: no scan
+    mt.reset()
+    mt.update(blank())
+    assert calls == [1]
+
+
 @pytest.mark.parametrize(
     "kw, match",
     [

@@ -575,9 +575,10 @@ def train_channel_detector(
     # the tracking head: the first trees, calibrated on the same held-out windows
     head = None
     head_summary: dict[str, Any] = {}
-    staged = torch.cat(
-        (clf.staged_decision_function(xp), clf.staged_decision_function(xn))
-    ).double()
+    # running margins of the held-out windows, (n, R): the head's and the cascade's statistics
+    staged_p = clf.staged_decision_function(xp)
+    staged_n = clf.staged_decision_function(xn)
+    staged = torch.cat((staged_p, staged_n)).double()
     for k in sorted({32, 64, 128, 256, int(lr.tracking_trees)} - {0}):
         if k > staged.shape[1]:
             continue
@@ -619,8 +620,6 @@ def train_channel_detector(
                 {"min_margin": m_cut, "positives_kept": int(ok.sum()), "positives": int(mp.numel())}
             )
     # share of held-out positives and negatives the cascade stops before the last tree
-    staged_p = clf.staged_decision_function(xp)
-    staged_n = clf.staged_decision_function(xn)
     rej = clf.reject_.to(staged_p.dtype)
     cascade["held_out_positives_rejected"] = float((staged_p < rej).any(1).double().mean())
     cascade["held_out_negatives_rejected"] = float((staged_n < rej).any(1).double().mean())

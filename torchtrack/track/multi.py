@@ -140,6 +140,7 @@ class MultiTargetTracker:
         n = self.config.n_particles
         self.frame_index = -1
         self.frame_size: tuple[int, int] | None = None
+        self._external = False  # detections come from outside (no scan, their own thresholds)
         self.states = torch.zeros((0, n, 6), dtype=f64)
         self.log_weights = torch.zeros((0, n), dtype=f64)
         self.ref = torch.zeros((0, 2), dtype=f64)  # reference window (w, h) at s = 1
@@ -240,7 +241,7 @@ class MultiTargetTracker:
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
             self._external = True
-        elif not getattr(self, "_external", False) and t % cfg.scan_every == 0:
+        elif not self._external and t % cfg.scan_every == 0:
             det_boxes, det_p = self.detect(frame)
         else:
             det_boxes = det_p = None
@@ -657,11 +658,7 @@ class MultiTargetTracker:
         """``birth_threshold`` for the model's own scans; ``external_birth_threshold`` once
         detections come from outside (another detector's scores, on another scale)."""
         cfg = self.config
-        return (
-            cfg.external_birth_threshold
-            if getattr(self, "_external", False)
-            else cfg.birth_threshold
-        )
+        return cfg.external_birth_threshold if self._external else cfg.birth_threshold
 
     def _duplicates(self) -> torch.Tensor:
         """``(T,)`` bool: confirmed targets that sit on another confirmed target (estimated
