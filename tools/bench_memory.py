@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # the checkout's torchtrack, also from a peers' environment
 DATA = Path(os.environ.get("TORCHTRACK_DATA", REPO.parent / "shared" / "data"))
 MARKS = (0.01, 0.10, 0.50, 1.00)
 
