@@ -898,26 +898,60 @@ def channel_features_at(
             # lattice point (i, j) of a box: (x + j cell sx, y + i cell sy) frame pixels, / 2^k
             gx = ((xs[..., None] + sxs[..., None] * lj) / f) * (2.0 / max(wk, 1)) - 1.0
             gy = ((ys[..., None] + sys_[..., None] * li) / f) * (2.0 / max(hk, 1)) - 1.0
+            # Sample points ordered (i, j, box), the box axis innermost: grid_sample's output
+            # (bb, C, Lh Lw nn) is then the lattice-major (bb, C Lh Lw, nn) with no copy, and
+            # every corner read of _combine_lattice_major is a contiguous row of nn values.
             grid = torch.stack(
                 (
-                    gx[:, :, None, :].expand(bb, nn, lh, lw),
-                    gy[:, :, :, None].expand(bb, nn, lh, lw),
+                    gx.transpose(1, 2)[:, None, :, :].expand(bb, lh, lw, nn),
+                    gy.transpose(1, 2)[:, :, None, :].expand(bb, lh, lw, nn),
                 ),
                 -1,
-            ).reshape(bb, nn * lh * lw, 1, 2)
+            ).reshape(bb, lh * lw * nn, 1, 2)
             vals = F.grid_sample(
                 tab, grid, mode="bilinear", padding_mode="border", align_corners=True
             )
-            vals = vals[..., 0].reshape(bb, -1, nn, lh * lw).transpose(1, 2).reshape(bb, nn, -1)
+            vals = vals.view(bb, -1, nn)  # (bb, C Lh Lw, nn)
             rx, ry = sxs / f, sys_ / f
             norm = 1.0 / (cell * cell * rx * ry)
             logr = 0.5 * torch.log(rx * ry)
-            feats = _combine(vals, pts, k, lw, lh * lw, norm, logr).to(torch.float32)
+            feats = _combine_lattice_major(vals, pts, k, lw, lh * lw, norm, logr)
+            feats = feats.to(torch.float32)
             if isinstance(sel, slice):
                 out[fs] = feats
             else:
                 out[fs.start, sel] = feats[0]
     return out.to(torch.float32)
+
+
+def _combine_lattice_major(
+    vals: torch.Tensor,
+    pts: _Points,
+    k: int,
+    lattice_w: int,
+    lattice_hw: int,
+    norm: torch.Tensor,
+    logr: torch.Tensor,
+) -> torch.Tensor:
+    """:func:`_combine` of lattices stored lattice-major, ``vals (B, C * Lh * Lw, N)``: the
+    same products and the same left-to-right sums over each feature's points, with every
+    read a whole row of N boxes (one ``index_select`` on the middle axis per group instead of
+    a gather along the last axis). Returns ``(B, N, K)`` float64 (a transposed view)."""
+    b, _, n = vals.shape
+    out = torch.empty((b, k, n), dtype=torch.float64, device=vals.device)
+    for sel, gc, gi, gj, coef in pts.groups:
+        flat = (gc * lattice_hw + gi * lattice_w + gj).reshape(-1)
+        kg, p = gi.shape
+        v = vals.index_select(1, flat).view(b, kg, p, n)
+        acc = v[:, :, 0] * coef[:, 0, None]
+        for q in range(1, p):
+            acc += v[:, :, q] * coef[:, q, None]
+        out[:, sel] = acc
+    # r ** lambda per box and feature: lambda takes a few values (one per channel type), so
+    # exponentiate each once per box and spread (the same products, the same exp inputs).
+    lam_u, inv = torch.unique(pts.lam, return_inverse=True)
+    power = torch.exp(lam_u[:, None] * logr[:, None, :]).index_select(1, inv)  # (B, K, N)
+    return (out * (norm[:, None, :] * power)).transpose(1, 2)
 
 
 def window_features(
