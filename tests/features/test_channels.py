@@ -252,9 +252,13 @@ def test_errors():
         channel_features_at(ints, torch.zeros(1, 1, 4) + 4, other)
 
 
-def test_many_boxes_of_mixed_levels_equal_one_box_at_a_time():
-    """The lattice-major reads of many boxes at once (boxes on the innermost axis) give
-    exactly the values of each box read alone."""
+@pytest.mark.parametrize("chunk", [256, 5])
+def test_many_boxes_of_mixed_levels_equal_one_box_at_a_time(chunk, monkeypatch):
+    """The lattice-major reads of many boxes at once (boxes on the innermost axis, in blocks
+    of ``_BOX_CHUNK``) give exactly the values of each box read alone."""
+    import torchtrack.features.channels as channels_mod
+
+    monkeypatch.setattr(channels_mod, "_BOX_CHUNK", chunk)
     x = frames(1, h=90, w=120)
     bank = small_bank()
     g = torch.Generator().manual_seed(2)
