@@ -227,6 +227,10 @@ def main() -> None:
     cmd = "python tools/bench_uiuc.py " + " ".join(sys.argv[1:])
     mpath = resolve_model(args.model)
     summ = det.summary.get("held_out", {})
+    casc = (det.summary or {}).get("cascade", {})
+    cascade_note = (
+        f"; soft cascade {casc['method']} at {casc['threshold']:.3g}" if "threshold" in casc else ""
+    )
     lines = [
         "# UIUC cars: recall at equal error rate",
         "",
@@ -234,7 +238,7 @@ def main() -> None:
         "",
         f"Model: `{args.model}` ({mpath.name}; {det.feature_index.numel()} "
         f"{type(det.bank).__name__} features, {type(det.classifier).__name__}; held-out crop AUC "
-        f"{summ.get('auc', float('nan')):.4f}). "
+        f"{summ.get('auc', float('nan')):.4f}{cascade_note}). "
         f"Scan: stride {args.stride} x window, NMS IoU {args.nms_iou}, windows with calibrated "
         f"P >= {args.min_prob}; multi-scale from width {args.min_width:g} px, ratio "
         f"{args.scale_step}. Criterion: `CarData/README.txt` (ellipse with semi-axes 25% of the "

@@ -14,6 +14,7 @@ from torchtrack.detect import load_detector, save_detector
 from torchtrack.detect.config import TrainConfig
 from torchtrack.detect.model_file import read_model_metadata
 from torchtrack.detect.scan import scan_batch, scan_window_count
+from torchtrack.detect.train_channels import held_out_cascade_threshold
 from torchtrack.detect.training import train_detector
 from torchtrack.errors import ConfigError, DataError, ModelFormatError, TrainingWarning
 from torchtrack.io.video import read_image
@@ -46,6 +47,7 @@ def small_config(root) -> TrainConfig:
     cfg.mining.scale_step = 1.3
     cfg.mining.stride = 0.125
     cfg.mining.target_fpr = 0.5
+    cfg.learn.cascade = "held-out"
     return cfg.validate()
 
 
@@ -82,8 +84,10 @@ def test_training_summary_and_model_file(trained, frame):
     assert s["rounds"][0]["trees"] == 32 and s["rounds"][1]["trees"] == 24  # max(32, ...), final
     assert s["held_out"]["auc"] > 0.9
     assert s["features"]["used"] == len(det.bank) <= s["features"]["pool"] == 400
-    assert s["cascade"]["method"] == "constant"
-    assert bool((det.classifier.reject_ == -1.0).all())
+    c = s["cascade"]
+    assert c["method"] == "held-out" and c["upper"] == -1.0 and c["threshold"] <= -1.0
+    assert bool((det.classifier.reject_ == torch.tensor(c["threshold"], dtype=torch.float32)).all())
+    assert c.get("held_out_confident_positives_rejected", 0.0) <= 0.01
     assert det.object_box == (0.25, 0.125, 0.5, 0.75)
     meta = read_model_metadata(path)
     assert meta["format_version"] == 2 and meta["features"]["kind"] == "channels"
@@ -300,3 +304,19 @@ def test_tracking_head_scores_with_its_first_trees(folders, frame, tmp_path, for
         bad = forge_model(path, tmp_path / "bad.safetensors", meta_edit=edit)
         with pytest.raises(ModelFormatError, match=match):
             load_detector(bad)
+
+
+def test_held_out_cascade_threshold_keeps_all_but_the_miss_share_of_confident_positives():
+    g = torch.Generator().manual_seed(0)
+    staged = torch.randn(500, 40, generator=g).cumsum(1)  # running margins after each tree
+    prob = torch.rand(500, generator=g)
+    theta = held_out_cascade_threshold(staged, prob, probability=0.5, miss=0.01, upper=10.0)
+    low = staged[prob >= 0.5].min(1).values
+    rejected = float((low < theta).double().mean())
+    assert 0.005 < rejected <= 0.01  # at most the miss share, and not needlessly fewer
+    # never above the upper bound; miss 0 keeps every confident positive
+    assert held_out_cascade_threshold(staged, prob, probability=0.5, miss=0.01, upper=-50) == -50
+    t0 = held_out_cascade_threshold(staged, prob, probability=0.5, miss=0.0, upper=10.0)
+    assert bool((low >= t0).all()) and float(low.min()) - t0 < 1e-3
+    # no positive reaches the probability: the upper bound
+    assert held_out_cascade_threshold(staged, prob, probability=1.1, miss=0.01, upper=-1) == -1

@@ -153,21 +153,30 @@ class LearnConfig:
         feature_fraction, weight_trimming: share of the pool searched per tree, and share of
             the weight left out of the split search (see :class:`torchtrack.learn.BoostedTrees`).
         cascade: the soft cascade stored in the model (used by scans; scoring boxes always
-            evaluates every tree): ``"constant"`` (Dollár's constant soft cascade: a window is
-            dropped as soon as its running margin falls below ``cascade_threshold``; ACF uses
-            -1), ``"backward"`` (Bourdev & Brandt's direct backward pruning on the held-out
+            evaluates every tree): ``"constant"`` (default; Dollár's constant soft cascade at
+            ``cascade_threshold``: a window is dropped as soon as its running margin falls
+            below it; ACF uses -1), ``"held-out"`` (a constant soft cascade whose threshold is
+            set from the held-out positives: the highest value, at most
+            ``cascade_threshold``, that rejects at most ``cascade_miss`` of the held-out
+            positives whose calibrated probability reaches ``cascade_probability``; it can
+            land far lower than -1, and a lower threshold costs scan time and lets through
+            windows the full classifier wrongly accepts: docs/detectors.md),
+            ``"backward"`` (Bourdev & Brandt's direct backward pruning on the held-out
             positives, see ``cascade_probability``) or ``"none"``.
-        cascade_threshold: the constant cascade's threshold on the running margin.
+        cascade_threshold: the constant cascade's threshold on the running margin
+            (``"held-out"``: its upper bound).
         tracking_trees: trees of the model's tracking head (:attr:`Detector.tracking_head`):
             the first ``tracking_trees`` trees with a Platt calibration of their own, fitted on
             the same held-out windows; the particle-filter trackers score windows with it
             (0, or at least ``n_trees``: no head, trackers use the whole classifier).
-        cascade_probability, cascade_miss: backward pruning: the rejection threshold after
-            each tree is the ``cascade_miss`` quantile of the running margins of the held-out
-            positives whose calibrated probability reaches ``cascade_probability``
-            (``cascade_miss = 0``: none of them is ever rejected). Held-out crops are cleaner
-            than objects in real scenes, so these thresholds reject more real objects than the
-            constant cascade (docs/benchmarks/uiuc.md).
+        cascade_probability, cascade_miss: the held-out positives a cascade must keep:
+            those whose calibrated probability reaches ``cascade_probability``, all but a
+            ``cascade_miss`` share of them (``"held-out"``: the constant threshold is the
+            ``cascade_miss`` quantile of their lowest running margins; ``"backward"``: the
+            threshold after each tree is the ``cascade_miss`` quantile of their running margins
+            after that tree; ``cascade_miss = 0``: none of them is ever rejected). Held-out
+            crops are cleaner than objects in real scenes, so per-tree backward thresholds
+            reject more real objects than one constant threshold (docs/benchmarks/uiuc.md).
         svm_kernel, svm_c: SVM kernel (``"rbf"`` / ``"linear"``) and C.
         calibration: ``"platt"`` (paper eq. 5-8) or ``"isotonic"``.
         calibration_fraction: share of the training crops held out for calibration (paper: 0.3).
@@ -338,9 +347,10 @@ class TrainConfig:
             raise ConfigError(
                 f"learn.weight_trimming must be in [0, 1), got {lr.weight_trimming!r}"
             )
-        if lr.cascade not in ("constant", "backward", "none"):
+        if lr.cascade not in ("held-out", "constant", "backward", "none"):
             raise ConfigError(
-                f"learn.cascade must be 'constant', 'backward' or 'none', got {lr.cascade!r}"
+                "learn.cascade must be 'held-out', 'constant', 'backward' or 'none', "
+                f"got {lr.cascade!r}"
             )
         if isinstance(lr.tracking_trees, bool) or not (
             isinstance(lr.tracking_trees, int) and lr.tracking_trees >= 0

@@ -230,8 +230,9 @@ def _scan_lattice(
         def read(
             rows: torch.Tensor, f: torch.Tensor, base=base, off=off, factor=factor, values=values
         ):
-            idx = base[rows][:, None, None] + off[f]  # (A, T, P)
-            v = (values[idx] * coef[f]).sum(-1)
+            # f: (A, T) per window, or (T,) shared by every window (broadcast tables)
+            idx = base[rows][:, None, None] + (off[f] if f.ndim == 2 else off[f][None])
+            v = (values[idx] * coef[f]).sum(-1)  # (A, T, P) -> (A, T)
             return (v * factor[f]).to(torch.float32)
 
         total = nb * m

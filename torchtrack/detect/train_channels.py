@@ -23,9 +23,10 @@ Steps of :func:`train_channel_detector`:
    (Dollár's schedule 32, 128, 512, 2048 for ``R = 3``); after each round but the last, scan
    the training negative images with the constant soft cascade ``mining.margin`` and add the
    windows that score at least ``mining.margin`` (see :class:`~torchtrack.detect.config.MiningConfig`).
-4. Calibrate (Platt or isotonic) on the held-out windows; set the soft cascade by direct
-   backward pruning on the held-out positives (``learn.cascade_probability``); keep only the
-   features the trees use.
+4. Calibrate (Platt or isotonic) on the held-out windows; set the soft cascade from the
+   held-out positives (``learn.cascade``: by default one constant threshold that keeps all but
+   ``learn.cascade_miss`` of the positives the calibration finds, see
+   :func:`held_out_cascade_threshold`); keep only the features the trees use.
 """
 
 from __future__ import annotations
@@ -264,6 +265,35 @@ def _split_groups(keys: list[str], fraction: float, gen: torch.Generator) -> set
 def _stage_trees(cfg: TrainConfig, r: int) -> int:
     rounds = cfg.mining.rounds
     return max(32, cfg.learn.n_trees // 4 ** (rounds - r)) if r < rounds else cfg.learn.n_trees
+
+
+def held_out_cascade_threshold(
+    staged_pos: torch.Tensor,
+    prob_pos: torch.Tensor,
+    *,
+    probability: float,
+    miss: float,
+    upper: float,
+) -> float:
+    """The constant soft-cascade threshold set from held-out positives (``learn.cascade =
+    "held-out"``): the ``miss`` quantile of the lowest running margins of the positives whose
+    calibrated probability reaches ``probability``, a hair below it so that at most that share
+    of them is rejected, and never above ``upper``.
+
+    Args:
+        staged_pos: ``(n, R)`` running margins of the held-out positives after each tree.
+        prob_pos: ``(n,)`` their calibrated probabilities (of the full margin).
+
+    Returns:
+        The threshold (``upper`` when no positive reaches ``probability``).
+    """
+    keep = torch.as_tensor(prob_pos).reshape(-1) >= float(probability)
+    if not bool(keep.any()):
+        return float(upper)
+    low = staged_pos[keep].to(torch.float64).min(1).values
+    q = torch.quantile(low, float(miss), interpolation="lower") if miss > 0 else low.min()
+    q = float(q)
+    return min(float(upper), q - 1e-5 * (1.0 + abs(q)))
 
 
 def mine_windows(
@@ -608,6 +638,23 @@ def train_channel_detector(
     if lr.cascade == "constant":
         clf.reject_ = torch.full_like(clf.reject_, float(lr.cascade_threshold))
         cascade["threshold"] = float(lr.cascade_threshold)
+    elif lr.cascade == "held-out":
+        theta = held_out_cascade_threshold(
+            staged_p,
+            calibrator.predict_proba(m_ca[: xp.shape[0]]),
+            probability=float(lr.cascade_probability),
+            miss=float(lr.cascade_miss),
+            upper=float(lr.cascade_threshold),
+        )
+        clf.reject_ = torch.full_like(clf.reject_, theta)
+        cascade.update(
+            {
+                "threshold": theta,
+                "upper": float(lr.cascade_threshold),
+                "probability": float(lr.cascade_probability),
+                "miss": float(lr.cascade_miss),
+            }
+        )
     elif lr.cascade == "backward" and lr.cascade_probability > 0:
         c = float(lr.cascade_probability)
         cascade.update({"probability": c, "miss": float(lr.cascade_miss)})
@@ -622,6 +669,11 @@ def train_channel_detector(
     # share of held-out positives and negatives the cascade stops before the last tree
     rej = clf.reject_.to(staged_p.dtype)
     cascade["held_out_positives_rejected"] = float((staged_p < rej).any(1).double().mean())
+    confident = calibrator.predict_proba(m_ca[: xp.shape[0]]) >= float(lr.cascade_probability)
+    if bool(confident.any()):
+        cascade["held_out_confident_positives_rejected"] = float(
+            (staged_p[confident] < rej).any(1).double().mean()
+        )
     cascade["held_out_negatives_rejected"] = float((staged_n < rej).any(1).double().mean())
     log(
         f"held-out: detection rate {dr:.3f} at 1% FPR, AUC {auc:.4f}; {lr.calibration} NLL "

@@ -542,8 +542,11 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         """Soft-cascade evaluation of ``n`` windows whose features are read on demand.
 
         Args:
-            read: ``read(rows (A,), feats (A, T)) -> (A, T)`` raw feature values of windows
-                ``rows`` (one feature per window and tree).
+            read: ``read(rows (A,), feats) -> (A, T)`` raw feature values of windows ``rows``,
+                one feature per window and tree: ``feats`` is ``(A, T)``, or ``(T,)`` when
+                every window reads the same feature of a tree (the root, and both children of
+                the root of depth-2 trees, read for every window and then selected: no
+                per-window index tables on the scan's hottest path).
             n: number of windows.
             reject: use the rejection thresholds (False: every window gets every tree).
             stages: trees evaluated per step while windows remain: the first step evaluates
@@ -567,12 +570,17 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         while t0 < r_tot and alive.numel():
             t1 = min(r_tot, t0 + stages[min(si, len(stages) - 1)])
             si += 1
-            a = alive.numel()
             tf, tt, tl = feat[t0:t1], thr[t0:t1], leaf[t0:t1]
             nt = t1 - t0
-            node = torch.zeros((a, nt), dtype=torch.long, device=dev)
             cols = torch.arange(nt, device=dev)
-            for _ in range(int(self.max_depth)):
+            # root: one feature per tree, shared by every window
+            node = 1 + (read(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
+            if self.max_depth >= 2:
+                # both children of the root read for every window, then selected
+                right_l = read(alive, tf[:, 1]) >= tt[:, 1]
+                right_r = read(alive, tf[:, 2]) >= tt[:, 2]
+                node = node * 2 + 1 + torch.where(node == 1, right_l, right_r).long()
+            for _ in range(2, int(self.max_depth)):
                 f = tf[cols, node]  # (A, T)
                 v = read(alive, f)
                 node = node * 2 + 1 + (v >= tt[cols, node]).long()
