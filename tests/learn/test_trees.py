@@ -187,7 +187,8 @@ def test_truncated_trees_are_the_running_margin():
             clf.truncated(bad)
 
 
-def test_tree_outputs_equal_a_node_by_node_descent_in_row_blocks(monkeypatch):
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_tree_outputs_equal_a_node_by_node_descent_in_row_blocks(depth, monkeypatch):
     """The batched descent (rows in blocks, all split tests at once) gives exactly the leaves
     of a per-sample walk down each tree, ties (value == threshold goes right) included."""
     import torchtrack.learn.trees as trees_mod
@@ -195,7 +196,7 @@ def test_tree_outputs_equal_a_node_by_node_descent_in_row_blocks(monkeypatch):
     g = torch.Generator().manual_seed(0)
     x = torch.randint(0, 5, (300, 6), generator=g).to(torch.float32)
     y = (x[:, 0] + x[:, 3] > 4).long()
-    clf = BoostedTrees(n_estimators=7, max_depth=3).fit(x, y)
+    clf = BoostedTrees(n_estimators=7, max_depth=depth).fit(x, y)
     monkeypatch.setattr(trees_mod, "_ROW_CHUNK", 64)  # several blocks and a ragged last one
     got = clf._tree_outputs(x.view(3, 100, 6))
     r, n_int = clf.feature_.shape

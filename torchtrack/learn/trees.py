@@ -445,10 +445,18 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
             xt = x2[s : s + _ROW_CHUNK].T.contiguous()  # (T, c)
             c = xt.shape[1]
             test = (xt.index_select(0, feat) >= thr).view(r, n_int, c)
-            node = torch.zeros((r, 1, c), dtype=torch.long, device=dev)
-            for _ in range(int(self.max_depth)):
-                node = node * 2 + 1 + test.gather(1, node).long()
-            vals = leaf_flat.index_select(0, (base + node[:, 0]).reshape(-1)).view(r, c)
+            depth = int(self.max_depth)
+            if depth == 0:
+                node = torch.zeros((r, c), dtype=torch.long, device=dev)
+            else:  # the root's test and (depth >= 2) its children's, selected without gathers
+                right = test[:, 0]
+                node = right.long() + 1  # (R, c) in {1, 2}
+                if depth >= 2:
+                    below = torch.where(right, test[:, 2], test[:, 1])
+                    node = node * 2 + 1 + below.long()
+                for _ in range(2, depth):
+                    node = node * 2 + 1 + test.gather(1, node[:, None])[:, 0].long()
+            vals = leaf_flat.index_select(0, (base + node).reshape(-1)).view(r, c)
             out[s : s + c] = vals.T
         return out.view(*X.shape[:-1], r)
 
