@@ -42,8 +42,10 @@ sys.path.insert(0, str(REPO))
 from torchtrack.filter import KleinAR, sir_step, uniform_log_weights  # noqa: E402
 from torchtrack.filter.resample import RESAMPLERS  # noqa: E402
 from torchtrack.io.atomic import write_text_atomic  # noqa: E402
+from torchtrack.observe.haar_box import HaarBoxFeatures, HaarBoxLikelihood  # noqa: E402
 
 SCHEMES = ["systematic", "stratified", "residual", "multinomial"]
+NOTES_MARKER = "<!-- notes: kept by tools/bench_filter.py -->"
 DATA = REPO.parent / "shared" / "data" / "tracking" / "bobot_pedestrian"
 
 
@@ -120,69 +122,14 @@ def bench_resampling(ns: list[int], reps_for) -> list[dict]:
 # --------------------------------------------------------------------------------------------
 # Haar-like likelihood on an integral image
 # --------------------------------------------------------------------------------------------
-class HaarLikelihood:
-    """``log sigmoid(alpha . f / area + bias)`` over F two-rectangle features, F/2 horizontal
-    (rectangles side by side) and F/2 vertical, each read with 6 integral-image lookups.
-
-    ``ii (H + 1, W + 1)`` float64 integral image of one frame shared by all B targets; states
-    go through ``motion.to_boxes``; particles are processed in chunks of ``chunk`` to bound
-    memory (so memory stays linear in B * N).
-    """
-
-    def __init__(self, ii: torch.Tensor, motion, n_features=32, chunk=1 << 15, seed=0):
-        g = torch.Generator().manual_seed(seed)
-        self.h1, self.w1 = ii.shape
-        # float32 table read (half the memory traffic of float64); exact enough here because
-        # the frame was mean-subtracted before integration (see _frame_and_box).
-        self.flat = ii.to(torch.float32).flatten().contiguous()
-        self.motion = motion
-        self.chunk = chunk
-        f = n_features // 2
-        # three sorted fractions along the split axis, two along the other one
-        self.a3 = torch.sort(torch.rand(f, 3, generator=g), 1).values
-        self.a2 = torch.sort(torch.rand(f, 2, generator=g), 1).values
-        self.alpha = torch.randn(n_features, generator=g) * 4
-        self.bias = 0.0
-        # left-minus-right rectangle on a 2 x 3 grid of corners: rows y0, y1; cols x0, x1, x2
-        self.coef = torch.tensor([1.0, -2.0, 1.0, -1.0, 2.0, -1.0])
-
-    def _features(self, boxes: torch.Tensor) -> torch.Tensor:
-        """``boxes (M, 4)`` float32 -> ``(M, F)`` area-normalised Haar responses.
-
-        Layout: the particle axis M is innermost everywhere (``(corner, feature, M)``), so
-        every broadcast and the final weighted sum run over long contiguous rows; indices are
-        int32 (half the memory traffic of int64).
-        """
-        x, y, w, h = (v.unsqueeze(0).unsqueeze(0) for v in boxes.T.contiguous())  # (1, 1, M)
-        wmax, hmax = self.w1 - 1, self.h1 - 1
-
-        def coords(o, s, frac, hi, scale=1):
-            c = (o + frac.T.contiguous().unsqueeze(2) * s).round_().clamp_(0, hi).to(torch.int32)
-            return c.mul_(scale) if scale != 1 else c
-
-        m = boxes.shape[0]
-        f = self.a3.shape[0]
-        # horizontal (left minus right): 3 x-coords x 2 y-coords per feature
-        hx = coords(x, w, self.a3, wmax)  # (3, f, M)
-        hy = coords(y, h, self.a2, hmax, self.w1)  # (2, f, M), already row offsets
-        idx = (hy.unsqueeze(1) + hx.unsqueeze(0)).reshape(-1)  # (2 y, 3 x, f, M)
-        fh = self.coef @ self.flat.index_select(0, idx).view(6, f * m)
-        # vertical (top minus bottom): 3 y-coords x 2 x-coords; same coefficient order
-        vy = coords(y, h, self.a3, hmax, self.w1)  # (3, f, M)
-        vx = coords(x, w, self.a2, wmax)  # (2, f, M)
-        idx = (vx.unsqueeze(1) + vy.unsqueeze(0)).reshape(-1)  # (2 x, 3 y, f, M)
-        fv = self.coef @ self.flat.index_select(0, idx).view(6, f * m)
-        area = (w * h).clamp_min(1.0).view(1, m)
-        return (torch.cat([fh.view(f, m), fv.view(f, m)], 0) / area).T  # (M, F)
-
-    def __call__(self, states: torch.Tensor) -> torch.Tensor:
-        b, m, _ = states.shape
-        boxes = self.motion.to_boxes(states).reshape(b * m, 4).to(torch.float32)
-        out = torch.empty(b * m, dtype=states.dtype)
-        for s in range(0, b * m, self.chunk):  # chunks over particles bound the workspace
-            f = self._features(boxes[s : s + self.chunk])
-            out[s : s + self.chunk] = torch.nn.functional.logsigmoid(f @ self.alpha + self.bias)
-        return out.view(b, m)
+def haar_likelihood(ii: torch.Tensor, motion, n_features=32, seed=0, compile=False):
+    """The library's :class:`~torchtrack.observe.haar_box.HaarBoxLikelihood`: ``log sigmoid(
+    alpha . f / area + bias)`` over F two-rectangle features, F/2 horizontal and F/2 vertical,
+    six integral-image reads each, at fractions drawn from a generator seeded ``seed``."""
+    g = torch.Generator().manual_seed(seed)
+    feats = HaarBoxFeatures.random(n_features, g)
+    alpha = torch.randn(n_features, generator=g) * 4
+    return HaarBoxLikelihood(ii, motion.to_boxes, feats, alpha, 0.0, compile=compile)
 
 
 def _frame_and_box():
@@ -198,37 +145,45 @@ def _frame_and_box():
     return ii, torch.tensor([[x1, y1, x2 - x1, y2 - y1]]), frame[0, 0]
 
 
-def check_haar(lik: HaarLikelihood, frame: torch.Tensor, n_boxes: int = 20) -> float:
-    """Max abs difference between ``lik._features`` and direct pixel sums (slow reference)."""
+def check_haar(
+    lik: HaarBoxLikelihood, frame: torch.Tensor, n_boxes: int = 20
+) -> tuple[float, float]:
+    """Max abs differences between the likelihood's features and direct pixel sums (slow
+    reference), and between its log-likelihood (eager or compiled, as configured) and
+    ``logsigmoid(alpha . f_ref + bias)``."""
     g = torch.Generator().manual_seed(1)
     h, w = frame.shape
-    err = 0.0
+    feats = lik.features
+    err = ll_err = 0.0
     for _ in range(n_boxes):
         bw, bh = (torch.rand(2, generator=g) * torch.tensor([w / 2, h / 2]) + 8).tolist()
         bx, by = (torch.rand(2, generator=g) * torch.tensor([w - bw, h - bh])).tolist()
         box = torch.tensor([[bx, by, bw, bh]], dtype=torch.float32)
-        got = lik._features(box)[0].double()
-        f = lik.a3.shape[0]
+        got = lik.features_of(box)[0].double()
         ref = []
-        for kind in ("h", "v"):
-            for i in range(f):
-                if kind == "h":
-                    xs = [min(max(round(bx + a * bw), 0), w) for a in lik.a3[i].tolist()]
-                    ys = [min(max(round(by + a * bh), 0), h) for a in lik.a2[i].tolist()]
-                    v = (
-                        frame[ys[0] : ys[1], xs[0] : xs[1]].sum()
-                        - frame[ys[0] : ys[1], xs[1] : xs[2]].sum()
-                    )
-                else:
-                    ys = [min(max(round(by + a * bh), 0), h) for a in lik.a3[i].tolist()]
-                    xs = [min(max(round(bx + a * bw), 0), w) for a in lik.a2[i].tolist()]
-                    v = (
-                        frame[ys[0] : ys[1], xs[0] : xs[1]].sum()
-                        - frame[ys[1] : ys[2], xs[0] : xs[1]].sum()
-                    )
-                ref.append(float(v) / max(bw * bh, 1.0))
-        err = max(err, (got - torch.tensor(ref, dtype=torch.float64)).abs().max().item())
-    return err
+        for i in range(len(feats)):
+            s3, s2 = feats.split[i].tolist(), feats.span[i].tolist()
+            if i < feats.n_horizontal:
+                xs = [min(max(round(bx + a * bw), 0), w) for a in s3]
+                ys = [min(max(round(by + a * bh), 0), h) for a in s2]
+                v = (
+                    frame[ys[0] : ys[1], xs[0] : xs[1]].sum()
+                    - frame[ys[0] : ys[1], xs[1] : xs[2]].sum()
+                )
+            else:
+                ys = [min(max(round(by + a * bh), 0), h) for a in s3]
+                xs = [min(max(round(bx + a * bw), 0), w) for a in s2]
+                v = (
+                    frame[ys[0] : ys[1], xs[0] : xs[1]].sum()
+                    - frame[ys[1] : ys[2], xs[0] : xs[1]].sum()
+                )
+            ref.append(float(v) / max(bw * bh, 1.0))
+        ref_t = torch.tensor(ref, dtype=torch.float64)
+        err = max(err, (got - ref_t).abs().max().item())
+        ll = lik.log_likelihood_of_boxes(box)[0].double()
+        ll_ref = torch.nn.functional.logsigmoid(ref_t @ lik.alpha.double() + lik.bias)
+        ll_err = max(ll_err, abs(ll.item() - ll_ref.item()))
+    return err, ll_err
 
 
 def _status_mib(key: str) -> float:
@@ -255,14 +210,18 @@ def _reset_peak_rss() -> bool:
         return False
 
 
-def sir_one(b: int, n: int, reps: int, threads: int) -> dict:
+def sir_one(b: int, n: int, reps: int, threads: int, compile: bool = False) -> dict:
     torch.set_num_threads(threads)
     ii, box, frame = _frame_and_box()
     motion = KleinAR()
-    lik = HaarLikelihood(ii, motion)
-    haar_err = check_haar(lik, frame)
-    if haar_err > 1e-3:
-        raise SystemExit(f"Haar features disagree with direct pixel sums: max error {haar_err}")
+    lik = haar_likelihood(ii, motion, compile=compile)
+    haar_err, ll_err = check_haar(lik, frame)
+    # float32 table reads: features to ~1e-4; the log-likelihood sums 32 of them times |alpha|
+    if haar_err > 1e-3 or ll_err > 1e-2:
+        raise SystemExit(
+            f"Haar likelihood disagrees with direct pixel sums: max feature error {haar_err}, "
+            f"max log-likelihood error {ll_err}"
+        )
     zero = lambda s: torch.zeros(s.shape[:2], dtype=s.dtype)  # noqa: E731
     g = torch.Generator().manual_seed(0)
     reset = _reset_peak_rss()
@@ -270,11 +229,12 @@ def sir_one(b: int, n: int, reps: int, threads: int) -> dict:
     x = motion.init(box.repeat(b, 1), n, g)
     lw = uniform_log_weights(x)
     r = sir_step(x, lw, motion, lik, generator=g)  # warm-up
-    t_step, t_lik, t_filter = [], [], []
+    t_step, t_lik, t_filter, c_step = [], [], [], []
     for _ in range(reps):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.thread_time()
         r = sir_step(r.states, r.log_weights, motion, lik, generator=g)
         t_step.append(time.perf_counter() - t)
+        c_step.append(time.thread_time() - c)
         t = time.perf_counter()
         lik(r.states)
         t_lik.append(time.perf_counter() - t)
@@ -285,27 +245,31 @@ def sir_one(b: int, n: int, reps: int, threads: int) -> dict:
         "B": b,
         "N": n,
         "threads": threads,
+        "path": "compiled" if lik.compile else "eager",
         "step_ms": statistics.median(t_step) * 1e3,
+        "step_cpu_ms": statistics.median(c_step) * 1e3,
         "likelihood_ms": statistics.median(t_lik) * 1e3,
         "filter_only_ms": statistics.median(t_filter) * 1e3,
         "rss_before_mib": rss0,
         "peak_rss_mib": _status_mib("VmHWM"),
         "reps": reps,
         "haar_max_err": haar_err,
+        "loglik_max_err": ll_err,
     }
 
 
-def bench_sir(runs: list[tuple[int, int, int, int]]) -> list[dict]:
-    """``runs``: (B, N, threads, repetitions), each in a fresh subprocess."""
+def bench_sir(runs: list[tuple[int, int, int, int, bool]]) -> list[dict]:
+    """``runs``: (B, N, threads, repetitions, compiled), each in a fresh subprocess."""
     rows = []
-    for b, n, threads, reps in runs:
+    for b, n, threads, reps, compiled in runs:
         cmd = [sys.executable, __file__, "--sir-one", str(b), str(n)]
         cmd += ["--reps", str(reps), "--threads", str(threads)]
+        cmd += ["--compile"] if compiled else []
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         row = json.loads(out.strip().splitlines()[-1])
         rows.append(row)
         print(
-            f"SIR B={b} N={n} threads={threads}: step {row['step_ms']:.2f} ms "
+            f"SIR B={b} N={n} threads={threads} {row['path']}: step {row['step_ms']:.2f} ms "
             f"(likelihood {row['likelihood_ms']:.2f}, filter only {row['filter_only_ms']:.2f}), "
             f"peak RSS {row['peak_rss_mib']:.0f} MiB",
             flush=True,
@@ -387,17 +351,21 @@ def report(res_rows, sir_rows, cmd: str, load_before: str) -> str:
         "normalise + estimate); `likelihood` = the Haar likelihood alone. Each row runs in its "
         "own subprocess; `before` is its RSS after imports and the frame's integral image, when "
         "the peak (VmHWM) is reset; `peak` is the high-water mark after the timed steps. The "
-        "likelihood works in chunks of 32768 particles, so its workspace is bounded and the "
-        "growth per particle should stay flat as B * N grows.",
+        "likelihood (`torchtrack.observe.haar_box.HaarBoxLikelihood`) works in chunks of 2048 "
+        "particles (eager) or 4096 (compiled), so its workspace is bounded and the growth per "
+        "particle should stay flat as B * N grows. `compiled` rows use its `torch.compile` "
+        "path (compiled in the warm-up step, not timed); `step (CPU time)` is the timing "
+        "thread's CPU time, which does not count waiting for a core on a loaded machine.",
         "",
-        "| B | N | B*N | threads | step | likelihood | filter only | peak RSS MiB | before MiB "
-        "| (peak - before) bytes per particle |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| B | N | B*N | threads | likelihood path | step | step (CPU time) | likelihood "
+        "| filter only | peak RSS MiB | before MiB | (peak - before) bytes per particle |",
+        "|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in sir_rows:
         per = (r["peak_rss_mib"] - r["rss_before_mib"]) * 2**20 / (r["B"] * r["N"])
         lines.append(
-            f"| {r['B']} | {r['N']:,} | {r['B'] * r['N']:,} | {r['threads']} | {r['step_ms']:.2f} "
+            f"| {r['B']} | {r['N']:,} | {r['B'] * r['N']:,} | {r['threads']} | {r['path']} "
+            f"| {r['step_ms']:.2f} | {r['step_cpu_ms']:.2f} "
             f"| {r['likelihood_ms']:.2f} | {r['filter_only_ms']:.2f} | {r['peak_rss_mib']:.0f} "
             f"| {r['rss_before_mib']:.0f} | {per:.0f} |"
         )
@@ -405,7 +373,8 @@ def report(res_rows, sir_rows, cmd: str, load_before: str) -> str:
     for r in sir_rows:
         if (r["B"], r["N"]) == (100, 1000):
             lines.append(
-                f"- SIR step (B, N) = (100, 1000), {r['threads']} thread(s): "
+                f"- SIR step (B, N) = (100, 1000), {r['threads']} thread(s), {r['path']} "
+                "likelihood: "
                 f"{r['step_ms']:.1f} ms median (goal < 10 ms: "
                 f"{'met' if r['step_ms'] < 10 else 'missed'}); the filter alone: "
                 f"{r['filter_only_ms']:.1f} ms"
@@ -427,6 +396,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sir-one", nargs=2, type=int, metavar=("B", "N"))
     ap.add_argument("--reps", type=int, default=15)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--compile",
+        action="store_true",
+        help="with --sir-one: the likelihood's torch.compile path (default: eager)",
+    )
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks" / "filter.md")
     ap.add_argument(
         "--resampling-only",
@@ -438,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     if args.sir_one:
-        print(json.dumps(sir_one(*args.sir_one, args.reps, args.threads)))
+        print(json.dumps(sir_one(*args.sir_one, args.reps, args.threads, args.compile)))
         return 0
     load_before = _load()
     if args.resampling_only:
@@ -449,19 +423,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         ns = [10**3, 10**4]
         res = bench_resampling(ns, lambda n: (5, 2))
-        sir = bench_sir([(1, 2000, 1, 3), (10, 1000, 1, 3), (10, 1000, 2, 3)])
+        sir = bench_sir([(1, 2000, 1, 3, False), (10, 1000, 1, 3, False), (10, 1000, 2, 3, False)])
     else:
         ns = [10**3, 10**4, 10**5, 10**6]
         res = bench_resampling(
             ns, lambda n: {10**3: (51, 21), 10**4: (31, 11), 10**5: (41, 5), 10**6: (9, 3)}[n]
         )
         small = [(1, 2000), (10, 1000), (100, 1000)]
-        runs = [(b, n, t, 15) for t in (1, 2) for b, n in small]
+        runs = [(b, n, t, 15, c) for c in (False, True) for t in (1, 2) for b, n in small]
         # 10^6 particles: 1 thread only (2 threads on a loaded 2-core machine mostly waits)
-        runs += [(1, 10**6, 1, 3), (1000, 1000, 1, 3)]
+        runs += [(1, 10**6, 1, 3, c) for c in (False, True)]
+        runs += [(1000, 1000, 1, 3, c) for c in (False, True)]
         sir = bench_sir(runs)
     cmd = "python tools/bench_filter.py" + (" --quick" if args.quick else "")
     text = report(res, sir, cmd, load_before)
+    if args.out.exists():  # hand-written notes below the marker survive a re-run
+        old = args.out.read_text()
+        if NOTES_MARKER in old:
+            text += "\n" + NOTES_MARKER + old.split(NOTES_MARKER, 1)[1]
     write_text_atomic(args.out, text)
     print("\n" + text)
     return 0

@@ -250,3 +250,25 @@ def test_errors():
     other = channel_bank((32, 16), ChannelSet(names=("gray",)), boxes=5, haar=0)
     with pytest.raises(ShapeError, match="integrals of channels"):
         channel_features_at(ints, torch.zeros(1, 1, 4) + 4, other)
+
+
+@pytest.mark.parametrize("chunk", [256, 5])
+def test_many_boxes_of_mixed_levels_equal_one_box_at_a_time(chunk, monkeypatch):
+    """The lattice-major reads of many boxes at once (boxes on the innermost axis, in blocks
+    of ``_BOX_CHUNK``) give exactly the values of each box read alone."""
+    import torchtrack.features.channels as channels_mod
+
+    monkeypatch.setattr(channels_mod, "_BOX_CHUNK", chunk)
+    x = frames(1, h=90, w=120)
+    bank = small_bank()
+    g = torch.Generator().manual_seed(2)
+    n = 37
+    scale = torch.rand(n, generator=g, dtype=torch.float64) * 2.5 + 0.4  # levels 0 and 1
+    wh = torch.stack((16 * scale, 32 * scale), 1)
+    xy = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([100.0, 70.0]) - 5
+    boxes = torch.cat((xy, wh), 1)[None]
+    ints = bank.integrals(x)
+    many = channel_features_at(ints, boxes, bank)
+    for j in range(n):
+        one = channel_features_at(ints, boxes[:, j : j + 1], bank)
+        assert torch.equal(many[0, j], one[0, 0])

@@ -185,3 +185,28 @@ def test_truncated_trees_are_the_running_margin():
     for bad in (0, 13, 2.5, True):
         with pytest.raises(ConfigError):
             clf.truncated(bad)
+
+
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_tree_outputs_equal_a_node_by_node_descent_in_row_blocks(depth, monkeypatch):
+    """The batched descent (rows in blocks, all split tests at once) gives exactly the leaves
+    of a per-sample walk down each tree, ties (value == threshold goes right) included."""
+    import torchtrack.learn.trees as trees_mod
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randint(0, 5, (300, 6), generator=g).to(torch.float32)
+    y = (x[:, 0] + x[:, 3] > 4).long()
+    clf = BoostedTrees(n_estimators=7, max_depth=depth).fit(x, y)
+    monkeypatch.setattr(trees_mod, "_ROW_CHUNK", 64)  # several blocks and a ragged last one
+    got = clf._tree_outputs(x.view(3, 100, 6))
+    r, n_int = clf.feature_.shape
+    want = torch.empty(300, r)
+    for s in range(300):
+        for t in range(r):
+            node = 0
+            while node < n_int:
+                go_right = bool(x[s, clf.feature_[t, node]] >= clf.threshold_[t, node])
+                node = 2 * node + 1 + int(go_right)
+            want[s, t] = clf.leaf_[t, node - n_int]
+    assert torch.equal(got.reshape(300, r), want)
+    assert torch.equal(clf.decision_function(x), want.sum(-1))

@@ -40,6 +40,7 @@ integer offsets (the scanning path). Both give the same values for the same wind
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -814,6 +815,10 @@ def _combine(
     return out * (norm[..., None] * power)
 
 
+#: boxes per block in :func:`channel_features_at` (bounds its lattice workspace)
+_BOX_CHUNK = 256
+
+
 def channel_features_at(
     ints: ChannelIntegrals,
     boxes: torch.Tensor,
@@ -891,33 +896,99 @@ def channel_features_at(
         tab_all = ints.level(lev).permute(0, 3, 1, 2)  # (B, C, Hk + 1, Wk + 1) view
         hk, wk = tab_all.shape[-2] - 1, tab_all.shape[-1] - 1
         f = float(1 << lev)
+        # At most _BOX_CHUNK boxes at a time: the lattice workspace (C Lh Lw values per box,
+        # float64) stays a few MB however many windows are scored.
+        chunks = []
         for fs, sel in groups:
+            m = n if isinstance(sel, slice) else int(sel.numel())
+            for s0 in range(0, m, _BOX_CHUNK):
+                part = slice(s0, s0 + _BOX_CHUNK)
+                chunks.append((fs, part if isinstance(sel, slice) else sel[part]))
+        for fs, sel in chunks:
             tab = tab_all[fs]
             xs, ys, sxs, sys_ = x[fs][:, sel], y[fs][:, sel], sx[fs][:, sel], sy[fs][:, sel]
             bb, nn = xs.shape
             # lattice point (i, j) of a box: (x + j cell sx, y + i cell sy) frame pixels, / 2^k
             gx = ((xs[..., None] + sxs[..., None] * lj) / f) * (2.0 / max(wk, 1)) - 1.0
             gy = ((ys[..., None] + sys_[..., None] * li) / f) * (2.0 / max(hk, 1)) - 1.0
+            # Sample points ordered (i, j, box), the box axis innermost: grid_sample's output
+            # (bb, C, Lh Lw nn) is then the lattice-major (bb, C Lh Lw, nn) with no copy, and
+            # every corner read of _combine_lattice_major is a contiguous row of nn values.
             grid = torch.stack(
                 (
-                    gx[:, :, None, :].expand(bb, nn, lh, lw),
-                    gy[:, :, :, None].expand(bb, nn, lh, lw),
+                    gx.transpose(1, 2)[:, None, :, :].expand(bb, lh, lw, nn),
+                    gy.transpose(1, 2)[:, :, None, :].expand(bb, lh, lw, nn),
                 ),
                 -1,
-            ).reshape(bb, nn * lh * lw, 1, 2)
+            ).reshape(bb, lh * lw * nn, 1, 2)
             vals = F.grid_sample(
                 tab, grid, mode="bilinear", padding_mode="border", align_corners=True
             )
-            vals = vals[..., 0].reshape(bb, -1, nn, lh * lw).transpose(1, 2).reshape(bb, nn, -1)
+            vals = vals.view(bb, -1, nn)  # (bb, C Lh Lw, nn)
             rx, ry = sxs / f, sys_ / f
             norm = 1.0 / (cell * cell * rx * ry)
             logr = 0.5 * torch.log(rx * ry)
-            feats = _combine(vals, pts, k, lw, lh * lw, norm, logr).to(torch.float32)
+            feats = _combine_lattice_major(vals, pts, k, lw, lh * lw, norm, logr)
+            feats = feats.to(torch.float32)
             if isinstance(sel, slice):
-                out[fs] = feats
+                out[fs, sel] = feats
             else:
                 out[fs.start, sel] = feats[0]
     return out.to(torch.float32)
+
+
+_SPARSE: dict[tuple[int, int, int, int, str], tuple[_Points, torch.Tensor]] = {}
+
+
+def _sparse_combination(
+    pts: _Points, k: int, lattice_w: int, lattice_hw: int, n_lat: int, device: torch.device
+) -> torch.Tensor:
+    """``(K, n_lat)`` float64 CSR matrix of :class:`_Points` coefficients (row = feature,
+    columns ascending = the points' order), cached per point table and lattice."""
+    key = (id(pts), lattice_w, lattice_hw, n_lat, str(device))
+    hit = _SPARSE.get(key)
+    if hit is not None and hit[0] is pts:  # a new table may reuse a dead one's id
+        return hit[1]
+    rows, cols, coefs = [], [], []
+    for sel, gc, gi, gj, coef in pts.groups:
+        flat = gc * lattice_hw + gi * lattice_w + gj  # (K_g, P_g)
+        rows.append(sel[:, None].expand_as(flat).reshape(-1))
+        cols.append(flat.reshape(-1))
+        coefs.append(coef.reshape(-1))
+    idx = torch.stack((torch.cat(rows), torch.cat(cols)))
+    with warnings.catch_warnings():  # "sparse CSR support is in beta state"
+        warnings.simplefilter("ignore", UserWarning)
+        coo = torch.sparse_coo_tensor(
+            idx, torch.cat(coefs), (k, n_lat), check_invariants=True
+        ).coalesce()
+        w = coo.to_sparse_csr().to(device)
+    if len(_SPARSE) >= 32:
+        _SPARSE.pop(next(iter(_SPARSE)))
+    _SPARSE[key] = (pts, w)
+    return w
+
+
+def _combine_lattice_major(
+    vals: torch.Tensor,
+    pts: _Points,
+    k: int,
+    lattice_w: int,
+    lattice_hw: int,
+    norm: torch.Tensor,
+    logr: torch.Tensor,
+) -> torch.Tensor:
+    """:func:`_combine` of lattices stored lattice-major, ``vals (B, C * Lh * Lw, N)``: the
+    features are one sparse ``(K, C Lh Lw)`` matrix (a feature's few corner coefficients,
+    in the points' order) times the lattice values, every read a whole row of N boxes.
+    Returns ``(B, N, K)`` float64 (a transposed view)."""
+    b, n_lat, _ = vals.shape
+    w = _sparse_combination(pts, k, lattice_w, lattice_hw, n_lat, vals.device)
+    out = torch.stack([w @ vals[i] for i in range(b)])  # (B, K, N)
+    # r ** lambda per box and feature: lambda takes a few values (one per channel type), so
+    # exponentiate each once per box and spread (the same products, the same exp inputs).
+    lam_u, inv = torch.unique(pts.lam, return_inverse=True)
+    power = torch.exp(lam_u[:, None] * logr[:, None, :]).index_select(1, inv)  # (B, K, N)
+    return (out * (norm[:, None, :] * power)).transpose(1, 2)
 
 
 def window_features(

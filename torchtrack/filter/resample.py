@@ -389,12 +389,11 @@ def resample(
     lw, _ = normalize_log_weights(log_weights, step=step)
     b, n = lw.shape
     ancestors = fn(lw.exp(), generator)
-    if ess_fraction is None:
-        do = torch.ones(b, dtype=torch.bool, device=lw.device)
-    else:
-        do = ess(lw) < float(ess_fraction) * n
-        identity = torch.arange(n, device=lw.device).expand(b, n)
-        ancestors = torch.where(do.unsqueeze(1), ancestors, identity)
     uniform = torch.full_like(lw, -math.log(n))
+    if ess_fraction is None:  # every row resampled: no selection pass needed
+        return ancestors, uniform, torch.ones(b, dtype=torch.bool, device=lw.device)
+    do = ess(lw) < float(ess_fraction) * n
+    identity = torch.arange(n, device=lw.device).expand(b, n)
+    ancestors = torch.where(do.unsqueeze(1), ancestors, identity)
     new_lw = torch.where(do.unsqueeze(1), uniform, lw)
     return ancestors, new_lw, do

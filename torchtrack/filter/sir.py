@@ -124,8 +124,15 @@ def _estimate(name: str, fn, states: torch.Tensor, lw: torch.Tensor) -> torch.Te
 
 
 def _gather_states(states: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """``states (B, N, D)``, ``idx (B, M)`` -> ``(B, M, D)``."""
-    return torch.gather(states, 1, idx.unsqueeze(-1).expand(-1, -1, states.shape[2]))
+    """``states (B, N, D)``, ``idx (B, M)`` -> ``(B, M, D)``.
+
+    Whole rows of D values through one ``index_select`` on the flattened ``(B N, D)`` states:
+    the same values as ``torch.gather`` with an expanded index, about 10x faster on CPU at
+    (B, N, D) = (100, 1000, 6) (gather walks the expanded index element by element)."""
+    b, n, d = states.shape
+    m = idx.shape[1]
+    flat = idx + (torch.arange(b, device=idx.device, dtype=idx.dtype) * n).unsqueeze(1)
+    return states.reshape(b * n, d).index_select(0, flat.reshape(-1)).view(b, m, d)
 
 
 def sir_step(

@@ -148,6 +148,10 @@ def _best_splits(H: torch.Tensor, variant: str) -> tuple[torch.Tensor, torch.Ten
     return best // (nb - 1), best % (nb - 1)
 
 
+#: rows per block of :meth:`BoostedTrees._tree_outputs` (bounds its workspace)
+_ROW_CHUNK = 4096
+
+
 class BoostedTrees(ClassifierMixin, BaseEstimator):
     """AdaBoost (discrete / real / gentle) over depth-``max_depth`` decision trees, with a soft
     cascade for early rejection (see the module notes).
@@ -418,19 +422,43 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
 
     # -- scoring
     def _tree_outputs(self, X: torch.Tensor) -> torch.Tensor:
-        """Output of every tree ``(..., R)`` on raw features ``X (..., T)``."""
+        """Output of every tree ``(..., R)`` on raw features ``X (..., T)``.
+
+        Rows are taken ``_ROW_CHUNK`` at a time and transposed, so that every read is a whole
+        contiguous row: the split features of all trees come from one ``index_select`` on the
+        first axis (reading columns of the last axis is several times slower on CPU), all
+        split tests of all nodes are one comparison, and the descent gathers the tests'
+        outcomes (booleans) level by level. The leaves and their order are those of the
+        trees, so margins are bit-identical to a node-by-node evaluation.
+        """
         dev = X.device
-        feat = self.feature_.to(dev)
-        thr = self.threshold_.to(dev)
-        r, n_int = feat.shape
-        vals = X.index_select(-1, feat.reshape(-1)).reshape(*X.shape[:-1], r, n_int)
-        node = torch.zeros((*X.shape[:-1], r), dtype=torch.long, device=dev)
-        for _ in range(int(self.max_depth)):
-            v = vals.gather(-1, node[..., None])[..., 0]
-            t = thr.expand(*X.shape[:-1], r, n_int).gather(-1, node[..., None])[..., 0]
-            node = node * 2 + 1 + (v >= t).long()
-        leaf = self.leaf_.to(dev).expand(*X.shape[:-1], r, n_int + 1)
-        return leaf.gather(-1, (node - n_int)[..., None])[..., 0]
+        feat = self.feature_.to(dev).reshape(-1)
+        thr = self.threshold_.to(dev).reshape(-1, 1)
+        r, n_int = self.feature_.shape
+        leaf = self.leaf_.to(dev)
+        leaf_flat = leaf.reshape(-1)
+        base = (torch.arange(r, device=dev) * (n_int + 1) - n_int).unsqueeze(1)  # (R, 1)
+        x2 = X.reshape(-1, X.shape[-1])
+        m = x2.shape[0]
+        out = torch.empty((m, r), dtype=leaf.dtype, device=dev)
+        for s in range(0, m, _ROW_CHUNK):
+            xt = x2[s : s + _ROW_CHUNK].T.contiguous()  # (T, c)
+            c = xt.shape[1]
+            test = (xt.index_select(0, feat) >= thr).view(r, n_int, c)
+            depth = int(self.max_depth)
+            if depth == 0:
+                node = torch.zeros((r, c), dtype=torch.long, device=dev)
+            else:  # the root's test and (depth >= 2) its children's, selected without gathers
+                right = test[:, 0]
+                node = right.long() + 1  # (R, c) in {1, 2}
+                if depth >= 2:
+                    below = torch.where(right, test[:, 2], test[:, 1])
+                    node = node * 2 + 1 + below.long()
+                for _ in range(2, depth):
+                    node = node * 2 + 1 + test.gather(1, node[:, None])[:, 0].long()
+            vals = leaf_flat.index_select(0, (base + node).reshape(-1)).view(r, c)
+            out[s : s + c] = vals.T
+        return out.view(*X.shape[:-1], r)
 
     def _check_X(self, X: Any) -> tuple[torch.Tensor, bool]:
         check_fitted(self, "feature_")
