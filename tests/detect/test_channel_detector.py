@@ -320,3 +320,28 @@ def test_held_out_cascade_threshold_keeps_all_but_the_miss_share_of_confident_po
     assert bool((low >= t0).all()) and float(low.min()) - t0 < 1e-3
     # no positive reaches the probability: the upper bound
     assert held_out_cascade_threshold(staged, prob, probability=1.1, miss=0.01, upper=-1) == -1
+
+
+def test_tracker_crops_come_in_few_shapes_and_hold_their_boxes():
+    """Particle-scoring crops are whole multiples of CROP_QUANTUM (clipped at the frame's edge),
+    start on the alignment grid and contain the boxes plus their margin: a long run meets few
+    crop shapes (oneDNN compiles and caches one convolution per input shape)."""
+    from torchtrack.detect.detector import CROP_QUANTUM, _crop_span
+
+    g = torch.Generator().manual_seed(0)
+    lengths = set()
+    for _ in range(2000):
+        size = 480
+        lo = float(torch.rand(1, generator=g)) * 460
+        hi = min(size, lo + 5 + float(torch.rand(1, generator=g)) * 200)
+        margin, align = (
+            int(torch.randint(0, 20, (1,), generator=g)),
+            1 << int(torch.randint(0, 3, (1,), generator=g)),
+        )
+        a, b = _crop_span(lo, hi, margin, align, size)
+        assert a % align == 0 and 0 <= a < b <= size
+        assert a <= max(0, int(lo) - margin) and b >= min(size, int(hi) + margin)
+        if b < size:
+            assert (b - a) % CROP_QUANTUM == 0
+        lengths.add(b - a)
+    assert len(lengths) <= 40  # against ~480 for unrounded crops

@@ -54,6 +54,32 @@ def check_object_box(box: Any) -> tuple[float, float, float, float]:
     return (x, y, w, h)
 
 
+CROP_QUANTUM = 32
+"""Crops for particle scoring are whole multiples of this many pixels (see :func:`_crop_span`)."""
+
+
+def _crop_span(lo: float, hi: float, margin: int, align: int, size: int) -> tuple[int, int]:
+    """``[start, stop)`` pixels along one axis of a crop holding ``[lo, hi]`` plus ``margin``:
+    ``start`` on the ``align`` grid, the length rounded up to a multiple of
+    :data:`CROP_QUANTUM` and moved back inside ``[0, size)`` (a crop at the frame's edge ends on
+    it). The scores read from any such crop equal the whole frame's; the rounding keeps the
+    number of distinct crop shapes small, which matters because oneDNN caches one compiled
+    convolution per input shape (up to 1,024 of them): crops of every possible size made the
+    channel gradients' cache, and the resident memory of a long multi-target run, grow
+    (``tools/bench_memory.py``), and each new shape cost a compilation."""
+    import math
+
+    start = max(0, math.floor(lo) - margin) // align * align
+    stop = min(size, math.ceil(hi) + margin)
+    length = max(stop - start, 1)
+    length = -(-length // CROP_QUANTUM) * CROP_QUANTUM
+    stop = start + length
+    if stop > size:  # end on the frame's edge; start as far left as the quantum asks
+        stop = size
+        start = max(0, (size - length) // align * align)
+    return start, stop
+
+
 @dataclass
 class Detector:
     """A trained detector.
@@ -226,11 +252,8 @@ class Detector:
         x1 = float(torch.where(ok, (x + w).clamp(0, fw), -big).max())
         y1 = float(torch.where(ok, (y + h).clamp(0, fh), -big).max())
         margin, align = self.bank.crop_context(boxes[ok])
-        ix0 = max(0, math.floor(x0) - margin) // align * align
-        iy0 = max(0, math.floor(y0) - margin) // align * align
-        ix1 = min(fw, math.ceil(x1) + margin)
-        iy1 = min(fh, math.ceil(y1) + margin)
-        ix1, iy1 = max(ix1, ix0 + 1), max(iy1, iy0 + 1)
+        ix0, ix1 = _crop_span(x0, x1, margin, align, fw)
+        iy0, iy1 = _crop_span(y0, y1, margin, align, fh)
         sub = frames[:, :, iy0:iy1, ix0:ix1]
         shift = boxes.new_tensor([float(ix0), float(iy0), 0.0, 0.0])
         return self.integrals(sub), boxes - shift
