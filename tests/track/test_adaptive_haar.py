@@ -268,3 +268,15 @@ def test_lost_damping_keeps_the_cloud_where_the_target_was_last_seen():
     assert spread[0.5] < 0.6 * spread[1.0]
     with pytest.raises(ConfigError, match="lost_damping"):
         AdaptiveHaarTracker(lost_damping=-0.1)
+
+
+def test_shipped_configs_default_and_paper():
+    """The shipped default TOML is the dataclass default; the paper TOML switches the robust
+    departures off, the occlusion gate included."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "configs" / "trackers"
+    assert AdaptiveHaarTracker(config=root / "adaptive_haar.toml").config == AdaptiveHaarConfig()
+    paper = AdaptiveHaarTracker(config=root / "adaptive_haar_paper.toml").config
+    assert AdaptiveHaarConfig().anchor_gate == 0.25 and paper.anchor_gate == 0.0
+    assert paper.lost_damping == 1.0 and paper.neg_local == 0.0 and paper.init_positives == 0
