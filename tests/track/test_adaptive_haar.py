@@ -223,3 +223,60 @@ def test_local_negatives_lie_near_the_target_and_off_it():
     )
     assert float(far[:, 0].max() - far[:, 0].min()) > 200  # the others span the frame
     assert float(box_iou(c[0], box).max()) < 0.3
+
+
+def test_anchor_gate_does_not_learn_an_occluder():
+    """A green block in the red target's place: the adapted classifier (theta = 0) learns it,
+    the first frame's classifier rejects it, so ``anchor_gate`` keeps it out of the training
+    set while the red target itself is still learnt."""
+    frames = _toy_frames(3)
+    occluded = frames[2].clone()
+    occluded[0, 20:40, 22:37] = 10  # the block turns green: something else in front
+    occluded[1, 20:40, 22:37] = 250
+    box = torch.tensor([20.0, 20.0, 15.0, 20.0])
+    for gate, learnt in ((0.0, True), (0.5, False)):
+        tr = AdaptiveHaarTracker(
+            n_particles=100, theta=0.0, anchor_gate=gate, generator=torch.Generator().manual_seed(4)
+        )
+        tr.init(frames[0], box)
+        tr.update(frames[1])
+        assert bool(tr.adapted.all())  # the red target passes the gate
+        tr.update(occluded)
+        assert bool(tr.adapted.all()) is learnt
+    with pytest.raises(ConfigError, match="anchor_gate"):
+        AdaptiveHaarTracker(anchor_gate=1.5)
+
+
+def test_lost_damping_keeps_the_cloud_where_the_target_was_last_seen():
+    """The target vanishes (background only): undamped (eq. 1), the particles' velocities
+    random-walk and the cloud spreads; ``lost_damping`` shrinks the velocities on every frame
+    of low evidence, so the cloud stays nearer the last position."""
+    frames = _toy_frames(2)
+    g = torch.Generator().manual_seed(0)
+    bg = torch.randint(0, 256, (3, 60, 80), dtype=torch.uint8, generator=g)
+    spread = {}
+    for damping in (1.0, 0.5):
+        tr = AdaptiveHaarTracker(
+            n_particles=400, lost_damping=damping, generator=torch.Generator().manual_seed(6)
+        )
+        tr.init(frames[0], torch.tensor([20.0, 20.0, 15.0, 20.0]))
+        tr.update(frames[1])
+        for _ in range(8):
+            tr.update(bg)
+        assert int(tr.lost_frames[0]) >= 5  # the evidence is low: the damping applies
+        spread[damping] = float(tr._states[0, :, 4:6].std(0).norm())
+    assert spread[0.5] < 0.6 * spread[1.0]
+    with pytest.raises(ConfigError, match="lost_damping"):
+        AdaptiveHaarTracker(lost_damping=-0.1)
+
+
+def test_shipped_configs_default_and_paper():
+    """The shipped default TOML is the dataclass default; the paper TOML switches the robust
+    departures off, the occlusion gate included."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "configs" / "trackers"
+    assert AdaptiveHaarTracker(config=root / "adaptive_haar.toml").config == AdaptiveHaarConfig()
+    paper = AdaptiveHaarTracker(config=root / "adaptive_haar_paper.toml").config
+    assert AdaptiveHaarConfig().anchor_gate == 0.25 and paper.anchor_gate == 0.0
+    assert paper.lost_damping == 1.0 and paper.neg_local == 0.0 and paper.init_positives == 0
