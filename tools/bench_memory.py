@@ -160,6 +160,9 @@ def main() -> None:
             f"| {v[3] - v[1]:+.1f} | {d['peak_mib']:.0f} | {d['seconds']:.0f} |"
         )
     text = "\n".join(lines) + "\n"
+    marker = "<!-- notes: kept by tools/bench_memory.py -->"
+    if args.out.exists() and marker in args.out.read_text():  # hand-written notes survive
+        text += "\n" + marker + args.out.read_text().split(marker, 1)[1]
     from torchtrack.io.atomic import write_text_atomic
 
     write_text_atomic(args.out, text)
