@@ -310,16 +310,18 @@ def test_held_out_cascade_threshold_keeps_all_but_the_miss_share_of_confident_po
     g = torch.Generator().manual_seed(0)
     staged = torch.randn(500, 40, generator=g).cumsum(1)  # running margins after each tree
     prob = torch.rand(500, generator=g)
-    theta = held_out_cascade_threshold(staged, prob, probability=0.5, miss=0.01, upper=10.0)
-    low = staged[prob >= 0.5].min(1).values
+    keep = prob >= 0.5
+    theta = held_out_cascade_threshold(staged, keep, miss=0.01, upper=10.0)
+    low = staged[keep].min(1).values
     rejected = float((low < theta).double().mean())
     assert 0.005 < rejected <= 0.01  # at most the miss share, and not needlessly fewer
     # never above the upper bound; miss 0 keeps every confident positive
-    assert held_out_cascade_threshold(staged, prob, probability=0.5, miss=0.01, upper=-50) == -50
-    t0 = held_out_cascade_threshold(staged, prob, probability=0.5, miss=0.0, upper=10.0)
+    assert held_out_cascade_threshold(staged, keep, miss=0.01, upper=-50) == -50
+    t0 = held_out_cascade_threshold(staged, keep, miss=0.0, upper=10.0)
     assert bool((low >= t0).all()) and float(low.min()) - t0 < 1e-3
-    # no positive reaches the probability: the upper bound
-    assert held_out_cascade_threshold(staged, prob, probability=1.1, miss=0.01, upper=-1) == -1
+    # no confident positive: the upper bound
+    none = torch.zeros_like(keep)
+    assert held_out_cascade_threshold(staged, none, miss=0.01, upper=-1) == -1
 
 
 def test_tracker_crops_come_in_few_shapes_and_hold_their_boxes():

@@ -268,26 +268,21 @@ def _stage_trees(cfg: TrainConfig, r: int) -> int:
 
 
 def held_out_cascade_threshold(
-    staged_pos: torch.Tensor,
-    prob_pos: torch.Tensor,
-    *,
-    probability: float,
-    miss: float,
-    upper: float,
+    staged_pos: torch.Tensor, keep: torch.Tensor, *, miss: float, upper: float
 ) -> float:
     """The constant soft-cascade threshold set from held-out positives (``learn.cascade =
-    "held-out"``): the ``miss`` quantile of the lowest running margins of the positives whose
-    calibrated probability reaches ``probability``, a hair below it so that at most that share
-    of them is rejected, and never above ``upper``.
+    "held-out"``): the ``miss`` quantile of the lowest running margins of the positives
+    ``keep`` (those the calibration finds confident), a hair below it so that at most that
+    share of them is rejected, and never above ``upper``.
 
     Args:
         staged_pos: ``(n, R)`` running margins of the held-out positives after each tree.
-        prob_pos: ``(n,)`` their calibrated probabilities (of the full margin).
+        keep: ``(n,)`` bool, the positives the cascade must keep.
 
     Returns:
-        The threshold (``upper`` when no positive reaches ``probability``).
+        The threshold (``upper`` when ``keep`` selects none).
     """
-    keep = torch.as_tensor(prob_pos).reshape(-1) >= float(probability)
+    keep = torch.as_tensor(keep, dtype=torch.bool).reshape(-1)
     if not bool(keep.any()):
         return float(upper)
     low = staged_pos[keep].to(torch.float64).min(1).values
@@ -635,16 +630,15 @@ def train_channel_detector(
     cascade: dict[str, Any] = {"method": lr.cascade}
     big = float(torch.finfo(torch.float32).max)
     clf.reject_ = torch.full_like(clf.reject_, -big)
+    # the held-out positives a cascade must keep: those the calibration finds confident
+    mp = m_ca[: xp.shape[0]]
+    confident = calibrator.predict_proba(mp) >= float(lr.cascade_probability)
     if lr.cascade == "constant":
         clf.reject_ = torch.full_like(clf.reject_, float(lr.cascade_threshold))
         cascade["threshold"] = float(lr.cascade_threshold)
     elif lr.cascade == "held-out":
         theta = held_out_cascade_threshold(
-            staged_p,
-            calibrator.predict_proba(m_ca[: xp.shape[0]]),
-            probability=float(lr.cascade_probability),
-            miss=float(lr.cascade_miss),
-            upper=float(lr.cascade_threshold),
+            staged_p, confident, miss=float(lr.cascade_miss), upper=float(lr.cascade_threshold)
         )
         clf.reject_ = torch.full_like(clf.reject_, theta)
         cascade.update(
@@ -658,18 +652,19 @@ def train_channel_detector(
     elif lr.cascade == "backward" and lr.cascade_probability > 0:
         c = float(lr.cascade_probability)
         cascade.update({"probability": c, "miss": float(lr.cascade_miss)})
-        mp = m_ca[: xp.shape[0]]
-        ok = calibrator.predict_proba(mp) >= c
-        if bool(ok.any()):
-            m_cut = float(mp[ok].min())
+        if bool(confident.any()):
+            m_cut = float(mp[confident].min())
             clf.fit_cascade(xp, m_cut, quantile=float(lr.cascade_miss))
             cascade.update(
-                {"min_margin": m_cut, "positives_kept": int(ok.sum()), "positives": int(mp.numel())}
+                {
+                    "min_margin": m_cut,
+                    "positives_kept": int(confident.sum()),
+                    "positives": int(mp.numel()),
+                }
             )
     # share of held-out positives and negatives the cascade stops before the last tree
     rej = clf.reject_.to(staged_p.dtype)
     cascade["held_out_positives_rejected"] = float((staged_p < rej).any(1).double().mean())
-    confident = calibrator.predict_proba(m_ca[: xp.shape[0]]) >= float(lr.cascade_probability)
     if bool(confident.any()):
         cascade["held_out_confident_positives_rejected"] = float(
             (staged_p[confident] < rej).any(1).double().mean()
