@@ -35,15 +35,11 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # the checkout's torchtrack, also from a peers' environment
+
+from bench_filter import _status_mib  # noqa: E402  (VmRSS / VmHWM from /proc, in MiB)
+
 DATA = Path(os.environ.get("TORCHTRACK_DATA", REPO.parent / "shared" / "data"))
 MARKS = (0.01, 0.10, 0.50, 1.00)
-
-
-def _status_mib(key: str) -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def _stream(n: int) -> tuple[list, list[float]]:
@@ -64,7 +60,9 @@ def worker(spec: str, frames: int, threads: int, scan_every: int) -> dict:
     torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
     stream, box = _stream(frames)
-    marks = {max(1, round(m * frames)): m for m in MARKS}
+    marks: dict[int, list[float]] = {}  # frame -> the marks measured there (short runs share)
+    for m in MARKS:
+        marks.setdefault(max(1, round(m * frames)), []).append(m)
     rss: dict[str, float] = {}
     t0 = time.perf_counter()
     with tempfile.NamedTemporaryFile("w", suffix=".csv") as out:
@@ -78,8 +76,8 @@ def worker(spec: str, frames: int, threads: int, scan_every: int) -> dict:
                 st = tr.update(f)
                 for i, b in zip(st.ids.tolist(), st.boxes.tolist(), strict=True):
                     out.write(f"{k},{i},{b[0]:.2f},{b[1]:.2f},{b[2]:.2f},{b[3]:.2f}\n")
-                if k in marks:
-                    rss[f"{marks[k]:.2f}"] = _status_mib("VmRSS")
+                for m in marks.get(k, ()):
+                    rss[f"{m:.2f}"] = _status_mib("VmRSS")
         else:
             from torchtrack.track.base import create_tracker, parse_tracker_spec
 
@@ -92,8 +90,8 @@ def worker(spec: str, frames: int, threads: int, scan_every: int) -> dict:
                 r = tr.update(f)
                 b = r.box.reshape(-1, 4)[0].tolist()
                 out.write(f"{k},1,{b[0]:.2f},{b[1]:.2f},{b[2]:.2f},{b[3]:.2f}\n")
-                if k in marks:
-                    rss[f"{marks[k]:.2f}"] = _status_mib("VmRSS")
+                for m in marks.get(k, ()):
+                    rss[f"{m:.2f}"] = _status_mib("VmRSS")
     return {
         "spec": spec,
         "frames": frames,
