@@ -2,7 +2,7 @@
 
 Usage:
     python tools/fit_dynamics.py [--data ../shared/data/tracking] [--out torchtrack/data/dynamics_chateau.toml]
-    python tools/fit_dynamics.py --structure constant_velocity \
+    python tools/fit_dynamics.py --structure constant_velocity --noise jitter_corrected \
         --out torchtrack/data/dynamics_chateau_cv.toml     # the multi-target tracker's default
 
 Reads every OTB / BoBoT ground truth under ``--data`` (with ``torchtrack.io.sequences`` when it
@@ -86,9 +86,16 @@ def main(argv: list[str] | None = None) -> int:
         default="free",
         help="free A (eq. 4 as fitted in the paper) or constant velocity with Sigma fitted",
     )
+    ap.add_argument(
+        "--noise",
+        choices=("residual", "jitter_corrected"),
+        default="residual",
+        help="Sigma as the residuals' covariance, or with the annotation jitter removed "
+        "(median over tracks; constant_velocity only)",
+    )
     args = ap.parse_args(argv)
     tracks = load_tracks(args.data)
-    fit = fit_chateau_dynamics(list(tracks.values()), structure=args.structure)
+    fit = fit_chateau_dynamics(list(tracks.values()), structure=args.structure, noise=args.noise)
     cp = torch.eye(6, dtype=torch.float64)  # constant position (c_{t+1} = c_t)
     cp[2, 0], cp[3, 1], cp[5, 4], cp[2, 2], cp[3, 3], cp[5, 5] = 1, 1, 1, 0, 0, 0
     cv = default_chateau_A()
@@ -109,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         "Fitted by tools/fit_dynamics.py on the ground truth of "
         f"{len(tracks)} sequences ({', '.join(tracks)}): "
         f"{fit.n_transitions} transitions; s relative to each track's first box; "
-        f"structure {args.structure}."
+        f"structure {args.structure}; noise {args.noise}."
     )
     save_chateau_toml(args.out, fit, comment=comment)
     print(comment)

@@ -116,3 +116,41 @@ def test_shipped_config_loads():
     row = m.A[0]
     assert abs(float(row[0] + row[2]) - 1.0) < 0.05  # translation invariance c_t, c_{t-1}
     assert torch.linalg.eigvalsh(m.Sigma).min() > 0
+
+
+def _cv_tracks(n_tracks, t, accel_sd, jitter_sd, seed):
+    """Constant-velocity tracks with white acceleration noise, labelled with jitter."""
+    g = torch.Generator().manual_seed(seed)
+    acc = accel_sd * torch.randn((n_tracks, t, 2), generator=g, dtype=torch.float64)
+    vel = 2.0 + acc.cumsum(1)
+    c = 100.0 + vel.cumsum(1)
+    c = c + jitter_sd * torch.randn((n_tracks, t, 2), generator=g, dtype=torch.float64)
+    wh = torch.tensor([20.0, 40.0], dtype=torch.float64).expand(n_tracks, t, 2)
+    return [torch.cat([c[i] - wh[i] / 2, wh[i]], 1) for i in range(n_tracks)]
+
+
+def test_jitter_corrected_noise_recovers_the_motion_under_label_jitter():
+    # Labels jitter by 1 px; the targets accelerate by 0.5 px / frame: the plain residual
+    # variance is ~0.25 + 6 * 1 = 6.25 px^2, the motion's share 0.25.
+    tracks = _cv_tracks(12, 1000, accel_sd=0.5, jitter_sd=1.0, seed=0)
+    # One erratic track (a shaking camera) must not set everyone's noise: the median ignores it.
+    tracks += _cv_tracks(1, 1000, accel_sd=20.0, jitter_sd=1.0, seed=1)
+    raw = fit_chateau_dynamics(tracks, structure="constant_velocity")
+    fit = fit_chateau_dynamics(tracks, structure="constant_velocity", noise="jitter_corrected")
+    assert raw.Sigma[0, 0] > 6.0
+    assert 0.1 < float(fit.Sigma[0, 0]) < 0.45 and fit.Sigma[0, 0] == fit.Sigma[1, 1]
+    assert fit.Sigma[0, 1] == 0 and fit.Sigma[2, 2] > 0  # diagonal, positive definite
+    torch.testing.assert_close(fit.A, raw.A)
+    fit.model()  # a valid ChateauAR
+
+
+def test_jitter_corrected_noise_errors():
+    tracks = _cv_tracks(2, 30, accel_sd=0.5, jitter_sd=1.0, seed=0)
+    with pytest.raises(ConfigError, match="constant_velocity"):
+        fit_chateau_dynamics(tracks, noise="jitter_corrected")
+    with pytest.raises(ConfigError, match="noise must be"):
+        fit_chateau_dynamics(tracks, structure="constant_velocity", noise="robust")
+    with pytest.raises(DataError, match="consecutive residual pairs"):
+        fit_chateau_dynamics(
+            _cv_tracks(2, 15, 0.5, 1.0, 0), structure="constant_velocity", noise="jitter_corrected"
+        )

@@ -9,6 +9,16 @@ the full ``X_t`` (no intercept, as in eq. 4). ``B`` injects the noise into those
 
 Scale: ``s = sqrt(w h / (w_ref h_ref))`` where the reference is the first annotated box of each
 track (``window=None``, so ``s_0 = 1``) or a fixed reference window (eq. 3's W).
+
+Annotation jitter: hand labels move by a pixel or two from frame to frame even when the object
+does not. Under constant velocity the residual of ``c`` is a second difference, so a label
+jitter of standard deviation ``j`` adds ``6 j^2`` to its variance and ``-4 j^2`` to its lag-1
+autocovariance (``2 j^2`` and ``-j^2`` for the first difference of ``s``); the plain residual
+covariance mistakes that jitter for motion noise (on the bundled tracks: 4 px per frame, most
+of it labels). ``noise="jitter_corrected"`` removes it with those two moments, per track, and
+takes the median over tracks, so that a few hand-held or fast sequences do not set the noise of
+every other target; the noise of the centre is isotropic (the mean of the x and y variances:
+twelve tracks do not tell the two axes apart).
 """
 
 from __future__ import annotations
@@ -99,6 +109,7 @@ def fit_chateau_dynamics(
     tracks: list[torch.Tensor],
     window: tuple[float, float] | None = None,
     structure: str = "free",
+    noise: str = "residual",
 ) -> ChateauFit:
     """Fit A, B, Sigma of eq. (4) by least squares over all tracks.
 
@@ -113,6 +124,10 @@ def fit_chateau_dynamics(
             towards damped or even reversed velocities (the noise of ``c_t - c_{t-1}`` is
             anti-correlated from frame to frame); the fixed structure keeps the motion of a
             walking person and learns only how much it varies.
+        noise: ``"residual"``: Sigma is the residuals' covariance; ``"jitter_corrected"``
+            (``constant_velocity`` only): a diagonal Sigma with the annotation jitter removed,
+            the median over tracks (module notes; tracks with fewer than
+            ``_MIN_JITTER_PAIRS`` consecutive residual pairs do not vote).
 
     Returns:
         ChateauFit.
@@ -137,6 +152,10 @@ def fit_chateau_dynamics(
         )
     if structure not in ("free", "constant_velocity"):
         raise ConfigError(f"structure must be 'free' or 'constant_velocity', got {structure!r}")
+    if noise not in ("residual", "jitter_corrected"):
+        raise ConfigError(f"noise must be 'residual' or 'jitter_corrected', got {noise!r}")
+    if noise == "jitter_corrected" and structure != "constant_velocity":
+        raise ConfigError("noise='jitter_corrected' needs structure='constant_velocity'")
     x = torch.cat(xs)
     y = torch.cat(ys)
     if structure == "constant_velocity":
@@ -144,7 +163,10 @@ def fit_chateau_dynamics(
 
         a = default_chateau_A()
         resid = y - x @ a[_FREE].T
-        return _fit_result(a, resid, resid.T @ resid / m, torch.zeros(6, 6, dtype=x.dtype), used)
+        sigma = resid.T @ resid / m
+        if noise == "jitter_corrected":
+            sigma = _jitter_corrected_sigma(tracks, window, a)
+        return _fit_result(a, resid, sigma, torch.zeros(6, 6, dtype=x.dtype), used)
     # Column scaling: positions (hundreds of pixels) and scales (~1) differ by orders of
     # magnitude; scaling the regressors keeps the least-squares problem well conditioned.
     col = x.abs().amax(0).clamp_min(1e-12)
@@ -159,6 +181,40 @@ def fit_chateau_dynamics(
     se = torch.zeros(6, 6, dtype=torch.float64)
     se[_FREE] = torch.sqrt(torch.diagonal(sigma).clamp_min(0).unsqueeze(1) * inv_diag.unsqueeze(0))
     return _fit_result(a, resid, sigma, se, used)
+
+
+_MIN_JITTER_PAIRS = 20
+# Residual = second difference of c (jitter: var 6 j^2, lag-1 -4 j^2) and first difference of s
+# (var 2 j^2, lag-1 -j^2): motion variance = var + k * lag-1 with k = 6/4 and 2/1.
+_JITTER_K = torch.tensor([1.5, 1.5, 2.0], dtype=torch.float64)
+
+
+def _jitter_corrected_sigma(
+    tracks: list[torch.Tensor], window: tuple[float, float] | None, a: torch.Tensor
+) -> torch.Tensor:
+    """Diagonal Sigma: per track, the residual variance less the annotation jitter's share
+    (from the lag-1 autocovariance), floored at 0, the centre's isotropic; the median over
+    tracks (module notes)."""
+    per_track = []
+    for tr in tracks:
+        st, valid = chateau_states(tr, window)
+        pair = valid[:-1] & valid[1:]
+        r = st[1:][:, _FREE] - st[:-1] @ a[_FREE].T  # (T-1, 3); rows where ~pair are junk
+        lag = pair[:-1] & pair[1:]  # residuals t and t+1 both valid
+        if int(lag.sum()) < _MIN_JITTER_PAIRS:
+            continue
+        var = r[pair].square().mean(0)
+        c1 = (r[:-1][lag] * r[1:][lag]).mean(0)
+        v = (var + _JITTER_K * c1).clamp_min(0.0)
+        per_track.append(torch.stack([v[:2].mean(), v[:2].mean(), v[2]]))
+    if not per_track:
+        raise DataError(
+            f"noise='jitter_corrected' needs a track with at least {_MIN_JITTER_PAIRS} "
+            "consecutive residual pairs"
+        )
+    v = torch.stack(per_track).median(0).values
+    # A floor keeps the noise positive definite when the median track moves perfectly evenly.
+    return torch.diag(v.clamp_min(1e-6 * float(v.max().clamp_min(1e-12))))
 
 
 def _fit_result(

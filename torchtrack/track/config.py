@@ -175,6 +175,10 @@ class MultiTrackerConfig:
             velocity with the noise fitted on the tracking sequences (the paper's free fit,
             ``dynamics_chateau.toml``, damps a walker's velocity by half every frame, which
             loses people who cross; measured in ``docs/benchmarks/mot.md``).
+        motion_noise: factor on the standard deviation of the dynamics' fitted noise. The
+            fit's 4 px per frame is mostly the jitter of hand labels (``tools/fit_dynamics.py
+            --noise jitter_corrected`` leaves 1.4 px); 0.25 was chosen by leave-one-sequence-out
+            and holds on outside detections too (``docs/multi_target.md``).
         scan_every: scan the frame with the detector every k-th frame (1: every frame); the
             filter carries the targets in between.
         scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
@@ -237,6 +241,7 @@ class MultiTrackerConfig:
     model: str = "pedestrian"
     n_particles: int = 100
     dynamics: str = ""
+    motion_noise: float = 0.25
     scan_every: int = 1
     scan_min_scale: float = 0.35
     scan_max_scale: float = 0.0
@@ -329,6 +334,8 @@ class MultiTrackerConfig:
             raise ConfigError(f"detection_sigma must be > 0, got {self.detection_sigma}")
         if not self.max_noise_scale >= 1:
             raise ConfigError(f"max_noise_scale must be >= 1, got {self.max_noise_scale}")
+        if not (self.motion_noise > 0 and math.isfinite(self.motion_noise)):
+            raise ConfigError(f"motion_noise must be > 0, got {self.motion_noise}")
         if self.appearance not in ("colour", "none"):
             raise ConfigError(f"appearance must be 'colour' or 'none', got {self.appearance!r}")
         if not 0.0 <= self.likelihood_floor < 1.0:

@@ -337,7 +337,9 @@ class MultiTargetTracker:
         states = torch.gather(self.states, 1, anc.unsqueeze(-1).expand(-1, -1, 6))
         lost = (self.since_match - (cfg.scan_every - 1)).clamp_min(0).to(torch.float64)
         scale = (1.0 + cfg.lost_noise_growth * lost).clamp(max=cfg.max_noise_scale)
-        self.states = self.dynamics.predict(states, self.generator, noise_scale=scale)
+        self.states = self.dynamics.predict(
+            states, self.generator, noise_scale=scale * cfg.motion_noise
+        )
         n = self.states.shape[1]
         self.log_weights = torch.full_like(self.log_weights, -math.log(n))
 
@@ -495,7 +497,7 @@ class MultiTargetTracker:
         around them (their lagged slots kept)."""
         n = self.config.n_particles
         rep = x0[:, None, :].repeat(1, n, 1)
-        out = rep + self.dynamics._noise(rep, self.generator)
+        out = rep + self.config.motion_noise * self.dynamics._noise(rep, self.generator)
         out[..., 4] = out[..., 4].clamp_min(self.dynamics.min_scale)
         out[..., 2:4] = rep[..., 2:4]
         out[..., 5] = rep[..., 5]
