@@ -1,0 +1,219 @@
+"""Choose multi-target defaults by leave-one-sequence-out, over seeds (``MultiTargetTracker``).
+
+Every candidate setting of one key (``--grid key=v1,v2,...``, the others at their defaults)
+tracks every setting below for every seed; TrackEval scores each run (MOT15 conventions). The
+candidates are then judged the way the defaults are chosen (docs/multi_target.md):
+
+* **own**: the bundled model's own detections, scanned once per sequence at the tracker's scan
+  settings and cached under ``--cache`` (the same boxes and probabilities the tracker's scan
+  gives), on PETS09-S2L1 and TUD-Stadtmitte. Leave one sequence out: the value that is best on
+  one sequence, scored on the other, is the honest estimate of what the choice is worth on a
+  sequence nobody tuned on.
+* **outside detections**, a check that the choice is not specific to our detector: the MOT15
+  public detections of TUD-Stadtmitte (scores divided by their largest, as the CLI does) and
+  the ground-truth boxes with 10% dropped and 2 px jitter (the tracker's ceiling; the same
+  draw as ``tools/bench_mot.py``'s ``GT + ByteTrack`` rows) on both sequences.
+
+Usage::
+
+    python tools/loso_multi.py --grid motion_noise=1,0.5,0.25,0.1 --seeds 0,1,2,3
+    python tools/loso_multi.py --grid overlap_gate=0.1,0.3 --settings own:PETS09-S2L1,public:TUD-Stadtmitte
+
+Prints a markdown table: HOTA mean ± sd over seeds (MOTA and IDF1 means beside), then the
+leave-one-sequence-out line. Nothing is timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from torchtrack.eval.mot import score_mot  # noqa: E402
+from torchtrack.io.mot import MotRows, MotSequence, load_mot_sequence, read_mot  # noqa: E402
+from torchtrack.track.config import MultiTrackerConfig  # noqa: E402
+from torchtrack.track.multi import (  # noqa: E402
+    MultiTargetTracker,
+    score_probabilities,
+    track_sequence,
+)
+
+SEQUENCES = ("PETS09-S2L1", "TUD-Stadtmitte")
+KINDS = ("own", "public", "gt")
+
+
+def load(data: Path, name: str) -> MotSequence:
+    if name == "PETS09-S2L1":  # the shared 480x360 video, GT x0.625 (seqinfo.ini)
+        return load_mot_sequence(
+            data / "videos" / "pets2009_s2l1_vtest" / "vtest.avi",
+            gt=data / "mot" / "PETS09-S2L1" / "gt" / "gt.txt",
+        )
+    return load_mot_sequence(data / "mot" / name)
+
+
+def own_detections(seq: MotSequence, cache: Path) -> MotRows:
+    """The bundled model's scan of every frame at the tracker's default scan settings, cached
+    as a MOT det file (object boxes, calibrated probabilities)."""
+    cfg = MultiTrackerConfig()
+    key = "_".join(
+        str(v)
+        for v in (
+            seq.name,
+            cfg.model,
+            cfg.scan_min_scale,
+            cfg.scan_max_scale,
+            cfg.scan_scale_step,
+            cfg.scan_stride,
+            cfg.scan_nms,
+            cfg.detection_threshold,
+        )
+    )
+    path = cache / f"own_{key}.txt"
+    if path.is_file():
+        return read_mot(path, 1.0, seq.n_frames, kind="det")
+    mt = MultiTargetTracker()
+    f_, b_, p_ = [], [], []
+    t0 = time.perf_counter()
+    with seq.open() as src:
+        for i, frame in src.items():
+            if frame is None or i >= seq.n_frames:
+                continue
+            boxes, p = mt.detect(frame)
+            f_.append(np.full(len(p), i))
+            b_.append(boxes.numpy())
+            p_.append(p.numpy())
+    rows = MotRows.from_arrays(
+        np.concatenate(f_), np.full(sum(len(p) for p in p_), -1), np.concatenate(b_),
+        np.concatenate(p_),
+    )  # fmt: skip
+    cache.mkdir(parents=True, exist_ok=True)
+    from torchtrack.io.mot import write_mot
+
+    write_mot(path, rows)
+    print(f"scanned {seq.name} in {time.perf_counter() - t0:.0f} s -> {path}", file=sys.stderr)
+    return read_mot(path, 1.0, seq.n_frames, kind="det")  # the same rounding as a cache hit
+
+
+def gt_detections(seq: MotSequence, seed: int, drop: float = 0.1, jitter: float = 2.0) -> MotRows:
+    """Ground-truth boxes, ``drop`` of them removed, Gaussian ``jitter`` px on x, y, w, h."""
+    g = seq.gt.select(seq.gt.conf.astype(int) != 0)
+    rng = np.random.default_rng(seed)
+    keep = rng.random(len(g)) >= drop
+    boxes = g.boxes[keep] + rng.normal(0.0, jitter, (int(keep.sum()), 4))
+    boxes[:, 2:] = np.maximum(boxes[:, 2:], 1.0)
+    return MotRows.from_arrays(g.frames[keep], np.full(int(keep.sum()), -1), boxes)
+
+
+def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool) -> dict:
+    params = dict(params)
+    if own:  # cached scans come in as outside detections: keep the scan's birth threshold
+        cfg = MultiTrackerConfig(**{k: v for k, v in params.items()})
+        params.setdefault("external_birth_threshold", cfg.birth_threshold)
+        if cfg.scan_every != 1:
+            raise SystemExit("scan_every: run the tracker's own scans (torchtrack track) instead")
+    mt = MultiTargetTracker(generator=torch.Generator().manual_seed(seed), **params)
+    with seq.open() as src:
+        rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)
+    m = score_mot(seq.gt, rows, seq.n_frames, name=seq.name)
+    return {"hota": 100 * m.hota, "mota": 100 * m.mota, "idf1": 100 * m.idf1}
+
+
+def parse_grid(spec: str) -> tuple[str, list]:
+    key, _, values = spec.partition("=")
+    field = {f.name: f for f in dataclasses.fields(MultiTrackerConfig)}.get(key)
+    if field is None or not values:
+        raise SystemExit(f"--grid must be KEY=v1,v2,... with a MultiTrackerConfig key: {spec!r}")
+    cast = type(getattr(MultiTrackerConfig(), key))
+    return key, [cast(v) for v in values.split(",")]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--grid", required=True, help="KEY=v1,v2,... (one MultiTrackerConfig key)")
+    ap.add_argument("--seeds", default="0,1,2,3")
+    ap.add_argument(
+        "--settings",
+        default=",".join(f"{k}:{s}" for k in KINDS for s in SEQUENCES if (k, s) != ("public", SEQUENCES[0])),
+        help="KIND:SEQUENCE,... with KIND own, public (TUD only) or gt",
+    )  # fmt: skip
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--cache", type=Path, default=REPO / "runs" / "loso_multi")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    key, values = parse_grid(args.grid)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    settings = [tuple(s.split(":", 1)) for s in args.settings.split(",")]
+    for kind, name in settings:
+        if kind not in KINDS or name not in SEQUENCES or (kind, name) == ("public", SEQUENCES[0]):
+            raise SystemExit(f"unknown setting {kind}:{name}")
+    seqs = {name: load(args.data, name) for name in {n for _, n in settings}}
+    res: dict[tuple, list[dict]] = {}
+    t0 = time.perf_counter()
+    for kind, name in settings:
+        seq = seqs[name]
+        base = None
+        if kind == "own":
+            base = own_detections(seq, args.cache)
+        elif kind == "public":
+            d = seq.detections()
+            base = dataclasses.replace(
+                d, conf=score_probabilities(torch.from_numpy(d.conf)).numpy()
+            )
+        for v in values:
+            for seed in seeds:
+                dets = gt_detections(seq, seed) if kind == "gt" else base
+                r = run_one(seq, dets, {key: v}, seed, own=kind == "own")
+                res.setdefault((kind, name, v), []).append(r)
+                print(f"{kind}:{name} {key}={v} seed {seed}: HOTA {r['hota']:.1f} "
+                      f"MOTA {r['mota']:.1f} IDF1 {r['idf1']:.1f}", file=sys.stderr, flush=True)  # fmt: skip
+
+    def hota(kind, name, v):
+        return statistics.mean(r["hota"] for r in res[(kind, name, v)])
+
+    default = getattr(MultiTrackerConfig(), key)
+    head = " | ".join(f"{k}: {n}" for k, n in settings)
+    lines = [
+        f"HOTA mean ± sd over seeds {args.seeds} (MOTA / IDF1 means); default {key} = {default}",
+        "",
+        f"| {key} | {head} |",
+        "|---" * (len(settings) + 1) + "|",
+    ]
+    for v in values:
+        cells = []
+        for kind, name in settings:
+            rs = res[(kind, name, v)]
+            h = [r["hota"] for r in rs]
+            sd = statistics.stdev(h) if len(h) > 1 else 0.0
+            cells.append(
+                f"{statistics.mean(h):.1f} ± {sd:.1f} ({statistics.mean(r['mota'] for r in rs):.1f}"
+                f" / {statistics.mean(r['idf1'] for r in rs):.1f})"
+            )
+        mark = " (default)" if v == default else ""
+        lines.append(f"| {v}{mark} | " + " | ".join(cells) + " |")
+    own = [n for k, n in settings if k == "own"]
+    if len(own) == 2:
+        held = []
+        for tune, test in (own, own[::-1]):
+            best = max(values, key=lambda v: hota("own", tune, v))
+            held.append(
+                f"chosen on {tune}: {key} = {best}, {test} scores {hota('own', test, best):.1f}"
+            )
+        lines += ["", "Leave one sequence out (own detections): " + "; ".join(held) + "."]  # fmt: skip
+    lines.append(f"\n{time.perf_counter() - t0:.0f} s; command: python tools/loso_multi.py "
+                 + " ".join(argv if argv is not None else sys.argv[1:]))  # fmt: skip
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
