@@ -71,7 +71,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from torchtrack.eval.mot import import_trackeval, score_sequence  # noqa: E402
+from torchtrack.eval.mot import gt_as_detections, import_trackeval, score_sequence  # noqa: E402
 from torchtrack.io.atomic import write_text_atomic  # noqa: E402
 from torchtrack.io.mot import MotRows, MotSequence, load_mot_sequence, read_mot, write_mot  # noqa: E402
 from torchtrack.io.video import to_numpy_bgr  # noqa: E402
@@ -311,15 +311,6 @@ def run_norfair(det: MotRows, n_frames: int, size: tuple[int, int]) -> MotRows:
 TRACKERS = {"bytetrack": run_bytetrack, "norfair": run_norfair}
 
 
-def gt_detections(seq: MotSequence, seed: int, drop: float = 0.1, jitter: float = 2.0) -> MotRows:
-    g = seq.gt.select(seq.gt.conf.astype(int) != 0)
-    rng = np.random.default_rng(seed)
-    keep = rng.random(len(g)) >= drop
-    boxes = g.boxes[keep] + rng.normal(0.0, jitter, (int(keep.sum()), 4))
-    boxes[:, 2:] = np.maximum(boxes[:, 2:], 1.0)
-    return MotRows.from_arrays(g.frames[keep], np.full(int(keep.sum()), -1), boxes)
-
-
 # ---------------------------------------------------------------------------------------------
 # Our pipeline through the CLI
 # ---------------------------------------------------------------------------------------------
@@ -488,7 +479,7 @@ def bench_sequence(spec: SeqSpec, args, tt, cache, results, has_mot, has_dets):
     times = []
     for s in args.seeds:
         out = results / f"gt+bytetrack_seed{s}" / f"{name}.txt"
-        m, ms = track_and_score(spec, size, gt_detections(seq, s), "bytetrack", out, 1)
+        m, ms = track_and_score(spec, size, gt_as_detections(seq.gt, s), "bytetrack", out, 1)
         ceiling.metrics.append(m)
         times.append(ms)
     ceiling.trk_ms = statistics.median(times)  # one pass per seed

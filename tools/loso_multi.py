@@ -38,7 +38,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from torchtrack.eval.mot import score_mot  # noqa: E402
+from torchtrack.eval.mot import gt_as_detections, score_mot  # noqa: E402
 from torchtrack.io.mot import MotRows, MotSequence, load_mot_sequence, read_mot  # noqa: E402
 from torchtrack.track.config import MultiTrackerConfig  # noqa: E402
 from torchtrack.track.multi import (  # noqa: E402
@@ -103,16 +103,6 @@ def own_detections(seq: MotSequence, cache: Path) -> MotRows:
     return read_mot(path, 1.0, seq.n_frames, kind="det")  # the same rounding as a cache hit
 
 
-def gt_detections(seq: MotSequence, seed: int, drop: float = 0.1, jitter: float = 2.0) -> MotRows:
-    """Ground-truth boxes, ``drop`` of them removed, Gaussian ``jitter`` px on x, y, w, h."""
-    g = seq.gt.select(seq.gt.conf.astype(int) != 0)
-    rng = np.random.default_rng(seed)
-    keep = rng.random(len(g)) >= drop
-    boxes = g.boxes[keep] + rng.normal(0.0, jitter, (int(keep.sum()), 4))
-    boxes[:, 2:] = np.maximum(boxes[:, 2:], 1.0)
-    return MotRows.from_arrays(g.frames[keep], np.full(int(keep.sum()), -1), boxes)
-
-
 def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool) -> dict:
     params = dict(params)
     if own:  # cached scans come in as outside detections: keep the scan's birth threshold
@@ -171,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         for v in values:
             for seed in seeds:
-                dets = gt_detections(seq, seed) if kind == "gt" else base
+                dets = gt_as_detections(seq.gt, seed) if kind == "gt" else base
                 r = run_one(seq, dets, {key: v}, seed, own=kind == "own")
                 res.setdefault((kind, name, v), []).append(r)
                 print(f"{kind}:{name} {key}={v} seed {seed}: HOTA {r['hota']:.1f} "

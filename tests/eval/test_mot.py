@@ -15,6 +15,7 @@ from torchtrack.eval.mot import (
     TRACKEVAL_INSTALL,
     combine_metrics,
     evaluate_mot,
+    gt_as_detections,
     import_trackeval,
     resolve_results,
     score_mot,
@@ -363,3 +364,20 @@ def test_evaluate_mot_writes_json_and_markdown(tmp_path):
     assert "| bad | **combined** | " in md and "MOT15" in md
     with pytest.raises(ConfigError, match="given twice"):
         evaluate_mot([a, a], [good])
+
+
+def test_gt_as_detections_drops_jitters_and_ignores_conf_0_rows():
+    n = 2000
+    gt = MotRows.from_arrays(
+        np.arange(n) // 4, np.arange(n) % 4, np.tile([10.0, 20.0, 30.0, 60.0], (n, 1)),
+        np.where(np.arange(n) % 10 == 0, 0.0, 1.0),
+    )  # fmt: skip
+    d = gt_as_detections(gt, seed=3, drop=0.1, jitter=2.0)
+    kept = len(d) / (0.9 * n)  # rows with conf 0 (every 10th) never become detections
+    assert 0.85 < kept < 0.95 and (d.ids == -1).all()
+    err = d.boxes - np.array([10.0, 20.0, 30.0, 60.0])
+    assert abs(err.std() - 2.0) < 0.15 and abs(err.mean()) < 0.15
+    again = gt_as_detections(gt, seed=3, drop=0.1, jitter=2.0)
+    np.testing.assert_array_equal(again.boxes, d.boxes)  # the same seed, the same draw
+    with pytest.raises(ConfigError, match="drop"):
+        gt_as_detections(gt, seed=0, drop=1.0)

@@ -49,6 +49,7 @@ __all__ = [
     "MotMetrics",
     "combine_metrics",
     "evaluate_mot",
+    "gt_as_detections",
     "import_trackeval",
     "mot_markdown",
     "mot_table",
@@ -271,6 +272,24 @@ def score_mot(
             "n_result_ids": int(data["num_tracker_ids"]),
         },
     )
+
+
+def gt_as_detections(gt: MotRows, seed: int, drop: float = 0.1, jitter: float = 2.0) -> MotRows:
+    """Ground truth degraded into detections, a tracker's ceiling: the rows with conf 0
+    removed, ``drop`` of the rest dropped at random and Gaussian ``jitter`` px added to x, y, w,
+    h (sizes kept >= 1 px); ids -1, conf 1. The same ``seed`` gives the same draw.
+
+    Raises:
+        ConfigError: ``drop`` outside [0, 1) or a negative ``jitter``.
+    """
+    if not (0.0 <= drop < 1.0) or not (jitter >= 0.0):
+        raise ConfigError(f"drop must be in [0, 1) and jitter >= 0, got {drop} and {jitter}")
+    g = gt.select(gt.conf.astype(int) != 0)
+    rng = np.random.default_rng(seed)
+    keep = rng.random(len(g)) >= drop
+    boxes = g.boxes[keep] + rng.normal(0.0, jitter, (int(keep.sum()), 4))
+    boxes[:, 2:] = np.maximum(boxes[:, 2:], 1.0)
+    return MotRows.from_arrays(g.frames[keep], np.full(int(keep.sum()), -1), boxes)
 
 
 def combine_metrics(scores: list[MotMetrics]) -> MotMetrics:
