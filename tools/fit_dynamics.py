@@ -5,7 +5,7 @@ Usage:
     python tools/fit_dynamics.py --structure constant_velocity \
         --out torchtrack/data/dynamics_chateau_cv.toml     # the multi-target tracker's default
     python tools/fit_dynamics.py --structure constant_velocity --noise jitter_corrected \
-        --out /tmp/cv_jitter.toml     # how much of that noise is label jitter (1.4 of 4 px)
+        --out /tmp/cv_jitter.toml     # how much of that noise is label jitter (1.7 of 4 px)
 
 Reads every OTB / BoBoT ground truth under ``--data`` (with ``torchtrack.io.sequences`` when it
 is available, else a small built-in parser), fits A, B, Sigma by least squares

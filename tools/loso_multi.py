@@ -39,7 +39,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from torchtrack.eval.mot import gt_as_detections, score_mot  # noqa: E402
-from torchtrack.io.mot import MotRows, MotSequence, load_mot_sequence, read_mot  # noqa: E402
+from torchtrack.io.mot import (  # noqa: E402
+    MotRows,
+    MotSequence,
+    load_mot_sequence,
+    read_mot,
+    write_mot,
+)
 from torchtrack.track.config import MultiTrackerConfig  # noqa: E402
 from torchtrack.track.multi import (  # noqa: E402
     MultiTargetTracker,
@@ -96,8 +102,6 @@ def own_detections(seq: MotSequence, cache: Path) -> MotRows:
         np.concatenate(p_),
     )  # fmt: skip
     cache.mkdir(parents=True, exist_ok=True)
-    from torchtrack.io.mot import write_mot
-
     write_mot(path, rows)
     print(f"scanned {seq.name} in {time.perf_counter() - t0:.0f} s -> {path}", file=sys.stderr)
     return read_mot(path, 1.0, seq.n_frames, kind="det")  # the same rounding as a cache hit
@@ -106,7 +110,7 @@ def own_detections(seq: MotSequence, cache: Path) -> MotRows:
 def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool) -> dict:
     params = dict(params)
     if own:  # cached scans come in as outside detections: keep the scan's birth threshold
-        cfg = MultiTrackerConfig(**{k: v for k, v in params.items()})
+        cfg = MultiTrackerConfig(**params)
         params.setdefault("external_birth_threshold", cfg.birth_threshold)
         if cfg.scan_every != 1:
             raise SystemExit("scan_every: run the tracker's own scans (torchtrack track) instead")
@@ -119,8 +123,7 @@ def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool)
 
 def parse_grid(spec: str) -> tuple[str, list]:
     key, _, values = spec.partition("=")
-    field = {f.name: f for f in dataclasses.fields(MultiTrackerConfig)}.get(key)
-    if field is None or not values:
+    if key not in {f.name for f in dataclasses.fields(MultiTrackerConfig)} or not values:
         raise SystemExit(f"--grid must be KEY=v1,v2,... with a MultiTrackerConfig key: {spec!r}")
     cast = type(getattr(MultiTrackerConfig(), key))
     return key, [cast(v) for v in values.split(",")]

@@ -212,7 +212,7 @@ def _jitter_corrected_sigma(
             f"noise='jitter_corrected' needs a track with at least {_MIN_JITTER_PAIRS} "
             "consecutive residual pairs"
         )
-    v = torch.stack(per_track).median(0).values
+    v = torch.stack(per_track).quantile(0.5, dim=0)  # torch's median() takes the lower one
     # A floor keeps the noise positive definite when the median track moves perfectly evenly.
     return torch.diag(v.clamp_min(1e-6 * float(v.max().clamp_min(1e-12))))
 

@@ -177,7 +177,7 @@ class MultiTrackerConfig:
             loses people who cross; measured in ``docs/benchmarks/mot.md``).
         motion_noise: factor on the standard deviation of the dynamics' fitted noise. The
             fit's 4 px per frame is mostly the jitter of hand labels (``tools/fit_dynamics.py
-            --noise jitter_corrected`` leaves 1.4 px); 0.25 was chosen by leave-one-sequence-out
+            --noise jitter_corrected`` leaves 1.7 px); 0.25 was chosen by leave-one-sequence-out
             and holds on outside detections too (``docs/multi_target.md``).
         scan_every: scan the frame with the detector every k-th frame (1: every frame); the
             filter carries the targets in between.
