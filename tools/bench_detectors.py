@@ -256,6 +256,39 @@ def row(label, scores, probs, reps, extra=""):
     )
 
 
+def reliability_section(name, det, probs) -> list[str]:
+    """Where the shipped model's ECE on the test windows comes from: the bins, and the share
+    of positives in the calibration hold-out against the test set's (a calibrated probability
+    is calibrated to the class balance it was fitted on)."""
+    from torchtrack.learn import reliability_bins
+
+    pp, pn = probs[0], probs[1]
+    y = torch.cat((torch.ones(pp.numel()), torch.zeros(pn.numel()))).long()
+    rows = reliability_bins(torch.cat((pp, pn)).clamp(0, 1), y)
+    cnt = det.summary.get("counts", {})
+    npc, nnc = cnt.get("positives_calibration"), cnt.get("negatives_calibration")
+    share = (
+        f"{npc} / {nnc} ({npc / (npc + nnc):.1%} positives)"
+        if npc and nnc
+        else "not recorded in the model"
+    )
+    out = [
+        f"Reliability of `{name}` on these windows (15 bins; the ECE is the sum of the last "
+        f"column). Positives: {pp.numel()} of {pp.numel() + pn.numel()} windows "
+        f"({pp.numel() / (pp.numel() + pn.numel()):.1%}); the calibration hold-out the Platt "
+        f"fit saw: {share}.",
+        "",
+        "| predicted | windows | mean predicted | observed positive frequency | ECE share |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        out.append(
+            f"| {r['lo']:.2f}-{r['hi']:.2f} | {r['count']} | {r['mean_p']:.3f} | "
+            f"{r['frequency']:.3f} | {r['ece_share']:.4f} |"
+        )
+    return [*out, ""]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -308,6 +341,7 @@ def main() -> None:
         cfg = REPO / "configs" / f"{name}.toml"
         det = load_detector(resolve_model(name))
         m, p = detector_scores(det, ts)
+        reliability = reliability_section(name, det, p) if p is not None else []
         s = det.summary
         lines.append(
             row(
@@ -373,6 +407,7 @@ def main() -> None:
                 )
             )
         lines.append("")
+        lines += reliability
         log("\n".join(lines))
     lines += [f"Load average at the end: {os.getloadavg()[0]:.1f}.", ""]
     from torchtrack.io.atomic import write_text_atomic

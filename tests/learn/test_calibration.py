@@ -22,6 +22,7 @@ from torchtrack.learn import (
     calibration_metrics,
     calibrator_from_state,
     fit_calibrated,
+    reliability_bins,
     reliability_diagram,
 )
 
@@ -187,6 +188,23 @@ def test_metrics_against_references():
         calibration_metrics(np.where(np.arange(300) == 4, 1.5, p), y)
     with pytest.raises(errors.DataError, match="only 0 and 1"):
         calibration_metrics(p, y * 2)
+
+
+def test_reliability_bins_against_a_loop():
+    s, y = _scores(300, 11)
+    p = PlattCalibrator().fit(s, y).predict_proba(s)
+    p[0] = 1.0
+    rows = reliability_bins(p, y, n_bins=7)
+    assert sum(r["count"] for r in rows) == 300
+    assert sum(r["ece_share"] for r in rows) == pytest.approx(_ece_loop(p, y, 7), abs=1e-12)
+    for r in rows:
+        b = round(r["lo"] * 7)
+        m = (p >= r["lo"]) & (p < r["hi"]) | ((b == 6) & (p == 1.0))
+        assert r["count"] == int(m.sum()) > 0
+        assert r["mean_p"] == pytest.approx(p[m].mean(), rel=1e-12)
+        assert r["frequency"] == pytest.approx(y[m].mean(), rel=1e-12)
+    with pytest.raises(errors.DataError, match="only 0 and 1"):
+        reliability_bins(p, y * 2)
 
 
 def test_reliability_diagram_writes_png(tmp_path):

@@ -22,6 +22,7 @@ from torchtrack.learn.calibration import (
     calibration_metrics,
     fit_calibrated,
     make_calibrator,
+    reliability_bins,
     reliability_diagram,
 )
 from torchtrack.learn.svm import SVMClassifier
@@ -44,6 +45,7 @@ __all__ = [
     "classifier_from_state",
     "fit_calibrated",
     "make_calibrator",
+    "reliability_bins",
     "reliability_diagram",
     "select_features",
 ]

@@ -339,14 +339,56 @@ def calibration_metrics(p: Any, y: Any, n_bins: int = 15) -> dict[str, float]:
     pc = pt.clamp(1e-15, 1 - 1e-15)
     nll = float(-(yt * pc.log() + (1 - yt) * (1 - pc).log()).mean())
     brier = float(((pt - yt) ** 2).mean())
-    if int(n_bins) < 1:
-        raise errors.ConfigError(f"n_bins must be >= 1, got {n_bins}")
-    b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
-    sp = torch.bincount(b, weights=pt, minlength=n_bins)
-    sy = torch.bincount(b, weights=yt, minlength=n_bins)
+    _, sp, sy = _bin_sums(pt, yt, n_bins)
     # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
     ece = float((sp - sy).abs().sum() / pt.numel())
     return {"nll": nll, "brier": brier, "ece": ece}
+
+
+def _bin_sums(
+    pt: torch.Tensor, yt: torch.Tensor, n_bins: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per equal-width bin of ``[0, 1]`` (``p = 1`` in the last): count, sum of ``p``, sum
+    of ``y``."""
+    if int(n_bins) < 1:
+        raise errors.ConfigError(f"n_bins must be >= 1, got {n_bins}")
+    b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
+    cnt = torch.bincount(b, minlength=n_bins)
+    return (
+        cnt,
+        torch.bincount(b, weights=pt, minlength=n_bins),
+        torch.bincount(b, weights=yt, minlength=n_bins),
+    )
+
+
+def reliability_bins(p: Any, y: Any, n_bins: int = 15) -> list[dict[str, float]]:
+    """The numbers behind a reliability diagram: for every non-empty equal-width bin of the
+    predicted probabilities ``p (n,)`` (labels ``y (n,)`` in ``{0, 1}``; the bins of
+    :func:`calibration_metrics`), ``lo``, ``hi`` (its edges), ``count``, ``mean_p`` and
+    ``frequency`` (the observed fraction of positives), and ``ece_share`` (its term of the
+    ECE: ``|sum p - sum y| / n``).
+
+    Raises:
+        DataError / ShapeError: as :func:`calibration_metrics`.
+    """
+    calibration_metrics(p, y, n_bins)  # validates
+    pt = as_float_tensor(p, "p", ndim=1, dtype=torch.float64)
+    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64).to(pt.device)
+    cnt, sp, sy = _bin_sums(pt, yt, n_bins)
+    out = []
+    for b in torch.nonzero(cnt).flatten().tolist():
+        c = float(cnt[b])
+        out.append(
+            {
+                "lo": b / n_bins,
+                "hi": (b + 1) / n_bins,
+                "count": int(c),
+                "mean_p": float(sp[b]) / c,
+                "frequency": float(sy[b]) / c,
+                "ece_share": abs(float(sp[b] - sy[b])) / pt.numel(),
+            }
+        )
+    return out
 
 
 def reliability_diagram(
@@ -385,10 +427,8 @@ def reliability_diagram(
     for name, pv in curves.items():
         pt = as_float_tensor(pv, f"p[{name}]", ndim=1, dtype=torch.float64).cpu()
         m = calibration_metrics(pt, yt, n_bins)
-        b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
-        cnt = torch.bincount(b, minlength=n_bins)
-        mp = torch.bincount(b, weights=pt, minlength=n_bins) / cnt.clamp_min(1)
-        my = torch.bincount(b, weights=yt, minlength=n_bins) / cnt.clamp_min(1)
+        cnt, sp, sy = _bin_sums(pt, yt, n_bins)
+        mp, my = sp / cnt.clamp_min(1), sy / cnt.clamp_min(1)
         keep = (cnt > 0).numpy()
         ax.plot(
             mp.numpy()[keep],
