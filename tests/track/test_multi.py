@@ -138,6 +138,43 @@ def test_motion_noise_default_keeps_the_velocity_of_a_coasting_walker():
     assert default >= 0.65 and default > fitted + 0.08, (default, fitted)
 
 
+def test_noise_height_scales_the_centre_noise_with_the_target_height():
+    """With ``noise_height`` the centre noise of a target twice as tall is twice as wide (a
+    nearer person moves more pixels); the scale noise is relative already and stays."""
+    spreads = {}
+    for nh in (0.0, 60.0):
+        mt = make(noise_height=nh, n_particles=4000)
+        small = torch.tensor([[40.0, 40.0, 20.0, 60.0]], dtype=torch.float64)
+        tall = torch.tensor([[200.0, 20.0, 40.0, 120.0]], dtype=torch.float64)
+        mt.update(blank(), (torch.cat([small, tall]), torch.ones(2)))
+        x0 = mt.states.clone()
+        mt._predict()
+        d = mt.states - x0.mean(1, keepdim=True)
+        spreads[nh] = (d[..., 0].std(1), d[..., 4].std(1) / x0[..., 4].mean(1))
+    (c0, s0), (c1, s1) = spreads[0.0], spreads[60.0]
+    assert float(c0[1] / c0[0]) == pytest.approx(1.0, rel=0.15)  # pixels: one noise for all
+    assert float(c1[0] / c0[0]) == pytest.approx(1.0, rel=0.15)  # 60 px tall: as fitted
+    assert float(c1[1] / c1[0]) == pytest.approx(2.0, rel=0.15)  # 120 px tall: twice
+    assert float(s1[1] / s0[1]) == pytest.approx(1.0, rel=0.15)  # the scale noise stays
+
+
+def _sigma_after(jitter_px, **kw):
+    g = torch.Generator().manual_seed(5)
+    mt = make(detection_sigma_rate=0.2, **kw)
+    for t in range(40):
+        det = people(t) + torch.randn((3, 4), generator=g, dtype=torch.float64) * jitter_px
+        mt.update(blank(), (det, torch.ones(3)))
+    return mt.detection_sigma
+
+
+def test_detection_sigma_is_estimated_from_the_video():
+    """Innovation-based: precise detections (0.3 px of jitter on 60-px people) give a small
+    noise, coarse ones (6 px, a tenth of the height) a large one; the fixed value otherwise."""
+    precise, coarse = _sigma_after(0.3), _sigma_after(6.0)
+    assert precise < 0.03 < 0.06 < coarse < 0.2, (precise, coarse)
+    assert make().detection_sigma == 0.05  # rate 0: the configured value, untouched
+
+
 def test_same_seed_same_tracks():
     outs = []
     for _ in range(2):
@@ -176,6 +213,10 @@ def test_reset_forgets_outside_detections():
         ({"n_particle": 10}, "unknown key"),
         ({"motion_noise": 0}, "motion_noise"),
         ({"motion_noise": float("nan")}, "motion_noise"),
+        ({"noise_height": -1}, "noise_height"),
+        ({"detection_sigma_rate": -0.1}, "detection_sigma_rate"),
+        ({"detection_sigma_rate": float("nan")}, "detection_sigma_rate"),
+        ({"noise_height": float("inf")}, "noise_height"),
     ],
 )
 def test_bad_config(kw, match):

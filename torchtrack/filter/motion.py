@@ -301,14 +301,24 @@ class ChateauAR:
         """Eq. (4): ``(B, N, 6) -> (B, N, 6)``.
 
         Args:
-            noise_scale: optional ``(B,)`` factor on the noise's standard deviation per row
-                (e.g. a multi-target tracker widens the search of a target that missed its
-                detections); ``None`` is eq. (4) as fitted.
+            noise_scale: optional factor on the noise's standard deviation, ``(B,)`` per row
+                or ``(B, 6)`` per row and state component (e.g. a multi-target tracker widens
+                the search of a target that missed its detections, or scales the centre's
+                noise with the target's size); ``None`` is eq. (4) as fitted.
         """
         _check_states(states, 6, "ChateauAR")
         noise = self._noise(states, generator)
         if noise_scale is not None:
-            noise = noise * noise_scale.to(noise).reshape(-1, 1, 1)
+            ns = noise_scale.to(noise)
+            if ns.ndim == 2:
+                if ns.shape != (states.shape[0], 6):
+                    raise ShapeError(
+                        f"ChateauAR: noise_scale must be (B,) or (B, 6) = "
+                        f"({states.shape[0]}, 6), got {tuple(ns.shape)}"
+                    )
+                noise = noise * ns[:, None, :]
+            else:
+                noise = noise * ns.reshape(-1, 1, 1)
         out = states @ self.A.to(states).T + noise
         out[..., 4] = out[..., 4].clamp_min(self.min_scale)
         return out

@@ -179,6 +179,10 @@ class MultiTrackerConfig:
             fit's 4 px per frame is mostly the jitter of hand labels (``tools/fit_dynamics.py
             --noise jitter_corrected`` leaves 1.7 px); 0.25 was chosen by leave-one-sequence-out
             and holds on outside detections too (``docs/multi_target.md``).
+        noise_height: object height in pixels at which ``motion_noise`` applies as is: the
+            centre's noise then scales with each target's height / ``noise_height`` (a person
+            twice as tall, nearer the camera, moves twice as many pixels per frame); 0 keeps
+            the noise in pixels whatever the target's size.
         scan_every: scan the frame with the detector every k-th frame (1: every frame); the
             filter carries the targets in between.
         scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
@@ -217,6 +221,13 @@ class MultiTrackerConfig:
         detection_sigma: a matched detection weights the particles by a Gaussian around it,
             with this standard deviation as a fraction of its height (position) and of its
             scale (log scale).
+        detection_sigma_rate: 0 keeps ``detection_sigma`` fixed; above 0 the tracker
+            estimates it from the video's own matches (innovation-based adaptive estimation:
+            the squared distance of each matched detection from its target's predicted
+            particles, less the particles' own spread, is the detector's noise), starting at
+            ``detection_sigma``, a running average at this rate per scan over the median of
+            the frame's matches, held within [0.01, 0.2]. Precise detections then pull the
+            targets harder than a coarse scan's.
         exclusion: strength ``k`` of the interaction potential ``exp(-k IoU)`` between a
             particle's window and the other targets' predicted windows (Khan et al. 2005: two
             targets do not take the same place); 0: off.
@@ -242,6 +253,7 @@ class MultiTrackerConfig:
     n_particles: int = 100
     dynamics: str = ""
     motion_noise: float = 0.25
+    noise_height: float = 0.0
     scan_every: int = 1
     scan_min_scale: float = 0.35
     scan_max_scale: float = 0.0
@@ -265,6 +277,7 @@ class MultiTrackerConfig:
     appearance_lambda: float = 0.0
     appearance_rate: float = 0.05
     detection_sigma: float = 0.05
+    detection_sigma_rate: float = 0.0
     exclusion: float = 0.0
     reseed_overlap: float = 0.3
     duplicate_iou: float = 0.85
@@ -332,10 +345,18 @@ class MultiTrackerConfig:
             raise ConfigError(f"max_cost must be > 0, got {self.max_cost}")
         if not (self.detection_sigma > 0 and math.isfinite(self.detection_sigma)):
             raise ConfigError(f"detection_sigma must be > 0, got {self.detection_sigma}")
+        if not 0.0 <= self.detection_sigma_rate <= 1.0:
+            raise ConfigError(
+                f"detection_sigma_rate must be in [0, 1], got {self.detection_sigma_rate}"
+            )
         if not self.max_noise_scale >= 1:
             raise ConfigError(f"max_noise_scale must be >= 1, got {self.max_noise_scale}")
         if not (self.motion_noise > 0 and math.isfinite(self.motion_noise)):
             raise ConfigError(f"motion_noise must be > 0, got {self.motion_noise}")
+        if not (self.noise_height >= 0 and math.isfinite(self.noise_height)):
+            raise ConfigError(
+                f"noise_height must be >= 0 (0: noise in pixels), got {self.noise_height}"
+            )
         if self.appearance not in ("colour", "none"):
             raise ConfigError(f"appearance must be 'colour' or 'none', got {self.appearance!r}")
         if not 0.0 <= self.likelihood_floor < 1.0:

@@ -155,6 +155,8 @@ class MultiTargetTracker:
         self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
         self._next_id = 1
         self._scans = 0
+        # the detector's noise, squared (estimated from the video: detection_sigma_rate)
+        self._sigma2 = self.config.detection_sigma**2
         #: counts of what happened: births, confirmations, re-seeds, deaths by reason
         self.stats: Counter[str] = Counter()
 
@@ -338,10 +340,23 @@ class MultiTargetTracker:
         lost = (self.since_match - (cfg.scan_every - 1)).clamp_min(0).to(torch.float64)
         scale = (1.0 + cfg.lost_noise_growth * lost).clamp(max=cfg.max_noise_scale)
         self.states = self.dynamics.predict(
-            states, self.generator, noise_scale=scale * cfg.motion_noise
+            states, self.generator, noise_scale=self._noise_scale(states) * scale[:, None]
         )
         n = self.states.shape[1]
         self.log_weights = torch.full_like(self.log_weights, -math.log(n))
+
+    def _noise_scale(self, states: torch.Tensor, ref: torch.Tensor | None = None) -> torch.Tensor:
+        """``(T, 6)`` factor on the fitted noise's sd per target and state component:
+        ``motion_noise``, times on the centre ``object height / noise_height`` when set."""
+        cfg = self.config
+        t = states.shape[0]
+        out = torch.full((t, 6), cfg.motion_noise, dtype=torch.float64)
+        if cfg.noise_height > 0 and t:
+            ref = self.ref if ref is None else ref
+            fh = self.detector.object_box[3] if self.detector.object_box is not None else 1.0
+            h = states[..., 4].mean(1) * ref[:, 1] * fh  # (T,) object height, pixels
+            out[:, 0:4] *= (h / cfg.noise_height)[:, None]
+        return out
 
     def _interactions(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Target-target interactions from the predicted boxes (mean field).
@@ -445,16 +460,42 @@ class MultiTargetTracker:
         rows = torch.nonzero(matched >= 0).flatten()
         if rows.numel() == 0:
             return out
-        sig = self.config.detection_sigma
         win = self.detector.object_to_window(det_boxes[matched[rows]])  # (R, 4)
         dc = win[:, 0:2] + win[:, 2:4] / 2
         ds = win[:, 3] / self.ref[rows, 1]
         st = self.states[rows]
+        if self.config.detection_sigma_rate > 0:
+            self._adapt_sigma(st, dc, ds, win[:, 3])
+        sig = self.detection_sigma
         sd = sig * win[:, 3:4]
         d2 = (((st[..., 0:2] - dc[:, None, :]) / sd[:, None, :]) ** 2).sum(-1)
         ls = (st[..., 4].clamp_min(1e-6).log() - ds.log()[:, None]) / sig
         out[rows] = -0.5 * (d2 + ls**2)
         return out
+
+    @property
+    def detection_sigma(self) -> float:
+        """The detector's noise the matched detections are weighted with: ``detection_sigma``,
+        or its running estimate with ``detection_sigma_rate > 0``."""
+        return math.sqrt(self._sigma2)
+
+    def _adapt_sigma(
+        self, st: torch.Tensor, dc: torch.Tensor, ds: torch.Tensor, h: torch.Tensor
+    ) -> None:
+        """Innovation-based estimate of the detector's noise from this scan's matches:
+        particles ``st (R, N, 6)`` before the detection weighs them, detection window centres
+        ``dc (R, 2)``, scales ``ds (R,)`` and heights ``h (R,)``."""
+        ls = st[..., 4].clamp_min(1e-6).log()
+        c = st[..., 0:2]
+        # squared innovation over its 3 components (centre / height, log scale) ...
+        z = (((dc - c.mean(1)) / h[:, None]) ** 2).sum(1) + (ds.log() - ls.mean(1)) ** 2
+        # ... less the particles' own spread: what is left is the detector's noise
+        p = (c.var(1, unbiased=False) / h[:, None] ** 2).sum(1) + ls.var(1, unbiased=False)
+        # E[z] = 3 R + p; the median of chi^2 with 3 degrees of freedom is 0.7887 of its mean
+        # (a median over the matches: robust to a wrong one)
+        r = float(((z / 0.7887 - p) / 3.0).median().clamp_min(0.0))
+        a = self.config.detection_sigma_rate
+        self._sigma2 = min(max((1 - a) * self._sigma2 + a * r, 0.01**2), 0.2**2)
 
     def _explained_away(self, det_boxes: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
         """``(T, N)`` log of ``1 - IoU`` of each particle's object box with the detections
@@ -490,14 +531,15 @@ class MultiTargetTracker:
         old = self._estimate(self.states[rows], self.log_weights[rows])
         vel = old[:, 0:2] - old[:, 2:4]
         x0 = torch.cat([c, c - vel, s[:, None], s[:, None]], 1)
-        self.states[rows] = self._spread(x0)
+        self.states[rows] = self._spread(x0, self.ref[rows])
 
-    def _spread(self, x0: torch.Tensor) -> torch.Tensor:
-        """``(R, 6)`` states -> ``(R, N, 6)`` particles spread by one step of process noise
-        around them (their lagged slots kept)."""
+    def _spread(self, x0: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+        """``(R, 6)`` states of targets with reference windows ``ref (R, 2)`` -> ``(R, N, 6)``
+        particles spread by one step of process noise around them (lagged slots kept)."""
         n = self.config.n_particles
         rep = x0[:, None, :].repeat(1, n, 1)
-        out = rep + self.config.motion_noise * self.dynamics._noise(rep, self.generator)
+        scale = self._noise_scale(rep, ref)[:, None, :]
+        out = rep + scale * self.dynamics._noise(rep, self.generator)
         out[..., 4] = out[..., 4].clamp_min(self.dynamics.min_scale)
         out[..., 2:4] = rep[..., 2:4]
         out[..., 5] = rep[..., 5]
@@ -590,7 +632,7 @@ class MultiTargetTracker:
         one = torch.ones((k, 1), dtype=torch.float64)
         x0 = torch.cat([c, c, one, one], 1)
         n = cfg.n_particles
-        self.states = torch.cat([self.states, self._spread(x0)])
+        self.states = torch.cat([self.states, self._spread(x0, win[:, 2:4])])
         self.log_weights = torch.cat(
             [self.log_weights, torch.full((k, n), -math.log(n), dtype=torch.float64)]
         )
