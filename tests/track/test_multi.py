@@ -249,9 +249,10 @@ def test_shipped_config_file_is_the_defaults():
 
 def test_tud_stadtmitte_public_detections_real_data(data_dir, one_thread, trackeval):
     """The MOT15 public detections of TUD-Stadtmitte (a crowd, 10 people, 179 frames) tracked
-    with the defaults and scored by TrackEval: ByteTrack reaches HOTA 36.4 on the same boxes
-    (docs/benchmarks/mot.md); the fitted motion noise (motion_noise = 1) gives 32.9 and lets
-    identities hop between neighbours."""
+    with the defaults and scored by TrackEval: ByteTrack reaches HOTA 36.4 / IDF1 59.5 on the
+    same boxes (docs/benchmarks/mot.md). With the old gate (``overlap_gate = 0.1``) a weak
+    detection that barely touched a target pulled it onto a neighbour, and 10 people were
+    followed by 7 identities that hopped between them (IDF1 0.546)."""
     import dataclasses
 
     from torchtrack.eval.mot import score_mot
@@ -269,8 +270,9 @@ def test_tud_stadtmitte_public_detections_real_data(data_dir, one_thread, tracke
         return score_mot(seq.gt, rows, seq.n_frames)
 
     m = hota()
-    assert m.hota >= 0.34 and m.mota >= 0.5 and m.id_switches <= 10, m
-    assert m.hota > hota(motion_noise=1.0).hota + 0.01
+    assert m.hota >= 0.34 and m.mota >= 0.5 and m.idf1 >= 0.57 and m.id_switches <= 15, m
+    assert m.n_result_ids >= 9  # one identity per person, not a few that hop
+    assert m.idf1 > hota(overlap_gate=0.1).idf1 + 0.02
 
 
 @pytest.mark.parametrize("seed", [0, 2])
@@ -279,7 +281,9 @@ def test_tud_stadtmitte_precise_detections_with_the_estimated_weight_real_data(
 ):
     """TUD-Stadtmitte's ground-truth boxes (10% dropped, 2 px jitter: a precise outside
     detector) with ``detection_sigma_rate``: the weight of a detection follows how precise the
-    detector turns out to be, and the crossings no longer swap identities. ByteTrack scores
+    detector turns out to be, and the crossings no longer swap identities (with the loose gate
+    of precise detections, ``overlap_gate = 0.1``: a drop-out does not fragment the target).
+    ByteTrack scores
     HOTA 82.1 on these boxes; the fixed weight 69.9-81.8 over seeds 0-3 (seed 2: 69.9), the
     estimated one 84.8-86.8 (docs/multi_target.md)."""
     from torchtrack.eval.mot import gt_as_detections, score_mot
@@ -287,8 +291,11 @@ def test_tud_stadtmitte_precise_detections_with_the_estimated_weight_real_data(
     from torchtrack.track.multi import track_sequence
 
     seq = load_mot_sequence(data_dir / "mot" / "TUD-Stadtmitte")
-    mt = MultiTargetTracker(
-        "pedestrian", generator=torch.Generator().manual_seed(seed), detection_sigma_rate=0.05
+    mt = MultiTargetTracker(  # the recipe for a precise outside detector (the doc)
+        "pedestrian",
+        generator=torch.Generator().manual_seed(seed),
+        detection_sigma_rate=0.05,
+        overlap_gate=0.1,
     )
     with seq.open() as src:
         rows = track_sequence(mt, src, gt_as_detections(seq.gt, seed), max_frames=seq.n_frames)

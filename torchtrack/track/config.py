@@ -209,7 +209,10 @@ class MultiTrackerConfig:
             with every live target's box is below this (else it is that target, momentarily
             out of the gate).
         overlap_gate: a target and a detection can pair only if the detection's expected IoU
-            under the target's particles is at least this.
+            under the target's particles is at least this. 0.3 (chosen by
+            leave-one-sequence-out, ``docs/multi_target.md``) keeps a detection that barely
+            touches a target, most often a neighbour's, from pulling it over; it also means a
+            matched target is never re-seeded while ``reseed_overlap`` is 0.3.
         max_cost: pairs costing more are not made (see :mod:`torchtrack.track.association`).
         w_overlap, w_appearance: weights of the overlap and appearance cues in the cost.
         appearance: ``"colour"`` (an online HSV histogram per target, Pérez et al. 2002) or
@@ -269,7 +272,7 @@ class MultiTrackerConfig:
     visible_threshold: float = 0.5
     max_targets: int = 100
     birth_overlap: float = 0.3
-    overlap_gate: float = 0.1
+    overlap_gate: float = 0.3
     max_cost: float = 0.8
     w_overlap: float = 1.0
     w_appearance: float = 0.5
