@@ -19,8 +19,9 @@ predicted and weighted in one call per frame. Per frame:
    calibration, :meth:`~torchtrack.detect.Detector.tracking_model`), times the target's colour-model likelihood ``exp(-lambda (1 - BC))`` (Pérez et al.),
    times, for a matched target, a Gaussian around its detection (the detection as a measurement,
    as in Breitenstein et al., "Robust tracking-by-detection using a detector confidence particle
-   filter", ICCV 2009). A matched target whose particles do not reach its detection is re-seeded
-   around it.
+   filter", ICCV 2009). A matched target whose particles do not reach its detection (overlap
+   below ``reseed_overlap``) is re-seeded around it; with the default gate (``overlap_gate``
+   0.3 = ``reseed_overlap``) a pair that overlaps so little is not made in the first place.
 5. **Births and deaths**: a confident detection that matches nothing starts a tentative target,
    confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row;
    a target unmatched for more than ``max_lost`` frames, or whose box has left the frame, ends;
