@@ -351,7 +351,7 @@ class MultiTargetTracker:
         ``motion_noise``, times on the centre ``object height / noise_height`` when set."""
         cfg = self.config
         t = states.shape[0]
-        out = torch.full((t, 6), cfg.motion_noise, dtype=torch.float64)
+        out = torch.full((t, 6), cfg.motion_noise, dtype=torch.float64, device=states.device)
         if cfg.noise_height > 0 and t:
             ref = self.ref if ref is None else ref
             fh = self.detector.object_box[3] if self.detector.object_box is not None else 1.0
