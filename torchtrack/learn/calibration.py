@@ -327,6 +327,18 @@ def calibration_metrics(p: Any, y: Any, n_bins: int = 15) -> dict[str, float]:
     Raises:
         DataError: probabilities outside ``[0, 1]`` or NaN; labels other than 0 / 1.
     """
+    pt, yt = _probabilities_and_labels(p, y)
+    pc = pt.clamp(1e-15, 1 - 1e-15)
+    nll = float(-(yt * pc.log() + (1 - yt) * (1 - pc).log()).mean())
+    brier = float(((pt - yt) ** 2).mean())
+    _, sp, sy = _bin_sums(pt, yt, n_bins)
+    # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
+    ece = float((sp - sy).abs().sum() / pt.numel())
+    return {"nll": nll, "brier": brier, "ece": ece}
+
+
+def _probabilities_and_labels(p: Any, y: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(n,)`` float64 probabilities in ``[0, 1]`` and labels in ``{0, 1}``, checked."""
     pt = as_float_tensor(p, "p", ndim=1, dtype=torch.float64)
     if bool(((pt < 0) | (pt > 1)).any()):
         first = int(((pt < 0) | (pt > 1)).nonzero()[0, 0])
@@ -336,13 +348,7 @@ def calibration_metrics(p: Any, y: Any, n_bins: int = 15) -> dict[str, float]:
         raise errors.ShapeError(f"y must have shape {tuple(pt.shape)}, got {tuple(yt.shape)}")
     if bool(((yt != 0) & (yt != 1)).any()):
         raise errors.DataError("y must contain only 0 and 1")
-    pc = pt.clamp(1e-15, 1 - 1e-15)
-    nll = float(-(yt * pc.log() + (1 - yt) * (1 - pc).log()).mean())
-    brier = float(((pt - yt) ** 2).mean())
-    _, sp, sy = _bin_sums(pt, yt, n_bins)
-    # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
-    ece = float((sp - sy).abs().sum() / pt.numel())
-    return {"nll": nll, "brier": brier, "ece": ece}
+    return pt, yt
 
 
 def _bin_sums(
@@ -371,9 +377,7 @@ def reliability_bins(p: Any, y: Any, n_bins: int = 15) -> list[dict[str, float]]
     Raises:
         DataError / ShapeError: as :func:`calibration_metrics`.
     """
-    calibration_metrics(p, y, n_bins)  # validates
-    pt = as_float_tensor(p, "p", ndim=1, dtype=torch.float64)
-    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64).to(pt.device)
+    pt, yt = _probabilities_and_labels(p, y)
     cnt, sp, sy = _bin_sums(pt, yt, n_bins)
     out = []
     for b in torch.nonzero(cnt).flatten().tolist():
