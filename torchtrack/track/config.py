@@ -305,6 +305,7 @@ class MultiTrackerConfig:
             "visible_threshold",
             "overlap_gate",
             "appearance_rate",
+            "detection_sigma_rate",
             "reseed_overlap",
             "duplicate_iou",
             "min_visible_fraction",
@@ -348,10 +349,6 @@ class MultiTrackerConfig:
             raise ConfigError(f"max_cost must be > 0, got {self.max_cost}")
         if not (self.detection_sigma > 0 and math.isfinite(self.detection_sigma)):
             raise ConfigError(f"detection_sigma must be > 0, got {self.detection_sigma}")
-        if not 0.0 <= self.detection_sigma_rate <= 1.0:
-            raise ConfigError(
-                f"detection_sigma_rate must be in [0, 1], got {self.detection_sigma_rate}"
-            )
         if not self.max_noise_scale >= 1:
             raise ConfigError(f"max_noise_scale must be >= 1, got {self.max_noise_scale}")
         if not (self.motion_noise > 0 and math.isfinite(self.motion_noise)):
