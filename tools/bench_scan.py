@@ -132,6 +132,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads")
     ap.add_argument("--no-hog", action="store_true", help="ours only (main OpenCV wheel)")
     ap.add_argument("--image-frame", type=int, default=300, help="PETS frame drawn in the PNG")
+    ap.add_argument(
+        "--vote-iou",
+        type=float,
+        default=detect_cli.VOTE_IOU,
+        help="box voting after NMS (torchtrack detect's default; 0: off)",
+    )
     ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/scan.md")
     ap.add_argument("--image", type=Path, default=REPO / "docs/images/pedestrian_detections.png")
     args = ap.parse_args()
@@ -155,6 +161,7 @@ def main() -> None:
         "min_scale": detect_cli.MIN_HEIGHT / detect_cli.object_height(det),
         "nms_iou": detect_cli.NMS_IOU,
         "nms_overlap": detect_cli.NMS_OVERLAP,
+        "vote_iou": args.vote_iou or None,
     }
     results = {}
     for name, every in (("pets", args.pets_every), ("tud", args.tud_every)):
@@ -229,8 +236,9 @@ def main() -> None:
         f"{getattr(det.classifier, 'feature_', torch.zeros(0)).shape[0]} trees, soft cascade), "
         f"`torchtrack detect` defaults: objects from {detect_cli.MIN_HEIGHT:g} px tall (scale "
         f"{kw['min_scale']:.3f}), scale step {kw['scale_step']}, stride {kw['stride']}, "
-        f"P >= {kw['threshold']}, NMS {kw['nms_overlap']} overlap {kw['nms_iou']} on object boxes. "
-        "HOG: OpenCV's default people detector, scale 1.05, winStride 8, frame upscaled so that "
+        f"P >= {kw['threshold']}, NMS {kw['nms_overlap']} overlap {kw['nms_iou']} on object boxes, "
+        + (f"box voting at IoU {args.vote_iou:g}. " if args.vote_iou else "no box voting. ")
+        + "HOG: OpenCV's default people detector, scale 1.05, winStride 8, frame upscaled so that "
         "the sequence's smallest ground-truth person is 96 px tall.",
         "",
         "| sequence | frames scanned | GT boxes | method | recall (IoU >= 0.5) | false positives / frame | ms / frame (median) | x HOG's time |",

@@ -20,7 +20,8 @@ Protocol (``CarData/README.txt``):
 
 Detections: ``Detector.scan`` over every window (single-scale: scale 1 only; multi-scale:
 scales ``--min-width/100`` up, ratio ``--scale-step``), steps of ``--stride`` x the window size,
-greedy NMS at IoU ``--nms-iou``; stride, scale step and NMS default to ``torchtrack detect``'s.
+greedy NMS at IoU ``--nms-iou`` and box voting at ``--vote-iou``; stride, scale step, NMS and
+voting default to ``torchtrack detect``'s.
 Channel models scan with their soft cascade; ``--both-cascades`` adds the rows without it. The
 vehicle model never saw these test images (``configs/vehicle.toml`` reads ``TrainImages``
 only).
@@ -157,6 +158,7 @@ def run_set(det, car_data: Path, multi: bool, args) -> dict:
         "threshold": args.min_prob,
         "stride": args.stride,
         "nms_iou": args.nms_iou,
+        "vote_iou": args.vote_iou or None,
         "cascade": args.cascade,
         **(
             {"min_scale": args.min_width / ww, "scale_step": args.scale_step}
@@ -215,6 +217,12 @@ def main() -> None:
     )
     ap.add_argument("--min-width", type=float, default=80.0, help="smallest car width scanned")
     ap.add_argument("--nms-iou", type=float, default=detect_cli.NMS_IOU)
+    ap.add_argument(
+        "--vote-iou",
+        type=float,
+        default=detect_cli.VOTE_IOU,
+        help="box voting after NMS (torchtrack detect's default; 0: the NMS winners as they are)",
+    )
     ap.add_argument("--min-prob", type=float, default=1e-3, help="drop windows below this")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (1 thread each)")
     ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/uiuc.md")
@@ -239,7 +247,14 @@ def main() -> None:
         f"Model: `{args.model}` ({mpath.name}; {det.feature_index.numel()} "
         f"{type(det.bank).__name__} features, {type(det.classifier).__name__}; held-out crop AUC "
         f"{summ.get('auc', float('nan')):.4f}{cascade_note}). "
-        f"Scan: stride {args.stride} x window, NMS IoU {args.nms_iou}, windows with calibrated "
+        f"Scan: stride {args.stride} x window, NMS IoU {args.nms_iou}, "
+        + (
+            f"box voting at IoU {args.vote_iou:g} (each kept window moved to the "
+            "probability-weighted mean position and scale of the windows overlapping it), "
+            if args.vote_iou
+            else "no box voting, "
+        )
+        + "windows with calibrated "
         f"P >= {args.min_prob}; multi-scale from width {args.min_width:g} px, ratio "
         f"{args.scale_step}. Criterion: `CarData/README.txt` (ellipse with semi-axes 25% of the "
         "object size around the true top-left corner, and width for the multi-scale set; one "

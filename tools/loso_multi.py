@@ -66,10 +66,24 @@ def load(data: Path, name: str) -> MotSequence:
     return load_mot_sequence(data / "mot" / name)
 
 
-def own_detections(seq: MotSequence, cache: Path) -> MotRows:
-    """The bundled model's scan of every frame at the tracker's default scan settings, cached
-    as a MOT det file (object boxes, calibrated probabilities)."""
-    cfg = MultiTrackerConfig()
+SCAN_KEYS = (
+    "model",
+    "scan_min_scale",
+    "scan_max_scale",
+    "scan_scale_step",
+    "scan_stride",
+    "scan_nms",
+    "scan_vote",
+    "detection_threshold",
+)
+
+
+def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) -> MotRows:
+    """The bundled model's scan of every frame at the tracker's scan settings (the defaults,
+    or those of ``params``), cached as a MOT det file (object boxes, calibrated
+    probabilities)."""
+    scan_params = {k: v for k, v in (params or {}).items() if k in SCAN_KEYS}
+    cfg = MultiTrackerConfig(**scan_params)
     key = "_".join(
         str(v)
         for v in (
@@ -82,11 +96,11 @@ def own_detections(seq: MotSequence, cache: Path) -> MotRows:
             cfg.scan_nms,
             cfg.detection_threshold,
         )
-    )
+    ) + (f"_vote{cfg.scan_vote:g}" if cfg.scan_vote else "")
     path = cache / f"own_{key}.txt"
     if path.is_file():
         return read_mot(path, 1.0, seq.n_frames, kind="det")
-    mt = MultiTargetTracker()
+    mt = MultiTargetTracker(**scan_params)
     f_, b_, p_ = [], [], []
     t0 = time.perf_counter()
     with seq.open() as src:
@@ -163,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
                 d, conf=score_probabilities(torch.from_numpy(d.conf)).numpy()
             )
         for v in values:
+            if kind == "own" and key in SCAN_KEYS:  # the scan itself changes with the value
+                base = own_detections(seq, args.cache, {key: v})
             for seed in seeds:
                 dets = gt_as_detections(seq.gt, seed) if kind == "gt" else base
                 r = run_one(seq, dets, {key: v}, seed, own=kind == "own")

@@ -50,6 +50,7 @@ def test_folder_jsonl_matches_library_scan(car_images, tmp_path, capsys):
         "stride": d.STRIDE,
         "nms_iou": d.NMS_IOU,
         "nms_overlap": d.NMS_OVERLAP,
+        "vote_iou": d.VOTE_IOU,
     }
     for r in recs:
         frame = read_image(car_images / r["source"])
@@ -202,6 +203,7 @@ def test_unknown_model_lists_bundled(tmp_path, capsys):
         (["--threshold", "1.5"], "--threshold"),
         (["--min-scale", "0"], "--min-scale"),
         (["--nms-iou", "0"], "--nms-iou"),
+        (["--vote-iou", "1.5"], "--vote-iou"),
         (["--video", "out.avi"], ".mp4"),
     ],
 )

@@ -1,8 +1,11 @@
+import math
+
 import pytest
 import torch
 
 from torchtrack.boxes import box_iou_matrix
-from torchtrack.detect.scan import nms, sliding_windows
+from torchtrack.detect.bundled import load_model
+from torchtrack.detect.scan import box_vote, nms, scan, sliding_windows
 from torchtrack.errors import ConfigError, ShapeError
 
 
@@ -49,3 +52,47 @@ def test_bad_scan_args():
         sliding_windows((10, 10), (4, 4), stride=0)
     with pytest.raises(ShapeError, match="nms needs"):
         nms(torch.zeros(3, 4), torch.zeros(2))
+
+
+def test_box_vote_is_the_weighted_mean_of_overlapping_boxes_in_centre_and_log_size():
+    kept = torch.tensor([[10.0, 20.0, 40.0, 16.0]])
+    big = [10.0 - 4.0, 20.0 - 1.6, 48.0, 19.2]  # the same centre, x 1.2
+    shifted = [14.0, 20.0, 40.0, 16.0]  # 4 px right: IoU 36 / 44
+    far = [200.0, 200.0, 40.0, 16.0]  # no overlap: no vote
+    boxes = torch.tensor([kept[0].tolist(), big, shifted, far])
+    weights = torch.tensor([1.0, 1.0, 2.0, 5.0])
+    out = box_vote(kept, boxes, weights, 0.5)
+    cx = (30.0 * 1 + 30.0 * 1 + 34.0 * 2) / 4
+    w = math.exp((math.log(40) + math.log(48) + 2 * math.log(40)) / 4)
+    h = w * 0.4
+    assert out[0].tolist() == pytest.approx([cx - w / 2, 28.0 - h / 2, w, h], rel=1e-6)
+    # a higher threshold leaves the shifted box (IoU 0.82) in and the bigger one (0.69) out
+    out = box_vote(kept, boxes, weights, 0.75)
+    assert out[0].tolist() == pytest.approx([10 + 8 / 3, 20.0, 40.0, 16.0], rel=1e-6)
+    # no weight at all: the kept box as it was
+    assert box_vote(kept, boxes, torch.zeros(4), 0.5).tolist() == kept.tolist()
+    # overlaps decided on other boxes (object boxes inside windows): the far box now overlaps
+    ref = boxes.clone()
+    ref[3] = ref[0]
+    out = box_vote(kept, boxes, torch.tensor([1.0, 0, 0, 1.0]), 0.5, reference=(ref[:1], ref))
+    assert out[0, 0].item() == pytest.approx((10 + 200) / 2)
+
+
+def test_box_vote_bad_input():
+    k, b, w = torch.zeros(1, 4), torch.zeros(3, 4), torch.ones(3)
+    with pytest.raises(ConfigError, match="vote_iou"):
+        box_vote(k, b, w, 0.0)
+    with pytest.raises(ShapeError, match="box_vote needs"):
+        box_vote(k, b, torch.ones(2), 0.5)
+    with pytest.raises(ShapeError, match="box_vote needs"):
+        box_vote(k, b, w, 0.5, reference=(k, torch.zeros(2, 4)))
+    assert box_vote(torch.zeros(0, 4), b, w, 0.5).shape == (0, 4)
+
+
+def test_scan_vote_needs_nms():
+    det = load_model("vehicle")
+    frame = torch.zeros(1, 64, 128)
+    with pytest.raises(ConfigError, match="give nms_iou"):
+        scan(det, frame, nms_iou=None, vote_iou=0.5)
+    with pytest.raises(ConfigError, match="vote_iou must be"):
+        scan(det, frame, vote_iou=1.5)

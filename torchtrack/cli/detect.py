@@ -37,6 +37,7 @@ SCALE_STEP = 1.2
 STRIDE = 0.1
 NMS_IOU = 0.3
 NMS_OVERLAP = "union"
+VOTE_IOU = 0.5
 
 _EPILOG = """\
 examples:
@@ -122,6 +123,14 @@ def register(subparsers) -> None:
         f"(drops detections of body parts inside a detected person; default {NMS_OVERLAP})",
     )
     p.add_argument(
+        "--vote-iou",
+        type=float,
+        default=VOTE_IOU,
+        help="refine each detection with the windows above --threshold that overlap it by this "
+        f"IoU (weighted mean position and scale; the probability stays the best window's; "
+        f"default {VOTE_IOU:g}; 0: off)",
+    )
+    p.add_argument(
         "--windows",
         action="store_true",
         help="report the detection windows instead of the object boxes",
@@ -160,6 +169,8 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-scale {args.max_scale} is below --min-scale {args.min_scale}")
     if not 0.0 < args.nms_iou <= 1.0:
         raise ConfigError(f"--nms-iou must be in (0, 1], got {args.nms_iou}")
+    if not 0.0 <= args.vote_iou <= 1.0:
+        raise ConfigError(f"--vote-iou must be in [0, 1] (0: off), got {args.vote_iou}")
     if args.batch < 1:
         raise ConfigError(f"--batch must be >= 1, got {args.batch}")
     if args.max_frames is not None and args.max_frames < 1:
@@ -326,6 +337,7 @@ def run(args: argparse.Namespace) -> int:
         "max_scale": args.max_scale,
         "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
         "nms_overlap": args.nms_overlap,
+        "vote_iou": args.vote_iou if args.vote_iou > 0 and args.nms_iou < 1.0 else None,
         "windows": args.windows,
         "cascade": not args.no_cascade,
     }

@@ -188,6 +188,9 @@ class MultiTrackerConfig:
         scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
             (:func:`torchtrack.detect.scan.sliding_windows`; ``scan_max_scale = 0``: up to the
             largest window that fits the frame).
+        scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
+            each detection moves to the probability-weighted mean position and scale of the
+            windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
         detection_threshold: detections below this calibrated probability are dropped; those
             between it and ``birth_threshold`` only extend existing targets (ByteTrack's
             second association, made meaningful by calibration).
@@ -263,6 +266,7 @@ class MultiTrackerConfig:
     scan_scale_step: float = 1.15
     scan_stride: float = 0.08
     scan_nms: float = 0.4
+    scan_vote: float = 0.0
     detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
     external_birth_threshold: float = 0.5
@@ -333,6 +337,8 @@ class MultiTrackerConfig:
             raise ConfigError(f"scan_scale_step must be > 1, got {self.scan_scale_step}")
         if not 0 < self.scan_nms <= 1:
             raise ConfigError(f"scan_nms must be in (0, 1], got {self.scan_nms}")
+        if not 0 <= self.scan_vote <= 1:
+            raise ConfigError(f"scan_vote must be in [0, 1] (0: off), got {self.scan_vote}")
         for k in (
             "w_overlap",
             "w_appearance",

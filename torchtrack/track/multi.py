@@ -214,6 +214,7 @@ class MultiTargetTracker:
             max_scale=cfg.scan_max_scale or None,
             nms_iou=cfg.scan_nms,
             nms_on="object",  # as Detector.scan: window margins must not merge neighbours
+            vote_iou=cfg.scan_vote or None,
         )
         return self.detector.window_to_object(wins.double()), p.double()
 
