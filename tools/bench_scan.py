@@ -133,6 +133,12 @@ def main() -> None:
     ap.add_argument("--no-hog", action="store_true", help="ours only (main OpenCV wheel)")
     ap.add_argument("--image-frame", type=int, default=300, help="PETS frame drawn in the PNG")
     ap.add_argument(
+        "--pad",
+        type=float,
+        default=detect_cli.PAD,
+        help="windows may hang this fraction over the image's edges (torchtrack detect's default)",
+    )
+    ap.add_argument(
         "--vote-iou",
         type=float,
         default=detect_cli.VOTE_IOU,
@@ -162,6 +168,7 @@ def main() -> None:
         "nms_iou": detect_cli.NMS_IOU,
         "nms_overlap": detect_cli.NMS_OVERLAP,
         "vote_iou": args.vote_iou or None,
+        "pad": args.pad,
     }
     results = {}
     for name, every in (("pets", args.pets_every), ("tud", args.tud_every)):
@@ -203,7 +210,7 @@ def main() -> None:
             "size": (w, h),
             "up": up,
             "windows": scan_window_count(
-                det, (h, w), **{k: kw[k] for k in ("scale_step", "stride", "min_scale")}
+                det, (h, w), **{k: kw[k] for k in ("scale_step", "stride", "min_scale", "pad")}
             ),
             **{
                 m: {
@@ -237,7 +244,12 @@ def main() -> None:
         f"`torchtrack detect` defaults: objects from {detect_cli.MIN_HEIGHT:g} px tall (scale "
         f"{kw['min_scale']:.3f}), scale step {kw['scale_step']}, stride {kw['stride']}, "
         f"P >= {kw['threshold']}, NMS {kw['nms_overlap']} overlap {kw['nms_iou']} on object boxes, "
-        + (f"box voting at IoU {args.vote_iou:g}. " if args.vote_iou else "no box voting. ")
+        + (f"box voting at IoU {args.vote_iou:g}" if args.vote_iou else "no box voting")
+        + (
+            f", windows up to {args.pad:g} of their size over the frame edges. "
+            if args.pad
+            else ". "
+        )
         + "HOG: OpenCV's default people detector, scale 1.05, winStride 8, frame upscaled so that "
         "the sequence's smallest ground-truth person is 96 px tall.",
         "",

@@ -159,6 +159,7 @@ def run_set(det, car_data: Path, multi: bool, args) -> dict:
         "stride": args.stride,
         "nms_iou": args.nms_iou,
         "vote_iou": args.vote_iou or None,
+        "pad": args.pad,
         "cascade": args.cascade,
         **(
             {"min_scale": args.min_width / ww, "scale_step": args.scale_step}
@@ -218,6 +219,12 @@ def main() -> None:
     ap.add_argument("--min-width", type=float, default=80.0, help="smallest car width scanned")
     ap.add_argument("--nms-iou", type=float, default=detect_cli.NMS_IOU)
     ap.add_argument(
+        "--pad",
+        type=float,
+        default=detect_cli.PAD,
+        help="windows may hang this fraction over the image's edges (torchtrack detect's default)",
+    )
+    ap.add_argument(
         "--vote-iou",
         type=float,
         default=detect_cli.VOTE_IOU,
@@ -254,6 +261,7 @@ def main() -> None:
             if args.vote_iou
             else "no box voting, "
         )
+        + (f"windows up to {args.pad:g} of their size over the image edges, " if args.pad else "")
         + "windows with calibrated "
         f"P >= {args.min_prob}; multi-scale from width {args.min_width:g} px, ratio "
         f"{args.scale_step}. Criterion: `CarData/README.txt` (ellipse with semi-axes 25% of the "

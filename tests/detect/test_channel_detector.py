@@ -97,6 +97,29 @@ def test_training_summary_and_model_file(trained, frame):
     torch.testing.assert_close(again.score(frame[None], boxes), det.score(frame[None], boxes))
 
 
+def test_scan_with_pad_scores_windows_over_the_edges_on_the_continued_frame(trained, frame):
+    det, _ = trained
+    kw = {"min_scale": 0.5, "max_scale": 0.9, "scale_step": 1.25, "stride": 0.125, "pad": 0.2}
+    wins, m = scan_batch(
+        det, frame[None], threshold=None, margin=True, nms_iou=None, cascade=False, **kw
+    )[0]
+    assert wins.shape[0] == scan_window_count(det, tuple(frame.shape[-2:]), **kw)
+    fh, fw = frame.shape[-2:]
+    far = wins[:, :2] + wins[:, 2:] > torch.tensor([fw, fh])
+    over = (wins[:, :2] < 0).any(1) | far.any(1)
+    assert 0 < int(over.sum()) < wins.shape[0]
+    # at most 0.2 of the window (rounded to whole cells) over any edge
+    hc, wc = det.bank.grid
+    cs = det.bank.cell * wins[:, 2] / det.window[1]
+    assert bool((-wins[:, 0] <= round(0.2 * wc) * cs + 1e-4).all())
+    assert bool((-wins[:, 1] <= round(0.2 * hc) * cs + 1e-4).all())
+    # the scores are those of the frame with its edge pixels continued
+    p = 64
+    padded = torch.nn.functional.pad(frame[None].float(), (p, p, p, p), mode="replicate")
+    ref = det.decision_function(padded, (wins + torch.tensor([p, p, 0.0, 0.0]))[None])[0]
+    torch.testing.assert_close(m, ref, atol=2e-4, rtol=1e-5)
+
+
 def test_scan_is_box_scoring_with_a_cascade_and_reports_object_boxes(trained, frame):
     det, _ = trained
     kw = {"min_scale": 0.5, "max_scale": 0.9, "scale_step": 1.25, "stride": 0.125}

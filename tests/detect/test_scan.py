@@ -23,6 +23,16 @@ def test_sliding_windows_inside_frame_and_scales():
     # scale 1: steps of 5 px in x over 0..60, 10 px in y over 0..60
     assert int((w == 20).sum()) == 13 * 7
     assert sliding_windows((10, 10), (40, 20)).shape == (0, 4)
+    # pad: windows reach a quarter of their size over each edge
+    padded = sliding_windows((100, 80), (40, 20), scale_step=1.5, stride=0.25, pad=0.25)
+    x, y, w, h = padded.unbind(1)
+    assert x[w == 20].min().item() == pytest.approx(-5.0)
+    assert y[w == 20].min().item() == pytest.approx(-10.0)
+    assert x.min().item() == pytest.approx(-0.25 * 45)
+    assert bool((x + w <= 80 + 0.25 * w + 1e-4).all() and (y + h <= 100 + 0.25 * h + 1e-4).all())
+    assert padded.shape[0] > boxes.shape[0]
+    with pytest.raises(ConfigError, match="pad"):
+        sliding_windows((100, 80), (40, 20), pad=0.6)
 
 
 def reference_nms(boxes, scores, thr):

@@ -162,6 +162,36 @@ def test_scan_lattice_equals_the_any_box_reader(scale):
     assert bool((lat.boxes[:, 1] + lat.boxes[:, 3] <= 120 + 1e-6).all())
 
 
+@pytest.mark.parametrize("scale", [0.5, 1.0, 1.6])
+def test_scan_lattice_over_the_edges_reads_the_padded_frame(scale):
+    """Windows up to ``outside`` cells over the edges, on frames padded by ``frame_pad`` px:
+    the features of the any-box reader on the padded frames at the shifted boxes."""
+    x = frames(1, 120, 160)
+    bank = small_bank()
+    py, px = 20, 13
+    padded = F.pad(x.float(), (px, px, py, py), mode="replicate")
+    ints = bank.integrals(padded)
+    lat = scale_lattice(ints, bank, scale, step=(1, 2), outside=(2, 1), frame_pad=(py, px))
+    cs = bank.cell * scale
+    assert lat.boxes[:, 0].min().item() == pytest.approx(-cs)
+    assert lat.boxes[:, 1].min().item() == pytest.approx(-2 * cs)
+    assert bool((lat.boxes[:, 0] + lat.boxes[:, 2] <= 160 + cs + 1e-6).all())
+    assert bool((lat.boxes[:, 1] + lat.boxes[:, 3] <= 120 + 2 * cs + 1e-6).all())
+    assert (lat.boxes[:, 1] + lat.boxes[:, 3]).max().item() > 120  # some hang over the bottom
+    shifted = (lat.boxes + torch.tensor([px, py, 0.0, 0.0], dtype=torch.float64)).float()
+    ref = channel_features_at(ints, shifted[None], bank)[0]
+    c, i, j, coef, lam = bank.padded_points(None, torch.device("cpu"))
+    lj = lat.shape[1]
+    base = (lat.origins[:, 0] * lj + lat.origins[:, 1]) * lat.channels
+    idx = base[:, None, None] + ((i * lj + j) * lat.channels + c)[None]
+    got = (lat.values[idx] * coef).sum(-1) * lat.norm * torch.exp(lat.logr * lam)
+    torch.testing.assert_close(got.float(), ref, atol=2e-5, rtol=0)
+    with pytest.raises(ConfigError, match="frame_pad"):
+        scale_lattice(ints, bank, 8.0, outside=(2, 1), frame_pad=(py, px))
+    with pytest.raises(ConfigError, match="outside"):
+        scale_lattice(ints, bank, scale, outside=(-1, 0))
+
+
 def test_window_features_equal_the_any_box_reader():
     x = frames(3, 40, 24)
     bank = small_bank()

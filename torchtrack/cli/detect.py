@@ -38,6 +38,7 @@ STRIDE = 0.1
 NMS_IOU = 0.3
 NMS_OVERLAP = "union"
 VOTE_IOU = 0.5
+PAD = 0.1
 
 _EPILOG = """\
 examples:
@@ -131,6 +132,13 @@ def register(subparsers) -> None:
         f"default {VOTE_IOU:g}; 0: off)",
     )
     p.add_argument(
+        "--pad",
+        type=float,
+        default=PAD,
+        help="let windows hang this fraction of their size over the image's edges (the edge "
+        f"pixels continued), to find objects the edge cuts (default {PAD:g}; at most 0.5)",
+    )
+    p.add_argument(
         "--windows",
         action="store_true",
         help="report the detection windows instead of the object boxes",
@@ -169,6 +177,8 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-scale {args.max_scale} is below --min-scale {args.min_scale}")
     if not 0.0 < args.nms_iou <= 1.0:
         raise ConfigError(f"--nms-iou must be in (0, 1], got {args.nms_iou}")
+    if not 0.0 <= args.pad <= 0.5:
+        raise ConfigError(f"--pad is a fraction of the window in [0, 0.5], got {args.pad}")
     if not 0.0 <= args.vote_iou <= 1.0:
         raise ConfigError(f"--vote-iou must be in [0, 1] (0: off), got {args.vote_iou}")
     if args.batch < 1:
@@ -338,6 +348,7 @@ def run(args: argparse.Namespace) -> int:
         "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
         "nms_overlap": args.nms_overlap,
         "vote_iou": args.vote_iou if args.vote_iou > 0 and args.nms_iou < 1.0 else None,
+        "pad": args.pad,
         "windows": args.windows,
         "cascade": not args.no_cascade,
     }

@@ -46,6 +46,7 @@ def sliding_windows(
     stride: float = 0.1,
     min_scale: float = 1.0,
     max_scale: float | None = None,
+    pad: float = 0.0,
 ) -> torch.Tensor:
     """All windows of the window's aspect ratio inside a frame, at geometric scales.
 
@@ -56,12 +57,15 @@ def sliding_windows(
         stride: step between windows as a fraction of the window width (and height) at that
             scale.
         min_scale, max_scale: scale range (default up to the largest that fits).
+        pad: windows may reach this fraction of their width (height) beyond the left and
+            right (top and bottom) edges of the frame (0: inside the frame).
 
     Returns:
         ``(N, 4)`` float32 boxes x, y, w, h (empty when the window does not fit).
     """
     if not 0.0 < stride <= 1.0:
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
+    _check_pad(pad)
     fh, fw = frame_size
     h, w = window
     scales = scan_scales(
@@ -74,8 +78,8 @@ def sliding_windows(
         bw, bh = w * s, h * s
         step_x = max(1.0, stride * bw)
         step_y = max(1.0, stride * bh)
-        xs = torch.arange(0.0, fw - bw + 1e-6, step_x)
-        ys = torch.arange(0.0, fh - bh + 1e-6, step_y)
+        xs = torch.arange(-pad * bw, fw - bw + pad * bw + 1e-6, step_x)
+        ys = torch.arange(-pad * bh, fh - bh + pad * bh + 1e-6, step_y)
         gy, gx = torch.meshgrid(ys, xs, indexing="ij")
         n = gx.numel()
         out.append(
@@ -237,6 +241,28 @@ def scan_scales(
     return [min_scale * scale_step**i for i in range(n)]
 
 
+def _check_pad(pad: float) -> None:
+    if not (0.0 <= pad <= 0.5 and math.isfinite(pad)):
+        raise ConfigError(f"pad must be in [0, 0.5] (a fraction of the window), got {pad}")
+
+
+def _outside_cells(bank, pad: float) -> tuple[int, int]:
+    """``pad`` (a fraction of the window) in whole cells of the lattice: (rows, columns)."""
+    hc, wc = bank.grid
+    return round(pad * hc), round(pad * wc)
+
+
+def _pad_frames(frames: torch.Tensor, py: int, px: int) -> torch.Tensor:
+    """Frames with their border rows / columns repeated ``py`` / ``px`` times on each side
+    (as Dollár's channel pyramids pad: a window hanging over the edge sees the edge continued
+    rather than black)."""
+    if py == 0 and px == 0:
+        return frames
+    import torch.nn.functional as F
+
+    return F.pad(frames.to(torch.float32), (px, px, py, py), mode="replicate")
+
+
 def scan_window_count(
     detector,
     frame_size: tuple[int, int],
@@ -245,9 +271,11 @@ def scan_window_count(
     stride: float = 0.1,
     min_scale: float = 1.0,
     max_scale: float | None = None,
+    pad: float = 0.0,
 ) -> int:
     """How many windows :func:`scan` scores (before any cascade rejection) on a frame of
     ``frame_size``."""
+    _check_pad(pad)
     if not _lattice_capable(detector):
         return int(
             sliding_windows(
@@ -257,9 +285,11 @@ def scan_window_count(
                 stride=stride,
                 min_scale=min_scale,
                 max_scale=max_scale,
+                pad=pad,
             ).shape[0]
         )
     bank = detector.bank
+    ky, kx = _outside_cells(bank, pad)
     wh, ww = bank.window
     st_i = max(1, round(stride * wh / bank.cell))
     st_j = max(1, round(stride * ww / bank.cell))
@@ -268,8 +298,8 @@ def scan_window_count(
     for s in scan_scales(
         frame_size, bank.window, scale_step=scale_step, min_scale=min_scale, max_scale=max_scale
     ):
-        li = math.floor((fh - wh * s) / (bank.cell * s) + 1e-9)
-        lj = math.floor((fw - ww * s) / (bank.cell * s) + 1e-9)
+        li = math.floor((fh + 2 * ky * bank.cell * s - wh * s) / (bank.cell * s) + 1e-9)
+        lj = math.floor((fw + 2 * kx * bank.cell * s - ww * s) / (bank.cell * s) + 1e-9)
         if li >= 0 and lj >= 0:
             n += (li // st_i + 1) * (lj // st_j + 1)
     return n
@@ -282,14 +312,23 @@ def _lattice_capable(detector) -> bool:
 
 
 def _scan_lattice(
-    detector, frames: torch.Tensor, scales: list[float], stride: float, cascade: bool, batch: int
+    detector,
+    frames: torch.Tensor,
+    scales: list[float],
+    stride: float,
+    cascade: bool,
+    batch: int,
+    pad: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
     margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``)."""
     from torchtrack.features.channels import scale_lattice
 
     bank, clf = detector.bank, detector.classifier
-    ints = bank.integrals(frames)
+    ky, kx = _outside_cells(bank, pad)
+    s_max = max(scales, default=1.0)
+    py, px = math.ceil(ky * bank.cell * s_max), math.ceil(kx * bank.cell * s_max)
+    ints = bank.integrals(_pad_frames(frames, py, px))
     dev = frames.device
     pc, pi, pj, coef, lam = bank.padded_points(detector.feature_index, dev)
     wh, ww = bank.window
@@ -297,7 +336,7 @@ def _scan_lattice(
     nb = frames.shape[0]
     out_f, out_b, out_m = [], [], []
     for s in scales:
-        lat = scale_lattice(ints, bank, s, step)
+        lat = scale_lattice(ints, bank, s, step, outside=(ky, kx), frame_pad=(py, px))
         if lat is None:
             continue
         li, lj = lat.shape
@@ -353,6 +392,7 @@ def scan(
     nms_on: str = "window",
     nms_overlap: str = "union",
     vote_iou: float | None = None,
+    pad: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Detect by scoring every sliding window of one frame.
 
@@ -377,9 +417,14 @@ def scan(
             it by this IoU (:func:`box_vote`, weighted by calibrated probability, overlaps
             measured like the NMS's: windows or object boxes; each keeps its best window's
             score); ``None``: the NMS winners as they are. Needs ``nms_iou``.
+        pad: windows may hang this fraction of their size over each edge of the frame (its
+            border pixels continued; channel detectors round it to whole cells): objects cut
+            by the edge are still scored with their visible part where the model expects it.
+            0: windows inside the frame.
 
     Returns:
-        ``boxes (K, 4)`` (windows) and ``scores (K,)``, by decreasing score.
+        ``boxes (K, 4)`` (windows, possibly starting at negative coordinates with ``pad``)
+        and ``scores (K,)``, by decreasing score.
 
     Raises:
         ShapeError: not one frame, or a frame smaller than the window at ``min_scale``.
@@ -405,6 +450,7 @@ def scan(
         nms_on=nms_on,
         nms_overlap=nms_overlap,
         vote_iou=vote_iou,
+        pad=pad,
     )[0]
 
 
@@ -424,6 +470,7 @@ def scan_batch(
     nms_on: str = "window",
     nms_overlap: str = "union",
     vote_iou: float | None = None,
+    pad: float = 0.0,
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """:func:`scan` over a batch of same-size frames: batched integral images, the same
     windows scored on every frame, then threshold and NMS per frame.
@@ -447,6 +494,7 @@ def scan_batch(
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
+    _check_pad(pad)
     if vote_iou is not None:
         if nms_iou is None:
             raise ConfigError("vote_iou refines the boxes kept by NMS: give nms_iou too")
@@ -469,7 +517,7 @@ def scan_batch(
             min_scale=min_scale,
             max_scale=max_scale,
         )
-        fidx, boxes, marg = _scan_lattice(detector, frames, scales, stride, cascade, batch)
+        fidx, boxes, marg = _scan_lattice(detector, frames, scales, stride, cascade, batch, pad)
         scores = marg if margin else detector.proba_from_margin(marg)
         per_frame = [(boxes[fidx == f], scores[fidx == f]) for f in range(nb)]
     else:
@@ -480,12 +528,27 @@ def scan_batch(
             stride=stride,
             min_scale=min_scale,
             max_scale=max_scale,
+            pad=pad,
         ).to(frames.device)
-        ints = detector.integrals(frames)
+        # the frame padding the windows need: their largest reach over an edge
+        reach = torch.zeros(4)
+        if boxes.shape[0]:
+            reach = torch.stack(
+                (
+                    -boxes[:, 0].min(),
+                    -boxes[:, 1].min(),
+                    (boxes[:, 0] + boxes[:, 2]).max() - fw,
+                    (boxes[:, 1] + boxes[:, 3]).max() - fh,
+                )
+            ).cpu()
+        px = math.ceil(max(float(reach[0]), float(reach[2]), 0.0) - 1e-6)
+        py = math.ceil(max(float(reach[1]), float(reach[3]), 0.0) - 1e-6)
+        ints = detector.integrals(_pad_frames(frames, py, px))
+        scored = boxes + torch.tensor([px, py, 0.0, 0.0], device=boxes.device)
         parts = []
         step = max(1, batch // nb)  # bounds memory: B x step windows per scoring call
         for i in range(0, boxes.shape[0], step):
-            b = boxes[None, i : i + step].expand(nb, -1, -1)
+            b = scored[None, i : i + step].expand(nb, -1, -1)
             s = detector.decision_function(ints, b) if margin else detector.score(ints, b)
             parts.append(s)
         all_scores = (

@@ -1086,28 +1086,48 @@ def _sample_product(tab: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> to
 
 
 def scale_lattice(
-    ints: ChannelIntegrals, bank: ChannelBank, scale: float, step: int | tuple[int, int] = 1
+    ints: ChannelIntegrals,
+    bank: ChannelBank,
+    scale: float,
+    step: int | tuple[int, int] = 1,
+    *,
+    outside: tuple[int, int] = (0, 0),
+    frame_pad: tuple[float, float] = (0.0, 0.0),
 ) -> Lattice | None:
     """The cell lattice of windows of ``scale`` (x the bank's window) over whole frames.
 
     Windows start at every ``step``-th lattice point (``step * cell * scale`` frame pixels
     apart; ``step = (rows, columns)`` for different vertical and horizontal steps) and lie
-    inside the frame. Any feature of a window at lattice origin ``(i0, j0)``
-    reads the points ``(i0 + i, j0 + j)``; the values equal :func:`channel_features_at` of its
-    box.
+    inside the frame, or up to ``outside = (rows, columns)`` cells of this scale beyond each of
+    its edges when the frames of ``ints`` were padded by ``frame_pad = (top and bottom, left
+    and right)`` pixels (at least that much). Any feature of a window at lattice origin
+    ``(i0, j0)`` reads the points ``(i0 + i, j0 + j)``; the values equal
+    :func:`channel_features_at` of its box (in the frames of ``ints``).
 
     Returns:
-        a :class:`Lattice`, or ``None`` when no window fits.
+        a :class:`Lattice` (boxes in the coordinates of the frame without its padding), or
+        ``None`` when no window fits.
     """
     wh, ww = bank.window
     fh, fw = ints.frame_size
+    py, px = (float(v) for v in frame_pad)
+    ky, kx = (int(v) for v in outside)
+    if ky < 0 or kx < 0:
+        raise ConfigError(f"outside must be >= 0 cells, got {outside!r}")
+    fh, fw = fh - 2 * py, fw - 2 * px  # the frame proper
     lev = int(box_levels(torch.tensor(float(scale), dtype=torch.float64), ints.max_level()))
     f = float(1 << lev)
     r = float(scale) / f
     d = bank.cell * r  # lattice spacing in level pixels
+    cs = bank.cell * float(scale)  # ... in frame pixels
+    y_start, x_start = py - ky * cs, px - kx * cs  # first lattice point, padded-frame pixels
+    if y_start < -1e-6 or x_start < -1e-6:
+        raise ConfigError(
+            f"frame_pad {frame_pad!r} px is less than {outside!r} cells at scale {scale:g}"
+        )
     hc, wc = bank.grid
-    li = math.floor((fh - wh * scale) / (bank.cell * scale) + 1e-9)
-    lj = math.floor((fw - ww * scale) / (bank.cell * scale) + 1e-9)
+    li = math.floor((fh + 2 * ky * cs - wh * scale) / cs + 1e-9)
+    lj = math.floor((fw + 2 * kx * cs - ww * scale) / cs + 1e-9)
     if li < 0 or lj < 0:
         return None
     st_i, st_j = (step, step) if isinstance(step, int) else (int(step[0]), int(step[1]))
@@ -1119,18 +1139,17 @@ def scale_lattice(
     cols_j = (n_j - 1) * st_j + wc + 1
     tab = ints.level(lev)
     dev = tab.device
-    ys = torch.arange(rows_i, dtype=torch.float64, device=dev) * d
-    xs = torch.arange(cols_j, dtype=torch.float64, device=dev) * d
+    ys = torch.arange(rows_i, dtype=torch.float64, device=dev) * d + y_start / f
+    xs = torch.arange(cols_j, dtype=torch.float64, device=dev) * d + x_start / f
     lat = _sample_product(tab, ys, xs)  # (B, rows_i, cols_j, C)
     oi = torch.arange(n_i, device=dev) * st_i
     oj = torch.arange(n_j, device=dev) * st_j
     gi, gj = torch.meshgrid(oi, oj, indexing="ij")
     origins = torch.stack((gi.reshape(-1), gj.reshape(-1)), 1)
-    cs = bank.cell * float(scale)
     boxes = torch.stack(
         (
-            origins[:, 1].to(torch.float64) * cs,
-            origins[:, 0].to(torch.float64) * cs,
+            origins[:, 1].to(torch.float64) * cs - kx * cs,
+            origins[:, 0].to(torch.float64) * cs - ky * cs,
             torch.full((origins.shape[0],), ww * float(scale), dtype=torch.float64, device=dev),
             torch.full((origins.shape[0],), wh * float(scale), dtype=torch.float64, device=dev),
         ),
