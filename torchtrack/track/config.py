@@ -191,6 +191,9 @@ class MultiTrackerConfig:
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
             each detection moves to the probability-weighted mean position and scale of the
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
+        scan_pad: windows may hang this fraction of their size over the frame's edges
+            (:func:`torchtrack.detect.scan.scan`), so people entering or leaving, cut by the
+            edge, are still detected; 0: windows inside the frame.
         detection_threshold: detections below this calibrated probability are dropped; those
             between it and ``birth_threshold`` only extend existing targets (ByteTrack's
             second association, made meaningful by calibration).
@@ -267,6 +270,7 @@ class MultiTrackerConfig:
     scan_stride: float = 0.08
     scan_nms: float = 0.4
     scan_vote: float = 0.0
+    scan_pad: float = 0.0
     detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
     external_birth_threshold: float = 0.5
@@ -337,6 +341,8 @@ class MultiTrackerConfig:
             raise ConfigError(f"scan_scale_step must be > 1, got {self.scan_scale_step}")
         if not 0 < self.scan_nms <= 1:
             raise ConfigError(f"scan_nms must be in (0, 1], got {self.scan_nms}")
+        if not 0 <= self.scan_pad <= 0.5:
+            raise ConfigError(f"scan_pad must be in [0, 0.5] (0: off), got {self.scan_pad}")
         if not 0 <= self.scan_vote <= 1:
             raise ConfigError(f"scan_vote must be in [0, 1] (0: off), got {self.scan_vote}")
         for k in (

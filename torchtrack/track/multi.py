@@ -215,6 +215,7 @@ class MultiTargetTracker:
             nms_iou=cfg.scan_nms,
             nms_on="object",  # as Detector.scan: window margins must not merge neighbours
             vote_iou=cfg.scan_vote or None,
+            pad=cfg.scan_pad,
         )
         return self.detector.window_to_object(wins.double()), p.double()
 
