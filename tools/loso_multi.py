@@ -75,6 +75,7 @@ SCAN_KEYS = (
     "scan_nms",
     "scan_vote",
     "scan_pad",
+    "scan_cascade",
     "detection_threshold",
 )
 

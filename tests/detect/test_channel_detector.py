@@ -120,6 +120,23 @@ def test_scan_with_pad_scores_windows_over_the_edges_on_the_continued_frame(trai
     torch.testing.assert_close(m, ref, atol=2e-4, rtol=1e-5)
 
 
+def test_scan_cascade_threshold_overrides_the_models(trained, frame):
+    det, _ = trained
+    kw = {"min_scale": 0.5, "max_scale": 0.9, "scale_step": 1.25, "stride": 0.125}
+    kw |= {"threshold": None, "margin": True, "nms_iou": None}
+    full, _ = scan_batch(det, frame[None], cascade=False, **kw)[0]
+    own, _ = scan_batch(det, frame[None], **kw)[0]
+    never, _ = scan_batch(det, frame[None], cascade_threshold=-1e9, **kw)[0]
+    assert never.shape == full.shape  # a threshold nothing falls below rejects nothing
+    loose, _ = scan_batch(det, frame[None], cascade_threshold=-5.0, **kw)[0]
+    strict, m = scan_batch(det, frame[None], cascade_threshold=0.0, **kw)[0]
+    assert strict.shape[0] < loose.shape[0] <= full.shape[0]
+    assert own.shape[0] < full.shape[0]
+    assert bool((m >= 0).all())  # survivors of a cascade at 0 end at a margin >= 0
+    with pytest.raises(ConfigError, match="cascade_threshold"):
+        scan_batch(det, frame[None], cascade_threshold=float("-inf"), **kw)
+
+
 def test_scan_is_box_scoring_with_a_cascade_and_reports_object_boxes(trained, frame):
     det, _ = trained
     kw = {"min_scale": 0.5, "max_scale": 0.9, "scale_step": 1.25, "stride": 0.125}

@@ -319,6 +319,7 @@ def _scan_lattice(
     cascade: bool,
     batch: int,
     pad: float = 0.0,
+    cascade_threshold: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
     margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``)."""
@@ -365,7 +366,9 @@ def _scan_lattice(
             def read_chunk(rows, f, r0=r0, read=read):
                 return read(rows + r0, f)
 
-            rows, marg = clf.cascade(read_chunk, n_chunk, device=dev, reject=cascade)
+            rows, marg = clf.cascade(
+                read_chunk, n_chunk, device=dev, reject=cascade, reject_at=cascade_threshold
+            )
             rows = rows + r0
             out_f.append(rows // m)
             out_b.append(lat.boxes[rows % m])
@@ -393,6 +396,7 @@ def scan(
     nms_overlap: str = "union",
     vote_iou: float | None = None,
     pad: float = 0.0,
+    cascade_threshold: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Detect by scoring every sliding window of one frame.
 
@@ -421,6 +425,9 @@ def scan(
             border pixels continued; channel detectors round it to whole cells): objects cut
             by the edge are still scored with their visible part where the model expects it.
             0: windows inside the frame.
+        cascade_threshold: channel detectors: a constant soft cascade at this running margin
+            instead of the model's own thresholds (lower: more windows survive, more found,
+            slower); ``None``: the model's.
 
     Returns:
         ``boxes (K, 4)`` (windows, possibly starting at negative coordinates with ``pad``)
@@ -451,6 +458,7 @@ def scan(
         nms_overlap=nms_overlap,
         vote_iou=vote_iou,
         pad=pad,
+        cascade_threshold=cascade_threshold,
     )[0]
 
 
@@ -471,6 +479,7 @@ def scan_batch(
     nms_overlap: str = "union",
     vote_iou: float | None = None,
     pad: float = 0.0,
+    cascade_threshold: float | None = None,
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """:func:`scan` over a batch of same-size frames: batched integral images, the same
     windows scored on every frame, then threshold and NMS per frame.
@@ -495,6 +504,8 @@ def scan_batch(
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
     _check_pad(pad)
+    if cascade_threshold is not None and not math.isfinite(cascade_threshold):
+        raise ConfigError(f"cascade_threshold must be a finite margin, got {cascade_threshold}")
     if vote_iou is not None:
         if nms_iou is None:
             raise ConfigError("vote_iou refines the boxes kept by NMS: give nms_iou too")
@@ -517,7 +528,9 @@ def scan_batch(
             min_scale=min_scale,
             max_scale=max_scale,
         )
-        fidx, boxes, marg = _scan_lattice(detector, frames, scales, stride, cascade, batch, pad)
+        fidx, boxes, marg = _scan_lattice(
+            detector, frames, scales, stride, cascade, batch, pad, cascade_threshold
+        )
         scores = marg if margin else detector.proba_from_margin(marg)
         per_frame = [(boxes[fidx == f], scores[fidx == f]) for f in range(nb)]
     else:

@@ -546,6 +546,7 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         device: torch.device | str = "cpu",
         reject: bool = True,
         stages: tuple[int, ...] = (4, 16, 64, 256),
+        reject_at: float | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Soft-cascade evaluation of ``n`` windows whose features are read on demand.
 
@@ -560,6 +561,8 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
             stages: trees evaluated per step while windows remain: the first step evaluates
                 ``stages[0]`` trees, then ``stages[1]``, ..., the last size repeating; rejection
                 is checked after every tree.
+            reject_at: a constant soft cascade at this running margin for every tree instead of
+                the fitted thresholds (``reject_``); ``None``: the fitted ones.
 
         Returns:
             ``(rows (M,), margins (M,))``: the windows that passed every threshold (in
@@ -571,6 +574,8 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         thr = self.threshold_.to(dev)
         leaf = self.leaf_.to(dev)
         rej = self.reject_.to(dev)
+        if reject_at is not None:
+            rej = torch.full_like(rej, float(reject_at))
         r_tot, n_int = feat.shape
         alive = torch.arange(n, device=dev)
         score = torch.zeros(n, dtype=torch.float32, device=dev)

@@ -191,6 +191,9 @@ class MultiTrackerConfig:
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
             each detection moves to the probability-weighted mean position and scale of the
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
+        scan_cascade: a constant soft cascade at this (negative) running margin for the scan
+            instead of the model's own thresholds (lower: more people found, more false ones,
+            slower scans); 0: the model's own.
         scan_pad: windows may hang this fraction of their size over the frame's edges
             (:func:`torchtrack.detect.scan.scan`), so people entering or leaving, cut by the
             edge, are still detected; 0: windows inside the frame.
@@ -271,6 +274,7 @@ class MultiTrackerConfig:
     scan_nms: float = 0.4
     scan_vote: float = 0.0
     scan_pad: float = 0.0
+    scan_cascade: float = 0.0
     detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
     external_birth_threshold: float = 0.5
@@ -341,6 +345,10 @@ class MultiTrackerConfig:
             raise ConfigError(f"scan_scale_step must be > 1, got {self.scan_scale_step}")
         if not 0 < self.scan_nms <= 1:
             raise ConfigError(f"scan_nms must be in (0, 1], got {self.scan_nms}")
+        if not (self.scan_cascade <= 0 and math.isfinite(self.scan_cascade)):
+            raise ConfigError(
+                f"scan_cascade must be a margin <= 0 (0: the model's own), got {self.scan_cascade}"
+            )
         if not 0 <= self.scan_pad <= 0.5:
             raise ConfigError(f"scan_pad must be in [0, 0.5] (0: off), got {self.scan_pad}")
         if not 0 <= self.scan_vote <= 1:

@@ -216,6 +216,7 @@ class MultiTargetTracker:
             nms_on="object",  # as Detector.scan: window margins must not merge neighbours
             vote_iou=cfg.scan_vote or None,
             pad=cfg.scan_pad,
+            cascade_threshold=cfg.scan_cascade or None,
         )
         return self.detector.window_to_object(wins.double()), p.double()
 
