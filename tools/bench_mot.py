@@ -217,10 +217,16 @@ def our_detections(
     """``torchtrack detect pedestrian SOURCE ... -o X.jsonl`` (cached) as object boxes.
 
     Returns the rows, how the boxes were read, and the command."""
+    from torchtrack.cli import detect as detect_cli
     from torchtrack.detect.bundled import load_model
 
     version = subprocess.run([*tt, "--version"], capture_output=True, text=True).stdout.strip()
-    jsonl = cache / f"ttdetect_{spec.name}_{cache_key(spec.det_args, version, tt)}.jsonl"
+    # the CLI's scan defaults are part of the key: a changed default rescans
+    defaults = [
+        getattr(detect_cli, k) for k in ("SCALE_STEP", "STRIDE", "NMS_IOU", "VOTE_IOU", "PAD")
+    ]
+    key = cache_key(spec.det_args, version, tt, *defaults)
+    jsonl = cache / f"ttdetect_{spec.name}_{key}.jsonl"
     cmd = [*tt, "detect", "pedestrian", str(spec.source), *spec.det_args, "--threads", str(threads)]
     cmd += ["--no-progress", "-o", str(jsonl)]
     if not jsonl.is_file():
@@ -356,6 +362,7 @@ def timing_frames(frames: list[np.ndarray], n: int) -> list[np.ndarray]:
 
 def time_our_scan(spec: SeqSpec, sample: list[np.ndarray], repeats: int) -> float:
     """``scan_batch`` as ``torchtrack detect`` runs it (batches of 4 frames)."""
+    from torchtrack.cli import detect as detect_cli
     from torchtrack.detect.bundled import load_model
     from torchtrack.detect.scan import scan_batch
 
@@ -364,6 +371,13 @@ def time_our_scan(spec: SeqSpec, sample: list[np.ndarray], repeats: int) -> floa
     kw = {
         "min_scale": float(a[a.index("--min-scale") + 1]),
         "threshold": float(a[a.index("--threshold") + 1]),
+        "scale_step": detect_cli.SCALE_STEP,
+        "stride": detect_cli.STRIDE,
+        "nms_iou": detect_cli.NMS_IOU,
+        "nms_overlap": detect_cli.NMS_OVERLAP,
+        "nms_on": "object",
+        "vote_iou": detect_cli.VOTE_IOU or None,
+        "pad": detect_cli.PAD,
     }
     tensors = [
         torch.from_numpy(np.ascontiguousarray(im[:, :, ::-1].transpose(2, 0, 1))) for im in sample

@@ -102,6 +102,7 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
         )
         + (f"_vote{cfg.scan_vote:g}" if cfg.scan_vote else "")
         + (f"_pad{cfg.scan_pad:g}" if cfg.scan_pad else "")
+        + (f"_casc{cfg.scan_cascade:g}" if cfg.scan_cascade else "")
     )
     path = cache / f"own_{key}.txt"
     if path.is_file():
