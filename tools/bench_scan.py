@@ -132,18 +132,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads")
     ap.add_argument("--no-hog", action="store_true", help="ours only (main OpenCV wheel)")
     ap.add_argument("--image-frame", type=int, default=300, help="PETS frame drawn in the PNG")
-    ap.add_argument(
-        "--pad",
-        type=float,
-        default=detect_cli.PAD,
-        help="windows may hang this fraction over the image's edges (torchtrack detect's default)",
-    )
-    ap.add_argument(
-        "--vote-iou",
-        type=float,
-        default=detect_cli.VOTE_IOU,
-        help="box voting after NMS (torchtrack detect's default; 0: off)",
-    )
+    detect_cli.add_box_refinement(ap)
     ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/scan.md")
     ap.add_argument("--image", type=Path, default=REPO / "docs/images/pedestrian_detections.png")
     args = ap.parse_args()

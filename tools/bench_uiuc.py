@@ -218,18 +218,7 @@ def main() -> None:
     )
     ap.add_argument("--min-width", type=float, default=80.0, help="smallest car width scanned")
     ap.add_argument("--nms-iou", type=float, default=detect_cli.NMS_IOU)
-    ap.add_argument(
-        "--pad",
-        type=float,
-        default=detect_cli.PAD,
-        help="windows may hang this fraction over the image's edges (torchtrack detect's default)",
-    )
-    ap.add_argument(
-        "--vote-iou",
-        type=float,
-        default=detect_cli.VOTE_IOU,
-        help="box voting after NMS (torchtrack detect's default; 0: the NMS winners as they are)",
-    )
+    detect_cli.add_box_refinement(ap)
     ap.add_argument("--min-prob", type=float, default=1e-3, help="drop windows below this")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (1 thread each)")
     ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/uiuc.md")

@@ -75,58 +75,48 @@ def test_vehicle_model_finds_cars_in_uiuc_test_images(data_dir):
     assert labels.sum() >= 0.8 * n_cars
 
 
-def test_box_voting_lifts_multi_scale_uiuc_recall_past_mutch_and_lowe(data_dir, one_thread):
-    """The whole multi-scale UIUC test set (108 images, 139 cars) at ``torchtrack detect``'s scan
-    settings: the NMS winners are often a scale step (x 1.2) too big or a stride off the car;
-    box voting moves them to the weighted centre of their cluster, which the ellipsoid criterion
-    accepts (86.3% -> 92.8% recall at EER; Mutch & Lowe 2006: 90.6%)."""
+def _uiuc(data_dir, multi: bool, **scan) -> dict:
+    """``tools/bench_uiuc.py``'s run of one UIUC test set at ``torchtrack detect``'s scan
+    settings, with ``scan`` (``vote_iou``, ``pad``) overriding them."""
     from types import SimpleNamespace
 
     from torchtrack.cli import detect as detect_cli
 
+    args = {
+        "model": "vehicle",
+        "min_prob": 1e-3,
+        "stride": detect_cli.STRIDE,
+        "scale_step": detect_cli.SCALE_STEP,
+        "nms_iou": detect_cli.NMS_IOU,
+        "vote_iou": detect_cli.VOTE_IOU,
+        "pad": detect_cli.PAD,
+        "min_width": 80.0,
+        "cascade": True,
+        "jobs": 1,
+    }
     car = data_dir / "detection_crops" / "uiuc_car" / "CarData"
-    det = load_model("vehicle")
-    args = SimpleNamespace(
-        model="vehicle",
-        min_prob=1e-3,
-        stride=detect_cli.STRIDE,
-        scale_step=detect_cli.SCALE_STEP,
-        nms_iou=detect_cli.NMS_IOU,
-        min_width=80.0,
-        cascade=True,
-        jobs=1,
-        pad=0.0,
-    )
-    plain = bench.run_set(det, car, True, SimpleNamespace(**vars(args), vote_iou=None))
-    voted = bench.run_set(det, car, True, SimpleNamespace(**vars(args), vote_iou=0.5))
+    return bench.run_set(load_model("vehicle"), car, multi, SimpleNamespace(**(args | scan)))
+
+
+def test_box_voting_lifts_multi_scale_uiuc_recall_past_mutch_and_lowe(data_dir, one_thread):
+    """The whole multi-scale UIUC test set (108 images, 139 cars) at ``torchtrack detect``'s scan
+    settings: the NMS winners are often a scale step (x 1.2) too big or a stride off the car;
+    box voting moves them to the weighted centre of their cluster, which the ellipsoid criterion
+    accepts (86.3% -> 92.8% recall at EER without edge windows; Mutch & Lowe 2006: 90.6%)."""
+    plain = _uiuc(data_dir, True, vote_iou=None, pad=0.0)
+    voted = _uiuc(data_dir, True, vote_iou=0.5, pad=0.0)
     assert voted["objects"] == 139
     assert voted["recall_eer"] >= 0.90
     assert voted["recall_eer"] >= plain["recall_eer"] + 0.04
+    assert _uiuc(data_dir, True)["recall_eer"] >= 0.90  # the defaults (voting and edges)
 
 
 def test_windows_over_the_edges_find_the_cars_the_image_cuts(data_dir, one_thread):
     """Single-scale UIUC (170 images, 200 cars) at ``torchtrack detect``'s settings: with windows
     allowed 0.1 of their size over the edges, the cars the image border cuts (true corners at
     columns -10 and -7 in images 6 and 99) are found: recall at EER >= 97.5% (Leibe et al.)."""
-    from types import SimpleNamespace
-
-    from torchtrack.cli import detect as detect_cli
-
-    car = data_dir / "detection_crops" / "uiuc_car" / "CarData"
-    det = load_model("vehicle")
-    args = dict(
-        model="vehicle",
-        min_prob=1e-3,
-        stride=detect_cli.STRIDE,
-        scale_step=detect_cli.SCALE_STEP,
-        nms_iou=detect_cli.NMS_IOU,
-        vote_iou=detect_cli.VOTE_IOU,
-        min_width=80.0,
-        cascade=True,
-        jobs=1,
-    )
-    inside = bench.run_set(det, car, False, SimpleNamespace(**args, pad=0.0))
-    over = bench.run_set(det, car, False, SimpleNamespace(**args, pad=0.1))
+    inside = _uiuc(data_dir, False, pad=0.0)
+    over = _uiuc(data_dir, False, pad=0.1)
     assert over["objects"] == 200
     assert over["recall_eer"] >= 0.975
     assert over["tp_eer"] >= inside["tp_eer"] + 2

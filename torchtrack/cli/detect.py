@@ -123,21 +123,7 @@ def register(subparsers) -> None:
         help="overlap of two object boxes: intersection over union, or over the smaller box "
         f"(drops detections of body parts inside a detected person; default {NMS_OVERLAP})",
     )
-    p.add_argument(
-        "--vote-iou",
-        type=float,
-        default=VOTE_IOU,
-        help="refine each detection with the windows above --threshold that overlap it by this "
-        f"IoU (weighted mean position and scale; the probability stays the best window's; "
-        f"default {VOTE_IOU:g}; 0: off)",
-    )
-    p.add_argument(
-        "--pad",
-        type=float,
-        default=PAD,
-        help="let windows hang this fraction of their size over the image's edges (the edge "
-        f"pixels continued), to find objects the edge cuts (default {PAD:g}; at most 0.5)",
-    )
+    add_box_refinement(p)
     p.add_argument(
         "--windows",
         action="store_true",
@@ -158,6 +144,26 @@ def register(subparsers) -> None:
     add_threads(p, default=2)
     add_trust(p)
     p.set_defaults(func=run)
+
+
+def add_box_refinement(p: argparse.ArgumentParser) -> None:
+    """``--vote-iou`` and ``--pad`` with ``torchtrack detect``'s defaults (also used by the
+    benchmark scripts that score its scan)."""
+    p.add_argument(
+        "--vote-iou",
+        type=float,
+        default=VOTE_IOU,
+        help="refine each detection with the windows above --threshold that overlap it by this "
+        f"IoU (weighted mean position and scale; the probability stays the best window's; "
+        f"default {VOTE_IOU:g}; 0: off)",
+    )
+    p.add_argument(
+        "--pad",
+        type=float,
+        default=PAD,
+        help="let windows hang this fraction of their size over the image's edges (the edge "
+        f"pixels continued), to find objects the edge cuts (default {PAD:g}; at most 0.5)",
+    )
 
 
 def _check_args(args: argparse.Namespace) -> None:
