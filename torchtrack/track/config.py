@@ -193,7 +193,10 @@ class MultiTrackerConfig:
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
         scan_cascade: a constant soft cascade at this (negative) running margin for the scan
             instead of the model's own thresholds (lower: more people found, more false ones,
-            slower scans); 0: the model's own.
+            slower scans); 0: the model's own (-1 for the bundled pedestrian model). -3 was
+            chosen by leave-one-sequence-out over 0, -3 and -5 (``docs/multi_target.md``): the
+            births are confirmed and weak detections only extend targets, so the tracker can
+            use the windows an early cascade exit would have dropped.
         scan_pad: windows may hang this fraction of their size over the frame's edges
             (:func:`torchtrack.detect.scan.scan`), so people entering or leaving, cut by the
             edge, are still detected; 0: windows inside the frame.
@@ -274,7 +277,7 @@ class MultiTrackerConfig:
     scan_nms: float = 0.4
     scan_vote: float = 0.0
     scan_pad: float = 0.0
-    scan_cascade: float = 0.0
+    scan_cascade: float = -3.0
     detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
     external_birth_threshold: float = 0.5
