@@ -546,7 +546,7 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         device: torch.device | str = "cpu",
         reject: bool = True,
         stages: tuple[int, ...] = (1, 4, 16, 64, 256),
-        reject_at: float | None = None,
+        reject_at_most: float | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Soft-cascade evaluation of ``n`` windows whose features are read on demand.
 
@@ -564,8 +564,9 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
                 result. One tree first: on PETS frames it already rejects most windows, and the
                 scans took 7% (``torchtrack detect``) and 11% (the tracker's looser cascade)
                 less time than with (4, 16, 64, 256).
-            reject_at: a constant soft cascade at this running margin for every tree instead of
-                the fitted thresholds (``reject_``); ``None``: the fitted ones.
+            reject_at_most: lower every tree's rejection threshold (``reject_``) to at most this
+                running margin (a looser cascade: a constant one at this margin where the
+                fitted thresholds are higher); ``None``: the fitted ones.
 
         Returns:
             ``(rows (M,), margins (M,))``: the windows that passed every threshold (in
@@ -577,8 +578,8 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         thr = self.threshold_.to(dev)
         leaf = self.leaf_.to(dev)
         rej = self.reject_.to(dev)
-        if reject_at is not None:
-            rej = torch.full_like(rej, float(reject_at))
+        if reject_at_most is not None:
+            rej = rej.clamp(max=float(reject_at_most))
         r_tot, n_int = feat.shape
         alive = torch.arange(n, device=dev)
         score = torch.zeros(n, dtype=torch.float32, device=dev)

@@ -191,9 +191,10 @@ class MultiTrackerConfig:
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
             each detection moves to the probability-weighted mean position and scale of the
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
-        scan_cascade: a constant soft cascade at this (negative) running margin for the scan
-            instead of the model's own thresholds (lower: more people found, more false ones,
-            slower scans); 0: the model's own (-1 for the bundled pedestrian model). -3 was
+        scan_cascade: the scan's soft cascade loosened to at most this (negative) running
+            margin: every tree's threshold is the lower of the model's and this (lower: more
+            people found, more false ones, slower scans; the bundled pedestrian model's own is
+            a constant -1, the vehicle model's -3.18 stays as it is); 0: the model's own. -3 was
             chosen by leave-one-sequence-out over 0, -3 and -5 (``docs/multi_target.md``): the
             births are confirmed and weak detections only extend targets, so the tracker can
             use the windows an early cascade exit would have dropped.
