@@ -86,24 +86,7 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
     probabilities)."""
     scan_params = {k: v for k, v in (params or {}).items() if k in SCAN_KEYS}
     cfg = MultiTrackerConfig(**scan_params)
-    key = (
-        "_".join(
-            str(v)
-            for v in (
-                seq.name,
-                cfg.model,
-                cfg.scan_min_scale,
-                cfg.scan_max_scale,
-                cfg.scan_scale_step,
-                cfg.scan_stride,
-                cfg.scan_nms,
-                cfg.detection_threshold,
-            )
-        )
-        + (f"_vote{cfg.scan_vote:g}" if cfg.scan_vote else "")
-        + (f"_pad{cfg.scan_pad:g}" if cfg.scan_pad else "")
-        + (f"_casc{cfg.scan_cascade:g}" if cfg.scan_cascade else "")
-    )
+    key = "_".join([seq.name, *(str(getattr(cfg, k)) for k in SCAN_KEYS)])  # every scan setting
     path = cache / f"own_{key}.txt"
     if path.is_file():
         return read_mot(path, 1.0, seq.n_frames, kind="det")

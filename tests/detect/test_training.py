@@ -153,3 +153,22 @@ def test_minimums_are_config_keys():
     cfg.learn.min_train_per_class = 0
     with pytest.raises(Exception, match="min_train_per_class"):
         cfg.validate()
+
+
+def test_haar_detector_scan_with_pad_scores_the_continued_frame(car_folders):
+    """The sliding-window path (Chateau's Haar bank) with windows over the edges: every window
+    of ``sliding_windows(pad=...)`` is scored on the frame with its border pixels continued."""
+    from torchtrack.detect.scan import scan_batch, scan_window_count, sliding_windows
+
+    det = train_detector(small_config(car_folders))
+    g = torch.Generator().manual_seed(0)
+    frame = torch.randint(0, 256, (1, 1, 60, 130), generator=g, dtype=torch.uint8)
+    kw = {"min_scale": 1.0, "max_scale": 1.2, "scale_step": 1.2, "stride": 0.2, "pad": 0.25}
+    wins, m = scan_batch(det, frame, threshold=None, margin=True, nms_iou=None, **kw)[0]
+    ref_boxes = sliding_windows((60, 130), det.window, **kw)
+    assert wins.shape[0] == ref_boxes.shape[0] == scan_window_count(det, (60, 130), **kw)
+    assert float(wins[:, 0].min()) < 0 and float(wins[:, 1].min()) < 0
+    p = 40
+    padded = torch.nn.functional.pad(frame.float(), (p, p, p, p), mode="replicate")
+    ref = det.decision_function(padded, (wins + torch.tensor([p, p, 0.0, 0.0]))[None])[0]
+    torch.testing.assert_close(m, ref, atol=1e-4, rtol=1e-5)

@@ -195,9 +195,10 @@ def box_vote(
         )
     if kept.shape[0] == 0 or boxes.shape[0] == 0:
         return kept.to(torch.float32)
+    from torchtrack.boxes import box_iou_matrix
+
     kr, br = reference if reference is not None else (kept, boxes)
-    ba = xywh_to_xyxy(br.double())
-    b_area = br[:, 2:].double().prod(1)
+    br = br.double()
     vote = weights.double().clamp_min(0)
     b = boxes.double()
     centre = b[:, :2] + 0.5 * b[:, 2:]
@@ -205,20 +206,13 @@ def box_vote(
     out = kept.double().clone()
     step = max(1, 4_000_000 // boxes.shape[0])  # bounds the (kept x candidates) overlaps
     for k0 in range(0, kept.shape[0], step):
-        ka = xywh_to_xyxy(kr[k0 : k0 + step].double())
-        lt = torch.maximum(ka[:, None, :2], ba[None, :, :2])
-        rb = torch.minimum(ka[:, None, 2:], ba[None, :, 2:])
-        inter = (rb - lt).clamp_min(0).prod(-1)
-        union = kr[k0 : k0 + step, 2:].double().prod(1)[:, None] + b_area[None] - inter
-        w = vote[None] * (inter >= vote_iou * union.clamp_min(1e-12))
+        w = vote[None] * (box_iou_matrix(kr[k0 : k0 + step].double(), br) >= vote_iou)
         total = w.sum(1, keepdim=True)
         w = w / total.clamp_min(1e-300)
-        c = w @ centre
         sz = (w @ size).exp()
+        voted = torch.cat((w @ centre - 0.5 * sz, sz), 1)
         # a kept box without any weight (all votes 0) stays as it was
-        out[k0 : k0 + step] = torch.where(
-            total > 0, torch.cat((c - 0.5 * sz, sz), 1), out[k0 : k0 + step]
-        )
+        out[k0 : k0 + step] = torch.where(total > 0, voted, out[k0 : k0 + step])
     return out.to(torch.float32)
 
 
@@ -550,19 +544,10 @@ def scan_batch(
             max_scale=max_scale,
             pad=pad,
         ).to(frames.device)
-        # the frame padding the windows need: their largest reach over an edge
-        reach = torch.zeros(4)
-        if boxes.shape[0]:
-            reach = torch.stack(
-                (
-                    -boxes[:, 0].min(),
-                    -boxes[:, 1].min(),
-                    (boxes[:, 0] + boxes[:, 2]).max() - fw,
-                    (boxes[:, 1] + boxes[:, 3]).max() - fh,
-                )
-            ).cpu()
-        px = math.ceil(max(float(reach[0]), float(reach[2]), 0.0) - 1e-6)
-        py = math.ceil(max(float(reach[1]), float(reach[3]), 0.0) - 1e-6)
+        # windows reach at most pad x their size over an edge; the largest is s_max x window
+        s_max = float(boxes[:, 2].max()) / detector.window[1] if boxes.shape[0] else 0.0
+        py = math.ceil(pad * detector.window[0] * s_max - 1e-6)
+        px = math.ceil(pad * detector.window[1] * s_max - 1e-6)
         ints = detector.integrals(_pad_frames(frames, py, px))
         scored = boxes + torch.tensor([px, py, 0.0, 0.0], device=boxes.device)
         parts = []
