@@ -36,7 +36,7 @@ Detections are cached under ``runs/bench_mot/cache`` (MOT det files; HOG over 79
 them again with ``torchtrack eval --mot ... --results DIR``). Timings, all with ``--threads``
 torch / OpenCV threads: detector ms per frame = median over ``--repeats`` passes on
 ``--timing-frames`` frames spread over the sequence (decoded beforehand; HOG includes its
-upscaling; ours is ``scan_batch`` with the CLI's settings); tracker ms per frame = median over
+upscaling; ours is ``Detector.scan`` with the CLI's settings); tracker ms per frame = median over
 ``--repeats`` full passes on cached detections; CLI rows: wall time of the whole command per
 frame (start-up, decoding and writing included) and the CLI's own summary line.
 
@@ -217,22 +217,22 @@ def our_detections(
     """``torchtrack detect pedestrian SOURCE ... -o X.jsonl`` (cached) as object boxes.
 
     Returns the rows, how the boxes were read, and the command."""
+    from torchtrack.cli import build_parser
     from torchtrack.cli import detect as detect_cli
     from torchtrack.detect.bundled import load_model
 
     version = subprocess.run([*tt, "--version"], capture_output=True, text=True).stdout.strip()
-    # the CLI's scan defaults are part of the key: a changed default rescans
-    defaults = [
-        getattr(detect_cli, k) for k in ("SCALE_STEP", "STRIDE", "NMS_IOU", "VOTE_IOU", "PAD")
-    ]
-    key = cache_key(spec.det_args, version, tt, *defaults)
+    # the scan the command makes is the key (its defaults included): a changed default rescans
+    det = load_model("pedestrian")
+    args = build_parser().parse_args(["detect", "pedestrian", str(spec.source), *spec.det_args])
+    scan_kw = detect_cli.scan_kwargs(args, det)
+    key = cache_key(spec.det_args, version, tt, *sorted(scan_kw.items()))
     jsonl = cache / f"ttdetect_{spec.name}_{key}.jsonl"
     cmd = [*tt, "detect", "pedestrian", str(spec.source), *spec.det_args, "--threads", str(threads)]
     cmd += ["--no-progress", "-o", str(jsonl)]
     if not jsonl.is_file():
         print(f"  {shlex.join(cmd)}", file=sys.stderr)
         subprocess.run(cmd, check=True)
-    det = load_model("pedestrian")
     f_, b_, c_ = [], [], []
     for line in jsonl.read_text().splitlines():
         rec = json.loads(line)
@@ -361,31 +361,22 @@ def timing_frames(frames: list[np.ndarray], n: int) -> list[np.ndarray]:
 
 
 def time_our_scan(spec: SeqSpec, sample: list[np.ndarray], repeats: int) -> float:
-    """``scan_batch`` as ``torchtrack detect`` runs it (batches of 4 frames)."""
+    """``Detector.scan`` as ``torchtrack detect`` runs it with ``spec.det_args`` (batches of 4
+    frames)."""
+    from torchtrack.cli import build_parser
     from torchtrack.cli import detect as detect_cli
     from torchtrack.detect.bundled import load_model
-    from torchtrack.detect.scan import scan_batch
 
     det = load_model("pedestrian")
-    a = spec.det_args
-    kw = {
-        "min_scale": float(a[a.index("--min-scale") + 1]),
-        "threshold": float(a[a.index("--threshold") + 1]),
-        "scale_step": detect_cli.SCALE_STEP,
-        "stride": detect_cli.STRIDE,
-        "nms_iou": detect_cli.NMS_IOU,
-        "nms_overlap": detect_cli.NMS_OVERLAP,
-        "nms_on": "object",
-        "vote_iou": detect_cli.VOTE_IOU or None,
-        "pad": detect_cli.PAD,
-    }
+    args = build_parser().parse_args(["detect", "pedestrian", str(spec.source), *spec.det_args])
+    kw = detect_cli.scan_kwargs(args, det)
     tensors = [
         torch.from_numpy(np.ascontiguousarray(im[:, :, ::-1].transpose(2, 0, 1))) for im in sample
     ]
 
     def run():
         for i in range(0, len(tensors), 4):
-            scan_batch(det, torch.stack(tensors[i : i + 4]), **kw)
+            det.scan(torch.stack(tensors[i : i + 4]), **kw)
 
     return median_ms(run, len(sample), repeats)
 

@@ -166,6 +166,38 @@ def add_box_refinement(p: argparse.ArgumentParser) -> None:
     )
 
 
+def scan_kwargs(args: argparse.Namespace, det) -> dict:
+    """The :meth:`Detector.scan` arguments of parsed ``torchtrack detect`` options for ``det``
+    (the benchmarks that score the command's scan call this too).
+
+    Raises:
+        ConfigError: ``--max-scale`` below the scale of ``--min-height``.
+    """
+    from torchtrack.errors import ConfigError
+
+    min_scale = args.min_scale
+    if min_scale is None:
+        min_scale = args.min_height / object_height(det)
+        if args.max_scale is not None and args.max_scale < min_scale:
+            raise ConfigError(
+                f"--max-scale {args.max_scale} is below the scale of --min-height "
+                f"{args.min_height:g} px ({min_scale:.3g})"
+            )
+    return {
+        "threshold": args.threshold,
+        "scale_step": args.scale_step,
+        "stride": args.stride,
+        "min_scale": min_scale,
+        "max_scale": args.max_scale,
+        "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
+        "nms_overlap": args.nms_overlap,
+        "vote_iou": args.vote_iou if args.vote_iou > 0 and args.nms_iou < 1.0 else None,
+        "pad": args.pad,
+        "windows": args.windows,
+        "cascade": not args.no_cascade,
+    }
+
+
 def _check_args(args: argparse.Namespace) -> None:
     from torchtrack.errors import ConfigError
 
@@ -322,7 +354,7 @@ def run(args: argparse.Namespace) -> int:
 
     from torchtrack.cli._common import apply_threads, show_progress
     from torchtrack.detect.bundled import load_model
-    from torchtrack.errors import ConfigError, DataError, NotFittedError, ShapeError
+    from torchtrack.errors import DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
 
     _check_args(args)
@@ -337,27 +369,7 @@ def run(args: argparse.Namespace) -> int:
     fps = src.fps
     skipped: list[tuple[int, str]] = []
     n_frames = n_det = 0
-    min_scale = args.min_scale
-    if min_scale is None:
-        min_scale = args.min_height / object_height(det)
-        if args.max_scale is not None and args.max_scale < min_scale:
-            raise ConfigError(
-                f"--max-scale {args.max_scale} is below the scale of --min-height "
-                f"{args.min_height:g} px ({min_scale:.3g})"
-            )
-    scan_kw = {
-        "threshold": args.threshold,
-        "scale_step": args.scale_step,
-        "stride": args.stride,
-        "min_scale": min_scale,
-        "max_scale": args.max_scale,
-        "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
-        "nms_overlap": args.nms_overlap,
-        "vote_iou": args.vote_iou if args.vote_iou > 0 and args.nms_iou < 1.0 else None,
-        "pad": args.pad,
-        "windows": args.windows,
-        "cascade": not args.no_cascade,
-    }
+    scan_kw = scan_kwargs(args, det)
     total = len(src) or None
     if args.max_frames is not None and total is not None:
         total = min(total, args.max_frames)
