@@ -217,11 +217,41 @@ def test_reset_forgets_outside_detections():
         ({"detection_sigma_rate": -0.1}, "detection_sigma_rate"),
         ({"detection_sigma_rate": float("nan")}, "detection_sigma_rate"),
         ({"noise_height": float("inf")}, "noise_height"),
+        ({"scan_cascade": 1.0}, "scan_cascade"),
+        ({"scan_cascade": float("-inf")}, "scan_cascade"),
+        ({"scan_pad": 0.6}, "scan_pad"),
+        ({"scan_vote": float("nan")}, "scan_vote"),
     ],
 )
 def test_bad_config(kw, match):
     with pytest.raises(ConfigError, match=match):
         make(**kw)
+
+
+def test_the_scan_settings_reach_the_detector_scan():
+    """``scan_cascade``, ``scan_pad`` and ``scan_vote`` are the scan's ``cascade_threshold``,
+    ``pad`` and ``vote_iou`` (on a frame of the bundled clip)."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.detect.scan import scan
+    from torchtrack.io.video import open_source
+
+    with open_source(demo_clip_path()) as src:
+        frame = next(iter(src))
+    for kw, scan_kw in (
+        ({}, {"cascade_threshold": -3.0}),
+        ({"scan_cascade": 0.0, "scan_pad": 0.1, "scan_vote": 0.5}, {"pad": 0.1, "vote_iou": 0.5}),
+    ):
+        mt = make(**kw)
+        boxes, p = mt.detect(frame)
+        cfg = mt.config
+        wins, q = scan(
+            mt.detector, frame, threshold=cfg.detection_threshold,
+            scale_step=cfg.scan_scale_step, stride=cfg.scan_stride,
+            min_scale=cfg.scan_min_scale, nms_iou=cfg.scan_nms, nms_on="object", **scan_kw,
+        )  # fmt: skip
+        assert boxes.shape[0] > 0
+        torch.testing.assert_close(boxes, mt.detector.window_to_object(wins.double()))
+        torch.testing.assert_close(p, q.double())
 
 
 def test_bad_frames_and_detections():
