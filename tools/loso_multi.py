@@ -116,8 +116,6 @@ def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool)
     if own:  # cached scans come in as outside detections: keep the scan's birth threshold
         cfg = MultiTrackerConfig(**params)
         params.setdefault("external_birth_threshold", cfg.birth_threshold)
-        if cfg.scan_every != 1:
-            raise SystemExit("scan_every: run the tracker's own scans (torchtrack track) instead")
     mt = MultiTargetTracker(generator=torch.Generator().manual_seed(seed), **params)
     with seq.open() as src:
         rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)

@@ -108,6 +108,8 @@ def test_raw_scores_and_calibrated_scores(clip, dets, tmp_path):
         (["--tracker", "multi:scan_every=0"], "scan_every must be >= 1"),
         (["--tracker", "multi:nonsense=1"], "unknown key"),
         (["--adapt", "global"], "--adapt"),
+        (["--scan-workers", "-1"], "--scan-workers must be >= 0"),
+        (["--scan-workers", "2", "--box", "1,2,3,4"], "belong"),
     ],
 )
 def test_bad_multi_options(clip, tmp_path, capsys, extra, message):
@@ -115,6 +117,30 @@ def test_bad_multi_options(clip, tmp_path, capsys, extra, message):
     assert main(["track", str(clip), "--out", str(out), "-q", *extra]) == 1
     assert message in capsys.readouterr().err
     assert not out.exists() and not (tmp_path / "o.csv.part").exists()
+
+
+def test_scan_workers_with_outside_detections_is_refused(clip, dets, tmp_path, capsys):
+    out = tmp_path / "o.txt"
+    argv = ["track", str(clip), "--detections", str(dets), "--mot", str(out), "-q"]
+    assert main([*argv, "--scan-workers", "2"]) == 1
+    assert "--detections FILE replaces them" in capsys.readouterr().err and not out.exists()
+    assert main([*argv, "--scan-workers", "0"]) == 0
+
+
+def test_scan_workers_write_the_same_tracks(tmp_path, one_thread):
+    """The bundled clip with its scans in two forked workers and in this process: the same
+    files, byte for byte."""
+    from torchtrack.track.scan_ahead import fork_available
+
+    if not fork_available():
+        pytest.skip("scan workers are forked processes (Linux)")
+    files = {}
+    for w in ("0", "2"):
+        mot, csv = tmp_path / f"w{w}.txt", tmp_path / f"w{w}.csv"
+        argv = ["track", "demo", "--mot", str(mot), "--out", str(csv), "--max-frames", "12"]
+        assert main([*argv, "--scan-workers", w, "-q"]) == 0
+        files[w] = (mot.read_bytes(), csv.read_bytes())
+    assert files["0"] == files["2"] and files["0"][0].count(b"\n") > 10
 
 
 def test_malformed_detections_name_file_and_line(clip, tmp_path, capsys):

@@ -32,6 +32,7 @@ OUTPUT_KINDS: tuple[OutputKind, ...] = (
 _NOT_SETTINGS = frozenset(
     {"sources", "source", "out_dir", "write", "backend", "jobs", "address", "max_retries"}
     | {"no_progress", "quiet", "threads", "func", "command", "trusted_key", "require_signed"}
+    | {"scan_workers"}
     | {k.keyword for k in OUTPUT_KINDS}
 )
 
@@ -190,7 +191,10 @@ class _JobOf:
     :func:`~torchtrack.eval.corpus.run_corpus`: ``job(source, out=..., video=...)``."""
 
     def __init__(self, args: argparse.Namespace) -> None:
-        self.args = args
+        self.args = argparse.Namespace(**vars(args))
+        if getattr(self.args, "scan_workers", None) is None:
+            # the corpus already runs sources side by side: no scan workers inside a job
+            self.args.scan_workers = 0
 
     def __call__(self, source: str, **outputs: str) -> dict:
         from torchtrack.cli._common import apply_threads

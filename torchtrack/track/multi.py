@@ -52,7 +52,7 @@ from typing import Any
 
 import torch
 
-from torchtrack.errors import ShapeError
+from torchtrack.errors import ShapeError, TrackerError
 from torchtrack.filter.particles import normalize_with_lse
 from torchtrack.filter.resample import resample
 from torchtrack.filter.sir import get_estimator
@@ -225,6 +225,8 @@ class MultiTargetTracker:
         self,
         frame: torch.Tensor,
         detections: tuple[torch.Tensor, torch.Tensor] | None = None,
+        *,
+        scan: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> MultiState:
         """Track into the next frame.
 
@@ -233,20 +235,34 @@ class MultiTargetTracker:
             detections: optional ``(boxes (M, 4), probabilities (M,))`` object boxes found by
                 someone else (e.g. public detections); given, they replace this frame's scan
                 (and a frame without them is not scanned either when any were given before).
+            scan: this frame's own scan, ``detect(frame)``, computed elsewhere (by
+                :class:`~torchtrack.track.scan_ahead.ScanAhead`'s workers): used as the scan
+                (the scan's thresholds, not those of outside detections). Only on the frames
+                this tracker scans; None there: it scans itself.
 
         Returns:
             :class:`MultiState` of the targets reported on this frame.
 
         Raises:
             ShapeError: a frame of the wrong type or size, or malformed detections.
+            TrackerError: ``scan`` given with ``detections``, or on a frame not scanned.
         """
         cfg = self.config
         self._check_frame(frame)
-        self.frame_index += 1
-        t = self.frame_index
+        t = self.frame_index + 1
+        if scan is not None and (
+            detections is not None or self._external or t % cfg.scan_every != 0
+        ):
+            raise TrackerError(
+                f"scan given for frame {t + 1}, which this tracker does not scan (outside "
+                f"detections, or not every scan_every = {cfg.scan_every}-th frame)"
+            )
+        self.frame_index = t
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
             self._external = True
+        elif scan is not None:
+            det_boxes, det_p = self._check_detections(scan)
         elif not self._external and t % cfg.scan_every == 0:
             det_boxes, det_p = self.detect(frame)
         else:
@@ -777,7 +793,9 @@ def track_sequence(
         frames: a :class:`~torchtrack.io.video.FrameSource` (or anything with ``items()``
             yielding ``(index, frame or None)``); unreadable frames are skipped.
         detections: optional per-frame detections: a :class:`~torchtrack.io.mot.MotRows` of
-            object boxes with scores in [0, 1] (e.g. public detections), used instead of scans.
+            object boxes with scores in [0, 1] (e.g. public detections, or a cache of the
+            tracker's own scans), used instead of scans on the frames the tracker would scan
+            (every ``scan_every``-th, from the first).
         max_frames: stop after this many frames.
 
     Returns:
@@ -801,7 +819,7 @@ def track_sequence(
         if frame is None:
             continue
         d = None
-        if per_frame is not None:
+        if per_frame is not None and i % tracker.config.scan_every == 0:
             idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
             d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
         out = tracker.update(frame, d)

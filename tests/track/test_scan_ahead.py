@@ -1,0 +1,112 @@
+"""Scan ahead: the multi-target tracker's scans in forked workers give the same tracks; errors
+come back typed; the tracker refuses a scan for a frame it does not scan."""
+
+import itertools
+import os
+
+import pytest
+import torch
+
+from torchtrack.errors import ConfigError, ShapeError, TrackerError
+from torchtrack.track.multi import MultiTargetTracker
+from torchtrack.track.scan_ahead import ScanAhead, fork_available
+
+needs_fork = pytest.mark.skipif(not fork_available(), reason="worker processes are forked (Linux)")
+
+
+@pytest.fixture(scope="module")
+def clip():
+    """The first 8 frames of the bundled clip, with an unreadable one (None) as frame 3."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+
+    with open_source(demo_clip_path()) as src:
+        frames = [f for _, f in itertools.islice(src.items(), 8)]
+    frames[3] = None
+    return list(enumerate(frames))
+
+
+def make(**kw):
+    return MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(0), **kw)
+
+
+def run(mt, items, workers):
+    out = []
+    with ScanAhead(mt, workers) as ahead:
+        for _, frame, scan in ahead.frames(items):
+            if frame is not None:
+                out.append(mt.update(frame, scan=scan))
+    return out, ahead
+
+
+def same_tracks(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        assert torch.equal(x.ids, y.ids)
+        torch.testing.assert_close(x.boxes, y.boxes, rtol=0, atol=0)
+        torch.testing.assert_close(x.confidence, y.confidence, rtol=0, atol=0)
+
+
+@needs_fork
+@pytest.mark.parametrize("scan_every", [1, 2])
+def test_workers_give_the_tracks_of_the_tracker_alone(clip, one_thread, scan_every):
+    alone = make(scan_every=scan_every)
+    ref = [alone.update(f) for _, f in clip if f is not None]
+    assert sum(len(r) for r in ref) > 0  # people are tracked on these frames
+    mt = make(scan_every=scan_every)
+    got, ahead = run(mt, clip, workers=2)
+    same_tracks(ref, got)
+    assert ahead.workers == 2 and ahead.seconds > 0
+    # in-process (workers=0) is the same path as update(frame) scanning itself
+    same_tracks(ref, run(make(scan_every=scan_every), clip, workers=0)[0])
+
+
+def test_frames_come_back_in_order_and_only_scan_frames_are_scanned(clip, monkeypatch):
+    mt = make(scan_every=3)
+    calls = []
+    monkeypatch.setattr(
+        mt, "detect", lambda f: calls.append(1) or (torch.zeros(0, 4), torch.zeros(0))
+    )
+    with ScanAhead(mt, 0) as ahead:
+        got = list(ahead.frames(clip))
+    assert [i for i, _, _ in got] == list(range(8))
+    # readable frames 0, 1, 2, 4, 5, 6, 7 -> counted 0..6; scans on counts 0, 3, 6
+    assert [i for i, f, s in got if s is not None] == [0, 4, 7]
+    assert len(calls) == 3
+
+
+@needs_fork
+def test_an_error_in_a_worker_comes_back_typed(clip, monkeypatch):
+    mt = make()
+
+    def bad(frame):
+        raise ShapeError("a scan failed on purpose")
+
+    monkeypatch.setattr(mt, "detect", bad)  # inherited by the forked workers
+    with ScanAhead(mt, 2) as ahead, pytest.raises(ShapeError, match="on purpose"):
+        list(ahead.frames(clip))
+
+
+@needs_fork
+def test_a_worker_that_dies_is_a_tracker_error(clip, monkeypatch):
+    mt = make()
+    monkeypatch.setattr(mt, "detect", lambda frame: os._exit(3))  # in the forked worker
+    with ScanAhead(mt, 1) as ahead, pytest.raises(TrackerError, match="--scan-workers 0"):
+        list(ahead.frames(clip))
+
+
+def test_bad_settings_and_misplaced_scans(clip):
+    mt = make(scan_every=2)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ConfigError, match="scan workers"):
+            ScanAhead(mt, bad)
+    with pytest.raises(ConfigError, match="depth"):
+        ScanAhead(mt, 1, depth=0)
+    frame = clip[0][1]
+    none = (torch.zeros(0, 4), torch.zeros(0))
+    mt.update(frame, scan=none)  # frame 1: scanned
+    with pytest.raises(TrackerError, match="does not scan"):
+        mt.update(frame, scan=none)  # frame 2 is not
+    mt.update(frame)
+    with pytest.raises(TrackerError, match="does not scan"):
+        mt.update(frame, none, scan=none)  # with outside detections

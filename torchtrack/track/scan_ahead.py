@@ -1,0 +1,209 @@
+"""Scan ahead: the multi-target tracker's detector scans of the coming frames, in worker
+processes, while the tracker steps the current frame.
+
+A scan depends on its frame only (not on the targets), so the frames the tracker will scan can
+be scanned before it gets to them. :class:`ScanAhead` keeps up to ``depth`` frames in flight
+over ``workers`` processes and hands them back in order, each with its scan::
+
+    mt = MultiTargetTracker("pedestrian")
+    with ScanAhead(mt, workers=2) as ahead:
+        for i, frame, scan in ahead.frames(source.items()):
+            out = mt.update(frame, scan=scan)
+
+The tracks are the ones of ``mt.update(frame)`` (the workers run the tracker's own
+:meth:`~torchtrack.track.multi.MultiTargetTracker.detect`, one torch thread each); only the
+time changes. On two cores the scan of a 480x360 frame takes ~160 ms and the rest of the step
+~40 ms: two workers let the scans of two frames and the tracker's step share the cores
+(``docs/multi_target.md``, "Speed").
+
+The workers are forked from this process, so they share its loaded model: nothing is
+serialised but the frames and the detections (``"fork"`` start method, Linux). Where fork is
+unavailable, or with ``workers=0``, the scans run in this process, one per frame, as
+``mt.update(frame)`` would run them.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+import torch
+
+from torchtrack.errors import ConfigError, TrackerError
+
+__all__ = ["ScanAhead", "default_scan_workers", "fork_available"]
+
+# The tracker whose detect() the forked workers call (inherited through fork, never pickled).
+_TRACKER: Any = None
+
+
+def fork_available() -> bool:
+    """Whether worker processes can be forked here (Linux: torch and OpenCV are fork-safe
+    for CPU work once the child sets its own thread count; macOS and Windows are not used)."""
+    import multiprocessing as mp
+
+    return sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
+
+
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def default_scan_workers() -> int:
+    """Workers for this machine: 2 where there are at least two cores and fork works, else 0
+    (measured on 2 cores: 2 workers beat 1 and 3, ``docs/multi_target.md``)."""
+    return 2 if fork_available() and _cpus() >= 2 else 0
+
+
+def _die_with_parent(parent: int) -> None:
+    """SIGKILL this process when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``): a forked
+    worker holds both ends of its queue's pipe, so it would never see the parent go."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):  # no prctl: the pool's shutdown still ends the workers
+        return
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def _init_worker(parent: int) -> None:
+    # Ctrl-C and SIGTERM (sent to the whole process group by a terminal or a service manager)
+    # are the parent's to handle: it keeps the results so far and shuts the pool down. A worker
+    # must neither raise the CLI's KeyboardInterrupt / Terminated in a scan nor die first (the
+    # parent would report a broken worker instead of the interruption). Workers end when the
+    # parent closes the pool; if the parent is killed outright, the kernel kills them too.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _die_with_parent(parent)
+    torch.set_num_threads(1)
+
+
+def _scan(frame: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    return _TRACKER.detect(frame)
+
+
+class ScanAhead:
+    """Detector scans of the coming frames in ``workers`` forked processes (see the module).
+
+    Args:
+        tracker: the :class:`~torchtrack.track.multi.MultiTargetTracker` whose scans to run
+            (its ``detect`` and ``config.scan_every``); it must be fresh or reset, since the
+            frames it scans are counted from the first one given here.
+        workers: processes; 0 (or no fork on this platform): the scans run in this process.
+        depth: frames in flight at most (default ``2 * workers``); memory stays bounded.
+
+    Raises:
+        ConfigError: ``workers < 0`` or ``depth < 1``.
+    """
+
+    def __init__(self, tracker: Any, workers: int, depth: int | None = None) -> None:
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+            raise ConfigError(f"scan workers must be an integer >= 0, got {workers!r}")
+        if depth is not None and (
+            isinstance(depth, bool) or not isinstance(depth, int) or depth < 1
+        ):
+            raise ConfigError(f"scan-ahead depth must be an integer >= 1, got {depth!r}")
+        self.tracker = tracker
+        self.workers = workers if fork_available() else 0
+        self.depth = depth if depth is not None else max(1, 2 * self.workers)
+        self._pool = None
+        #: seconds this process spent on scans: scanning (no workers) or waiting for a worker
+        self.seconds = 0.0
+
+    def __enter__(self) -> ScanAhead:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the workers (pending scans are dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def _start(self) -> Any:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        global _TRACKER
+        _TRACKER = self.tracker
+        self._pool = ProcessPoolExecutor(
+            self.workers,
+            mp_context=mp.get_context("fork"),
+            initializer=_init_worker,
+            initargs=(os.getpid(),),
+        )
+        return self._pool
+
+    def frames(
+        self, items: Iterable[tuple[int, torch.Tensor | None]]
+    ) -> Iterator[tuple[int, torch.Tensor | None, tuple[torch.Tensor, torch.Tensor] | None]]:
+        """``(index, frame, scan)`` for every ``(index, frame)`` of ``items``, in order.
+
+        ``scan`` is this frame's ``tracker.detect(frame)`` on the frames the tracker scans
+        (every ``scan_every``-th readable frame, from the first), None on the others and for
+        unreadable frames (``frame`` None, skipped by the count as the tracker skips them).
+
+        Raises:
+            TrackerError: a worker died (e.g. killed for memory); an error raised by a scan
+                (e.g. :class:`~torchtrack.errors.ShapeError`) comes back as it was raised.
+        """
+        every = int(self.tracker.config.scan_every)
+        if self.workers == 0:
+            k = 0
+            for i, frame in items:
+                scan = None
+                if frame is not None:
+                    if k % every == 0:
+                        t0 = time.perf_counter()
+                        scan = self.tracker.detect(frame)
+                        self.seconds += time.perf_counter() - t0
+                    k += 1
+                yield i, frame, scan
+            return
+        from concurrent.futures.process import BrokenProcessPool
+
+        pool = self._pool or self._start()
+        queue: collections.deque = collections.deque()
+        it = iter(items)
+        k = 0
+        done = False
+        while True:
+            while not done and len(queue) < self.depth:
+                try:
+                    i, frame = next(it)
+                except StopIteration:
+                    done = True
+                    break
+                fut = None
+                if frame is not None:
+                    if k % every == 0:
+                        fut = pool.submit(_scan, frame)
+                    k += 1
+                queue.append((i, frame, fut))
+            if not queue:
+                return
+            i, frame, fut = queue.popleft()
+            t0 = time.perf_counter()
+            try:
+                scan = fut.result() if fut is not None else None
+            except BrokenProcessPool:
+                self.close()
+                raise TrackerError(
+                    f"a scan worker stopped unexpectedly at frame {i + 1} (killed for memory?): "
+                    "run again with --scan-workers 0 to scan in this process"
+                ) from None
+            self.seconds += time.perf_counter() - t0
+            yield i, frame, scan
