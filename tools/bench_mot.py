@@ -501,6 +501,15 @@ def bench_sequence(spec: SeqSpec, args, tt, cache, results, has_mot, has_dets):
             has_mot,
         )
     ]
+    if cli_offers(tt, "--scan-workers"):  # the same command with its scans in this process
+        cli_rows.append(
+            (
+                "tt-track-detect-inprocess",
+                "`torchtrack track --detect pedestrian --scan-workers 0`",
+                ["--detect", "pedestrian", "--scan-workers", "0"],
+                has_mot,
+            )
+        )
     if seq.det_path is not None:
         cli_rows.append(
             (

@@ -188,6 +188,31 @@ def test_same_seed_same_tracks():
         assert torch.equal(a, b)
 
 
+def test_track_sequence_uses_cached_scans_on_the_scan_frames_only():
+    """Detections given to track_sequence stand for the tracker's scans: with scan_every = 2
+    only every second frame's are used, as the tracker would scan."""
+    from torchtrack.io.mot import MotRows
+    from torchtrack.track.multi import track_sequence
+
+    n = 10
+    boxes = torch.cat([people(t) for t in range(n)])
+    frames = torch.arange(n).repeat_interleave(3)
+    rows = MotRows.from_arrays(frames, torch.full((3 * n,), -1), boxes, torch.ones(3 * n))
+
+    class Frames:
+        def items(self):
+            return ((t, blank()) for t in range(n))
+
+    got = track_sequence(make(scan_every=2), Frames(), rows)
+    mt, want = make(scan_every=2), []
+    for t in range(n):
+        out = mt.update(blank(), (people(t), torch.ones(3)) if t % 2 == 0 else None)
+        want += [(t, int(i), *b.tolist()) for i, b in zip(out.ids, out.boxes, strict=True)]
+    assert len(want) > 0
+    assert [(int(f), int(i), *b) for f, i, b in zip(got.frames, got.ids, got.boxes.tolist(),
+                                                    strict=True)] == want  # fmt: skip
+
+
 def test_reset_forgets_outside_detections():
     """After a video tracked on outside detections, reset() scans the next video again."""
     mt = make()
