@@ -110,3 +110,17 @@ def test_bad_settings_and_misplaced_scans(clip):
     mt.update(frame)
     with pytest.raises(TrackerError, match="does not scan"):
         mt.update(frame, none, scan=none)  # with outside detections
+
+
+@needs_fork
+def test_track_sequence_with_scan_workers_gives_the_same_rows(clip, one_thread):
+    from torchtrack.track.multi import track_sequence
+
+    class Frames:
+        def items(self):
+            return iter(clip)
+
+    a = track_sequence(make(), Frames())
+    b = track_sequence(make(), Frames(), scan_workers=2)
+    assert len(a) > 0
+    assert (a.frames == b.frames).all() and (a.ids == b.ids).all() and (a.boxes == b.boxes).all()

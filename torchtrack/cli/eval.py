@@ -320,6 +320,7 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
     from torchtrack.io.mot import write_mot
     from torchtrack.track.base import parse_tracker_spec
     from torchtrack.track.multi import MultiTargetTracker, score_probabilities, track_sequence
+    from torchtrack.track.scan_ahead import default_scan_workers
 
     if not args.out:
         raise ConfigError("running trackers with --mot needs -o/--out DIR for their results")
@@ -359,7 +360,9 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
                     torch.from_numpy(d.conf)).numpy())  # fmt: skip
             mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
             with seq.open() as src:
-                rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)
+                rows = track_sequence(
+                    mt, src, dets, max_frames=seq.n_frames, scan_workers=default_scan_workers()
+                )
             write_mot(Path(args.out) / label / f"{seq.name}.txt", rows)
             print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
     summary = evaluate_mot(

@@ -785,6 +785,7 @@ def track_sequence(
     frames,
     detections=None,
     max_frames: int | None = None,
+    scan_workers: int = 0,
 ):
     """Run ``tracker`` over ``frames`` and collect the reported targets.
 
@@ -797,6 +798,9 @@ def track_sequence(
             tracker's own scans), used instead of scans on the frames the tracker would scan
             (every ``scan_every``-th, from the first).
         max_frames: stop after this many frames.
+        scan_workers: without ``detections``, scan the coming frames in this many forked
+            processes (:class:`~torchtrack.track.scan_ahead.ScanAhead`: the same tracks); 0
+            scans in this process.
 
     Returns:
         :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target.
@@ -811,23 +815,32 @@ def track_sequence(
         per_frame = detections.split(n)
         boxes_all = torch.from_numpy(detections.boxes)
         conf_all = torch.from_numpy(detections.conf.astype(np.float64)).clamp(0.0, 1.0)
+    from torchtrack.track.scan_ahead import ScanAhead
+
     f_, i_, b_, c_ = [], [], [], []
     empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
-    for i, frame in frames.items():
-        if max_frames is not None and i >= max_frames:
-            break
-        if frame is None:
-            continue
-        d = None
-        if per_frame is not None and i % tracker.config.scan_every == 0:
-            idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
-            d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
-        out = tracker.update(frame, d)
-        if len(out):
-            f_.append(torch.full((len(out),), i, dtype=torch.int64))
-            i_.append(out.ids)
-            b_.append(out.boxes)
-            c_.append(out.confidence)
+
+    def items():
+        for i, frame in frames.items():
+            if max_frames is not None and i >= max_frames:
+                return
+            yield i, frame
+
+    with ScanAhead(tracker, scan_workers if per_frame is None else 0) as ahead:
+        stream = ahead.frames(items()) if per_frame is None else ((i, f, None) for i, f in items())
+        for i, frame, scan in stream:
+            if frame is None:
+                continue
+            d = None
+            if per_frame is not None and i % tracker.config.scan_every == 0:
+                idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
+                d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
+            out = tracker.update(frame, d, scan=scan)
+            if len(out):
+                f_.append(torch.full((len(out),), i, dtype=torch.int64))
+                i_.append(out.ids)
+                b_.append(out.boxes)
+                c_.append(out.confidence)
     if not f_:
         return MotRows.empty()
     return MotRows.from_arrays(torch.cat(f_), torch.cat(i_), torch.cat(b_), torch.cat(c_))
