@@ -355,8 +355,13 @@ def _scan_lattice(
             rows: torch.Tensor, f: torch.Tensor, base=base, off=off, factor=factor, values=values
         ):
             # f: (A, T) per window, or (T,) shared by every window (broadcast tables)
-            idx = base[rows][:, None, None] + (off[f] if f.ndim == 2 else off[f][None])
-            v = (values[idx] * coef[f]).sum(-1)  # (A, T, P) -> (A, T)
+            idx = base.index_select(0, rows)[:, None, None] + (
+                off[f] if f.ndim == 2 else off.index_select(0, f)[None]
+            )
+            # index_select on the flat indices: the same values as values[idx], ~2x faster on
+            # CPU than advanced indexing (the scan's hottest gather)
+            g = values.index_select(0, idx.view(-1)).view(idx.shape)
+            v = (g * coef[f]).sum(-1)  # (A, T, P) -> (A, T)
             return (v * factor[f]).to(torch.float32)
 
         total = nb * m

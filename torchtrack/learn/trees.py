@@ -590,25 +590,29 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
             tf, tt, tl = feat[t0:t1], thr[t0:t1], leaf[t0:t1]
             nt = t1 - t0
             cols = torch.arange(nt, device=dev)
-            # root: one feature per tree, shared by every window
-            node = 1 + (read(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
             if self.max_depth >= 2:
-                # both children of the root read for every window, then selected
-                right_l = read(alive, tf[:, 1]) >= tt[:, 1]
-                right_r = read(alive, tf[:, 2]) >= tt[:, 2]
-                node = node * 2 + 1 + torch.where(node == 1, right_l, right_r).long()
+                # the root and both of its children, read for every window in one call (one
+                # feature per tree, shared by every window), then the child on the path
+                go = read(alive, tf[:, :3].t().reshape(-1)) >= tt[:, :3].t().reshape(-1)
+                right = go[:, :nt]  # (A, T)
+                node = (
+                    3
+                    + 2 * right.long()
+                    + torch.where(right, go[:, 2 * nt :], go[:, nt : 2 * nt]).long()
+                )
+            else:  # root only: one feature per tree, shared by every window
+                node = 1 + (read(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
             for _ in range(2, int(self.max_depth)):
                 f = tf[cols, node]  # (A, T)
                 v = read(alive, f)
                 node = node * 2 + 1 + (v >= tt[cols, node]).long()
-            out = tl[cols, node - n_int]  # (A, T)
-            run = score[alive, None] + out.cumsum(1)
+            # leaf values (A, T): a flat index_select (faster on CPU than tl[cols, leaf])
+            out = tl.reshape(-1).index_select(0, (node - n_int + cols * (n_int + 1)).view(-1))
+            out = out.view(node.shape)
+            run = score.index_select(0, alive)[:, None] + out.cumsum(1)
+            score.index_copy_(0, alive, run[:, -1])
             if reject:
-                ok = (run >= rej[t0:t1]).all(1)
-                score[alive] = run[:, -1]
-                alive = alive[ok]
-            else:
-                score[alive] = run[:, -1]
+                alive = alive[(run >= rej[t0:t1]).all(1)]
             t0 = t1
         return alive, score[alive]
 
