@@ -460,7 +460,7 @@ CASES: list[Case] = [
         f"{T} --tracker detector:model={{c}}/uncal.safetensors --box 10,14,14,20 -o {{o}}/b.csv",
         "calibrat",
     ),
-    E("track-seed-text", f"{T} {HB} --seed x", "invalid int", 2),
+    E("track-seed-text", f"{T} {HB} --seed x", "--seed: must be an integer", 2),
     E("track-no-source", "track", "required|SOURCE", 2),
 ]
 for name, msg in FORGED_MSG.items():
@@ -709,7 +709,7 @@ CASES += [
 CS = "calibrate --scores {c}/scores.csv -q"
 CM = "calibrate {c}/toy.safetensors --pos {c}/crops/pos --neg {c}/crops/neg -q"
 CASES += [
-    E("cal-neither", "calibrate", "give either a MODEL"),
+    E("cal-neither", "calibrate", "nothing to calibrate"),
     E(
         "cal-both",
         "calibrate {c}/toy.safetensors --scores {c}/scores.csv --json {o}/p.json",
@@ -985,6 +985,51 @@ CASES += [
         "signature verifies",
     ),
     A("sign-new-key", "sign --new-key {o}/k.pem", "key id", ("k.pem", "k.pub")),
+    # seeds a torch generator cannot take (were tracebacks), for every command with --seed
+    E("seed-huge-track", "track {c}/frames --seed 99999999999999999999999", "--seed: must be", 2),
+    E("seed-negative-track", f"track {{c}}/frames {HB} --seed -1", "--seed: must be", 2),
+    E(
+        "seed-huge-eval",
+        "eval --sequences {c}/seqs/good -o {o}/r --seed 18446744073709551616",
+        "--seed: must be",
+        2,
+    ),
+    E(
+        "seed-huge-train",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 8 "
+        "-o {o}/m.safetensors --seed 99999999999999999999999",
+        "--seed: must be",
+        2,
+    ),
+    E(
+        "seed-huge-calibrate",
+        f"{CS} --json {{o}}/p.json --seed 99999999999999999999999",
+        "--seed: must be",
+        2,
+    ),
+    # values that were silently taken
+    E(
+        "train-window-huge",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 40000 100000 -o {o}/m.safetensors",
+        r"sides in \[4, 512\]",
+    ),
+    E(
+        "train-random-negatives-alone",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 8 "
+        "--random-negatives 100 -o {o}/m.safetensors",
+        "--neg-images",
+    ),
+    E(
+        "track-det-min-score-nan",
+        "track {c}/frames --detections {c}/det.txt --det-min-score nan -o {o}/b.csv",
+        "finite",
+    ),
+    E(
+        "track-spec-key-twice",
+        "track {c}/frames --tracker multi:n_particles=10,n_particles=20 -o {o}/b.csv",
+        "given twice",
+    ),
+    E("detect-model-is-a-folder", "detect {c}/frames {c}/frames -o {o}/d.jsonl", "is a folder"),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),
@@ -1147,4 +1192,41 @@ def test_one_clean_line_and_no_library_noise(argv, corpus, tmp_path, capfd):
     noise = [ln for ln in lines if not ln.startswith(("torchtrack ", "detect:", "  "))]
     noise = [ln for ln in noise if "frame/s" not in ln and "it/s" not in ln]
     assert noise == [], err
+    assert _files(out) == set()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        "track {i}/frames --detections {i}/det.txt --mot {i}/det.txt",
+        "track {i}/frames --tracker camshift --box 1,1,9,9 -o {i}/frames/0000.png",
+        "track {i}/frames --config {i}/multi.toml -o {i}/multi.toml",
+        "track {i}/frames --detect {i}/toy.safetensors -o {i}/toy.safetensors",
+        "detect {i}/toy.safetensors {i}/frames -o {i}/toy.safetensors",
+        "detect {i}/toy.safetensors {i}/frames -o {o}/d.jsonl --annotate {i}/frames",
+        "detect {i}/toy.safetensors {i}/frames -o {o}/d.jsonl --annotate {i}/frames/ann",
+        "train --pos {i}/crops/pos --neg {i}/crops/neg --window 16 8 --features 5 "
+        "-o {i}/crops/pos/m.safetensors",
+        "calibrate {i}/toy.safetensors --pos {i}/crops/pos --neg {i}/crops/neg "
+        "-o {i}/crops/pos/pos-0.png",
+    ],
+)
+def test_outputs_never_overwrite_or_join_the_inputs(argv, corpus, tmp_path, capsys):
+    """An output that is an input file (detections, config, model, a frame, a crop) or lies
+    inside an input folder is refused before any work, naming both; every input is intact."""
+    import shutil
+
+    inp, out = tmp_path / "in", tmp_path / "out"
+    out.mkdir()
+    shutil.copytree(corpus / "frames", inp / "frames")
+    shutil.copytree(corpus / "crops", inp / "crops")
+    shutil.copy(corpus / "toy.safetensors", inp)
+    (inp / "det.txt").write_text("1,-1,2,2,8,16,0.9,-1,-1,-1\n")
+    (inp / "multi.toml").write_text("max_targets = 5\n")
+    before = {p: (inp / p).read_bytes() for p in _files(inp)}
+    argv = [a.replace("{i}", str(inp)).replace("{o}", str(out)) for a in _split(argv)]
+    assert main([*argv, "-q" if argv[0] != "train" else "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "write the output elsewhere" in err and "Traceback" not in err, err
+    assert {p: (inp / p).read_bytes() for p in _files(inp)} == before
     assert _files(out) == set()

@@ -200,3 +200,21 @@ def test_the_readme_main_job_follows_the_clips_people_with_one_identity_each(
     assert len(tracks_of) >= 7  # people found
     assert all(len(t) == 1 for t in tracks_of.values())  # no identity switch
     assert all(len(p) == 1 for p in people_of.values())  # no identity shared by two people
+
+
+@pytest.mark.parametrize("extra", [[], ["--tracker", "histogram", "--box", "100,60,40,80"]])
+def test_a_run_that_fails_midway_leaves_no_output(tmp_path, capsys, extra):
+    """Frames that change size at the third: an error naming it, and none of the outputs
+    (a header-only CSV would look like a finished run without targets)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, (h, w) in enumerate([(240, 320)] * 2 + [(120, 160)] * 2):
+        cv2.imwrite(str(frames / f"{i:04d}.png"), np.full((h, w, 3), 90, np.uint8))
+    out, mot, vid = tmp_path / "o.csv", tmp_path / "o.txt", tmp_path / "o.mp4"
+    argv = ["track", str(frames), "--out", str(out), "--video", str(vid), "-q", *extra]
+    if not extra:
+        argv += ["--mot", str(mot)]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "frame size changed" in err and "Traceback" not in err
+    assert {p.name for p in tmp_path.iterdir()} == {"frames"}

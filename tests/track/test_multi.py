@@ -357,3 +357,15 @@ def test_tud_stadtmitte_precise_detections_with_the_estimated_weight_real_data(
     m = score_mot(seq.gt, rows, seq.n_frames)
     assert m.hota >= 0.83 and m.id_switches <= 3, m
     assert 0.01 <= mt.detection_sigma < 0.05  # tighter than the default's guess
+
+
+def test_score_probabilities_of_raw_scores():
+    from torchtrack.track.multi import score_probabilities
+
+    def p(*v):
+        return score_probabilities(torch.tensor(v, dtype=torch.float64)).tolist()
+
+    assert p(0.2, 0.9) == [0.2, 0.9]  # already probabilities
+    assert p(-0.15, 61.0, 122.0) == [0.0, 0.5, 1.0]  # MOT15-like: / the highest
+    assert p(-5.0, -3.0, -1.0) == [0.0, 0.5, 1.0]  # none positive: lowest -> 0, highest -> 1
+    assert p(-1.0, -1.0) == [1.0, 1.0]  # no ranking at all: every detection counts

@@ -30,6 +30,8 @@ __all__ = [
     "check_distinct",
     "check_output_dir",
     "check_output_file",
+    "check_spares_inputs",
+    "seed_value",
     "show_progress",
     "trust_scope",
 ]
@@ -47,6 +49,18 @@ def add_progress(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "-q", "--quiet", action="store_true", help="no progress bar and no log lines on stderr"
     )
+
+
+def seed_value(text: str) -> int:
+    """``--seed``: an integer in ``[0, 2^63 - 1]`` (what a torch generator takes); argparse
+    reports anything else as a usage error naming the option."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not 0 <= n < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2^63 - 1], got {text}")
+    return n
 
 
 def add_threads(p: argparse.ArgumentParser, default: int = 1) -> None:
@@ -222,6 +236,44 @@ def check_distinct(paths: dict[str, str | None]) -> None:
         if key in seen:
             raise ConfigError(f"{seen[key]} and {option} name the same file {path!r}")
         seen[key] = option
+
+
+def check_spares_inputs(outputs: dict[str, str | None], inputs: dict[str, object]) -> None:
+    """No output may be one of the command's input files or lie inside an input folder (it
+    would overwrite, or add to, what the command reads): ``{option: path}`` each, an input may
+    be a list of paths; inputs that do not exist (a bundled model's name, a camera index) are
+    not paths and are passed over.
+
+    Raises:
+        ConfigError: an output that is an input, or inside an input folder, both named.
+    """
+    import os
+
+    from torchtrack.errors import ConfigError
+
+    def key(path) -> str:
+        return os.path.normcase(os.path.realpath(os.fspath(path)))
+
+    for out_opt, out in outputs.items():
+        if not out:
+            continue
+        o = key(out)
+        for in_opt, given in inputs.items():
+            for path in given if isinstance(given, (list, tuple)) else [given]:
+                if not path or not os.path.exists(path):
+                    continue
+                i = key(path)
+                if o == i:
+                    what = "folder " if os.path.isdir(i) else ""
+                    raise ConfigError(
+                        f"{out_opt} {os.fspath(out)!r} is the input {what}{in_opt} "
+                        f"{os.fspath(path)!r}: it would be overwritten; write the output elsewhere"
+                    )
+                if os.path.isdir(i) and o.startswith(i.rstrip(os.sep) + os.sep):
+                    raise ConfigError(
+                        f"{out_opt} {os.fspath(out)!r} lies inside the input folder {in_opt} "
+                        f"{os.fspath(path)!r}: write the output elsewhere, outside what is read"
+                    )
 
 
 # ------------------------------------------------------------------------------ model trust

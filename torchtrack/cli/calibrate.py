@@ -47,7 +47,7 @@ JSON_VERSION = 1
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_out, add_progress, add_trust
+    from torchtrack.cli._common import add_out, add_progress, add_trust, seed_value
 
     p = subparsers.add_parser(
         "calibrate",
@@ -79,7 +79,7 @@ def register(subparsers) -> None:
     add_out(p, "MODEL", "write the calibrated model here (default: MODEL itself)")
     p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
     p.add_argument("--bins", type=int, default=15, help="ECE / diagram bins (default 15)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the CV folds (default 0)")
+    p.add_argument("--seed", type=seed_value, default=0, help="seed of the CV folds (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
     p.add_argument(
         "--min-per-class",
@@ -266,7 +266,11 @@ def run(args: argparse.Namespace) -> int:
     )
     from torchtrack.learn._base import as_binary_labels
 
-    if (args.model is None) == (args.scores is None):
+    if args.model is None and args.scores is None:
+        raise ConfigError(
+            "nothing to calibrate: give a MODEL (with --pos and --neg) or --scores CSV"
+        )
+    if args.model is not None and args.scores is not None:
         raise ConfigError("give either a MODEL (with --pos and --neg) or --scores CSV, not both")
     if args.bins < 1:
         raise ConfigError(f"--bins must be >= 1, got {args.bins}")
@@ -280,6 +284,12 @@ def run(args: argparse.Namespace) -> int:
     check_distinct({"--json": args.json, "--plot": args.plot, "--out": args.out})
     check_distinct({"--json": args.json, "--plot": args.plot, "MODEL": args.model})
     check_distinct({"--json": args.json, "--plot": args.plot, "--scores": args.scores})
+    from torchtrack.cli._common import check_spares_inputs
+
+    outs = {"--json": args.json, "--plot": args.plot, "--out": args.out}
+    # --out may be MODEL itself: the calibration is written into the model, atomically
+    check_spares_inputs(outs, {"--pos": args.pos or [], "--neg": args.neg or []})
+    check_spares_inputs({"--json": args.json, "--plot": args.plot}, {"MODEL": args.model})
     det = None
     if args.scores is not None:
         if args.pos or args.neg or args.out:

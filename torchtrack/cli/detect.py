@@ -232,6 +232,12 @@ def _check_args(args: argparse.Namespace) -> None:
     check_output_dir(args.annotate, "--annotate")
     source = args.source if Path(args.source).is_file() else None
     check_distinct({"SOURCE": source, "--out": args.out, "--video": args.video})
+    from torchtrack.cli._common import check_spares_inputs
+
+    check_spares_inputs(
+        {"--out": args.out, "--video": args.video, "--annotate": args.annotate},
+        {"SOURCE": args.source, "MODEL": args.model},
+    )
 
 
 def object_height(det) -> float:

@@ -18,7 +18,7 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_backend, add_progress, add_trust
+    from torchtrack.cli._common import add_backend, add_progress, add_trust, seed_value
 
     p = subparsers.add_parser(
         "eval",
@@ -124,7 +124,9 @@ def register(subparsers) -> None:
         help="import a Python module that registers your own trackers (register_tracker); "
         "repeatable; also imported by --jobs workers",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed for trackers that take a generator")
+    p.add_argument(
+        "--seed", type=seed_value, default=0, help="seed for trackers that take a generator"
+    )
     add_backend(p, "(tracker, sequence, seed)")
     add_progress(p)
     add_trust(p)
@@ -262,6 +264,15 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
             )
         for d in found or [p]:
             seqs.append(load_mot_sequence(d, scale=scale))
+    import sys
+
+    for seq in seqs:
+        if len(seq.gt) == 0 or not (seq.gt.conf != 0).any():
+            print(
+                f"warning: the ground truth of {seq.name} has no scored row (empty, or every "
+                "row marked conf 0): every reported box counts as a false positive",
+                file=sys.stderr,
+            )
     return seqs
 
 
@@ -294,8 +305,9 @@ def run_mot(args: argparse.Namespace) -> int:
     ]
     if clash:
         raise ConfigError(
-            f"{', '.join(clash)} do(es) not apply to --mot, which scores existing results files "
-            "(give --results)"
+            f"{', '.join(clash)} do(es) not apply to scoring existing results files (--mot "
+            "with --results); to run the multi-target tracker and score it, give --mot and "
+            "--trackers multi without --results"
         )
     from torchtrack.eval.mot import evaluate_mot, mot_table
 

@@ -52,15 +52,15 @@ outputs:
   written with visible=0). --mot TXT: MOTChallenge results, frame,id,x,y,w,h,conf,-1,-1,-1
   (frames and pixels 1-based). --video FILE: annotated video (.mp4 or .avi). Boxes are the
   object's box (the person or car), not the detector window. Rows stream into OUT.part and
-  are renamed to OUT at the end (also after an error, Ctrl-C or SIGTERM, keeping the rows so
-  far), so OUT is never half-written; a run that fails before its first tracked frame leaves no
-  output, and output paths are checked before any work. Unreadable frames (also truncated
+  are renamed to OUT at the end (also after Ctrl-C or SIGTERM, keeping the rows so far), so
+  OUT is never half-written; a run that fails (an error, exit status 1) leaves no output, and
+  output paths are checked before any work. Unreadable frames (also truncated
   JPEGs) are counted; a box less than half inside the frame is never visible.
 """
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress, add_threads, add_trust
+    from torchtrack.cli._common import add_progress, add_threads, add_trust, seed_value
     from torchtrack.cli._corpus import add_corpus_options
 
     p = subparsers.add_parser(
@@ -150,7 +150,9 @@ def register(subparsers) -> None:
         default="rgb",
         help="frame colour mode given to the tracker (default rgb; gray frames are replicated)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of trackers that take a generator")
+    p.add_argument(
+        "--seed", type=seed_value, default=0, help="seed of trackers that take a generator"
+    )
     add_threads(p, default=1)
     add_progress(p)
     add_trust(p)
@@ -167,6 +169,14 @@ def run(args: argparse.Namespace) -> int:
     args.source = args.sources[0]  # one source: the single-source command
     check_args(args)
     summary = track_source(args, args.source, out=args.out, video=args.video, mot=args.mot)
+    if summary.ended_early:
+        import sys
+
+        print(
+            f"warning: {args.source} ended early (truncated or corrupt video): tracked the "
+            f"{summary.frames} frame(s) before it",
+            file=sys.stderr,
+        )
     print(summary.line())
     for path in (args.out, args.mot, args.video):
         if path:
@@ -183,6 +193,8 @@ def is_multi(args: argparse.Namespace) -> bool:
 def check_args(args: argparse.Namespace) -> None:
     """Validate the options of one ``torchtrack track`` run before any work
     (:class:`ConfigError` naming the option)."""
+    import math
+
     from torchtrack.cli._common import apply_threads
     from torchtrack.errors import ConfigError
 
@@ -220,6 +232,8 @@ def check_args(args: argparse.Namespace) -> None:
         )
     if args.scan_workers and args.detections:
         raise ConfigError("--scan-workers runs our scans: --detections FILE replaces them")
+    if args.det_min_score is not None and not math.isfinite(args.det_min_score):
+        raise ConfigError(f"--det-min-score must be a finite number, got {args.det_min_score}")
     if (args.det_calibration or args.det_min_score is not None) and not args.detections:
         raise ConfigError("--det-calibration and --det-min-score apply to --detections FILE")
     if args.adapt is not None and multi:
@@ -234,13 +248,18 @@ def check_track_outputs(args: argparse.Namespace, source: str, out, video, mot=N
     .avi, no two the same file and none the source itself."""
     import os
 
-    from torchtrack.cli._common import check_distinct, check_output_file
+    from torchtrack.cli._common import check_distinct, check_output_file, check_spares_inputs
 
     check_output_file(out, "--out")
     check_output_file(mot, "--mot")
     check_output_file(video, "--video", (".mp4", ".avi"))
     src = source if isinstance(source, str) and os.path.isfile(source) else None
     check_distinct({"SOURCE": src, "--out": out, "--mot": mot, "--video": video})
+    inputs = {"SOURCE": source if isinstance(source, str) else None}
+    for option, dest in (("--detections", "detections"), ("--config", "config"),
+                         ("--detect", "detect"), ("--det-calibration", "det_calibration")):  # fmt: skip
+        inputs[option] = getattr(args, dest, None)
+    check_spares_inputs({"--out": out, "--mot": mot, "--video": video}, inputs)
 
 
 @dataclass
@@ -320,6 +339,7 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
     last = None
     status = 0
     pending_bad: list[int] = []  # unreadable frames before the first tracked one
+    failed = False
     progress = _progress(src, args)
     try:
         for i, frame in src.items():
@@ -354,9 +374,12 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
                 vid.write(draw(frame, state, tracker if args.particles else None))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
         status = _interrupted(exc)
+    except BaseException:
+        failed = True  # an error: no output is kept (it would look like a finished run)
+        raise
     finally:
         progress.close()
-        _finish((csv, vid), ok=last is not None)
+        _finish((csv, vid), ok=last is not None and not failed)
         src.close()
     if last is None and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
@@ -498,6 +521,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     trails = Trails() if vid is not None else None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
     status = 0
+    failed = False
     seen: set[int] = set()
     progress = _progress(src, args)
 
@@ -532,10 +556,13 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 vid.write(draw_multi(frame, res, trails, parts))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
         status = _interrupted(exc)
+    except BaseException:
+        failed = True  # an error: no output is kept (it would look like a finished run)
+        raise
     finally:
         ahead.close()
         progress.close()
-        _finish((csv, motw, vid), ok=n_frames > 0)
+        _finish((csv, motw, vid), ok=n_frames > 0 and not failed)
         src.close()
     if n_frames == 0 and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")

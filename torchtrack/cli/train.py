@@ -33,7 +33,7 @@ Names listed in files given to --exclude (a held-out test split) are never read.
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_out, add_progress
+    from torchtrack.cli._common import add_out, add_progress, seed_value
 
     p = subparsers.add_parser(
         "train",
@@ -75,7 +75,7 @@ def register(subparsers) -> None:
     p.add_argument("--mining-rounds", type=int, metavar="R", help="hard-negative mining rounds")
     p.add_argument("--exclude", nargs="+", metavar="LIST", help="files of names never to use")
     p.add_argument("--mirror", action="store_true", help="add mirror images of the positives")
-    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_value, help="random seed (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
     p.add_argument(
         "--force",
@@ -137,6 +137,19 @@ def run(args: argparse.Namespace) -> int:
         for k, v in overrides.items():
             apply_override(cfg, k, v)
         cfg.validate()
+    if args.random_negatives is not None and not cfg.data.negative_images:
+        raise ConfigError(
+            "--random-negatives draws windows from --neg-images (or data.negative_images): "
+            "none were given"
+        )
+    from torchtrack.cli._common import check_spares_inputs
+
+    d = cfg.data
+    check_spares_inputs(
+        {"--out": args.out},
+        {"--config": args.config, "--pos": list(d.positives), "--neg": list(d.negatives),
+         "--neg-images": list(d.negative_images)},
+    )  # fmt: skip
 
     def log(line: str) -> None:
         if not args.quiet:

@@ -56,6 +56,11 @@ def resolve_model(name_or_path: str | os.PathLike) -> Path:
     names = bundled_models()
     if s in names:
         return MODELS_DIR / f"{s}{_SUFFIX}"
+    if p.is_dir():
+        raise ModelFormatError(
+            f"model {s!r} is a folder, not a model file (give a .safetensors file or a bundled "
+            f"name: {', '.join(names) or 'none installed'})"
+        )
     if isinstance(name_or_path, os.PathLike) or _looks_like_path(s):
         raise ModelFormatError(
             f"model file {s!r} does not exist (bundled models, usable by name: "

@@ -262,6 +262,17 @@ class TrainConfig:
         w = self.window
         if not (isinstance(w, (list, tuple)) and len(w) == 2 and all(_posint(v) for v in w)):
             raise ConfigError(f"window must be [H, W] positive integers, got {w!r}")
+        from torchtrack.detect.model_checks import LIMITS
+
+        side = LIMITS.window_side
+        if not all(4 <= v <= side for v in w):
+            raise ConfigError(
+                f"window must be [H, W] with sides in [4, {side}] pixels (what a model file may "
+                f"hold), got {list(w)!r}"
+            )
+        seed = self.seed
+        if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
+            raise ConfigError(f"seed must be an integer in [0, 2^63 - 1], got {self.seed!r}")
         d = self.data
         if not d.positives:
             raise ConfigError("data.positives must name at least one folder of positive crops")

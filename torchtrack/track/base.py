@@ -387,7 +387,7 @@ def parse_tracker_spec(spec: str) -> tuple[str, dict[str, Any]]:
     Example: ``parse_tracker_spec("adaptive-haar:adapt=none,particles=500")``.
 
     Raises:
-        ConfigError: an item without ``=`` or an empty name.
+        ConfigError: an item without ``=``, a key given twice, or an empty name.
     """
     name, _, rest = spec.partition(":")
     name = name.strip()
@@ -402,5 +402,7 @@ def parse_tracker_spec(spec: str) -> tuple[str, dict[str, Any]]:
                     f"tracker spec {spec!r}: {item!r} is not key=value "
                     "(expected name:key=value,key=value)"
                 )
+            if key.strip() in params:
+                raise ConfigError(f"tracker spec {spec!r}: {key.strip()!r} is given twice")
             params[key.strip()] = _parse_value(val.strip())
     return name, params

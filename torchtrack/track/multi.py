@@ -850,8 +850,16 @@ def score_probabilities(scores: torch.Tensor) -> torch.Tensor:
     """Detection scores of an outside detector as probabilities ``(M,)`` float64: scores all in
     ``[0, 1]`` are taken as they are; raw scores (e.g. the MOT15 public detections' -0.2..122)
     are divided by the highest one (a crude map: calibrate them with ``torchtrack calibrate
-    --scores`` when labelled scores exist)."""
+    --scores`` when labelled scores exist). Where no score is positive, dividing would make them
+    all 0: they are mapped linearly from their lowest (0) to their highest (1), and scores that
+    are all equal (no ranking in them, e.g. every one -1) all become 1."""
     s = torch.as_tensor(scores, dtype=torch.float64).reshape(-1)
     if s.numel() == 0 or bool(((s >= 0) & (s <= 1)).all()):
         return s
-    return (s / s.max().clamp_min(1e-12)).clamp(0.0, 1.0)
+    hi = s.max()
+    if hi > 0:
+        return (s / hi).clamp(0.0, 1.0)
+    lo = s.min()
+    if hi == lo:
+        return torch.ones_like(s)
+    return (s - lo) / (hi - lo)
