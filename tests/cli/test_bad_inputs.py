@@ -1230,3 +1230,21 @@ def test_outputs_never_overwrite_or_join_the_inputs(argv, corpus, tmp_path, caps
     assert "write the output elsewhere" in err and "Traceback" not in err, err
     assert {p: (inp / p).read_bytes() for p in _files(inp)} == before
     assert _files(out) == set()
+
+
+def test_detect_that_fails_midway_leaves_no_annotated_frames(corpus, tmp_path, capsys):
+    """A folder whose last image is too small for the window fails under --strict after the
+    other frames were annotated: those annotated frames go with the rest of the output."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    frames = tmp_path / "frames"
+    shutil.copytree(corpus / "frames", frames)
+    cv2.imwrite(str(frames / "zzzz.png"), np.zeros((4, 4, 3), np.uint8))  # last, too small
+    ann, out = tmp_path / "ann", tmp_path / "d.jsonl"
+    argv = ["detect", str(corpus / "toy.safetensors"), str(frames), "--strict", "--batch", "1"]
+    assert main([*argv, "-o", str(out), "--annotate", str(ann), "-q"]) == 1
+    assert "Traceback" not in capsys.readouterr().err
+    assert not ann.exists() and not out.exists()

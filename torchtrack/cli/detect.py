@@ -296,6 +296,8 @@ class _Writers:
         self._tmp = None
         self._writer = None
         self._size = None
+        self._written: list[Path] = []  # annotated PNGs of this run (removed if it fails)
+        self._made_dir = False
 
     def __enter__(self):
         if self.video_path:
@@ -311,11 +313,14 @@ class _Writers:
         from torchtrack.io.atomic import atomic_path
 
         if self.dir is not None:
-            self.dir.mkdir(exist_ok=True)
+            if not self.dir.exists():
+                self.dir.mkdir()
+                self._made_dir = True
             stem = Path(name).stem if name else f"frame_{index:06d}"
             with atomic_path(self.dir / f"{stem}.png") as tmp:
                 if not cv2.imwrite(str(tmp), img):
                     raise VideoError(f"cannot write {self.dir / (stem + '.png')}")
+            self._written.append(self.dir / f"{stem}.png")
         if self._tmp is not None:
             h, w = img.shape[:2]
             if self._writer is None:
@@ -348,6 +353,13 @@ class _Writers:
     def __exit__(self, exc_type, exc, tb):
         if self._writer is not None:
             self._writer.release()
+        if exc_type is not None:
+            # a failed or interrupted run leaves no output (the JSON lines and the video are
+            # discarded too): this run's annotated frames go
+            for p in self._written:
+                p.unlink(missing_ok=True)
+            if self._made_dir and not any(self.dir.iterdir()):
+                self.dir.rmdir()
         return self._stack.__exit__(exc_type, exc, tb)
 
 
