@@ -1029,6 +1029,12 @@ CASES += [
         "track {c}/frames --tracker multi:n_particles=10,n_particles=20 -o {o}/b.csv",
         "given twice",
     ),
+    E("detect-stride-zero", "detect {c}/toy.safetensors {c}/frames --stride 0", "--stride is"),
+    E(
+        "detect-scale-step-one",
+        "detect {c}/toy.safetensors {c}/frames --scale-step 1",
+        "--scale-step must be",
+    ),
     E("detect-model-is-a-folder", "detect {c}/frames {c}/frames -o {o}/d.jsonl", "is a folder"),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),

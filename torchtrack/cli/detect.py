@@ -213,6 +213,10 @@ def _check_args(args: argparse.Namespace) -> None:
         and args.max_scale < args.min_scale
     ):
         raise ConfigError(f"--max-scale {args.max_scale} is below --min-scale {args.min_scale}")
+    if not 0.0 < args.stride <= 1.0:
+        raise ConfigError(f"--stride is a fraction of the window in (0, 1], got {args.stride}")
+    if not 1.0 < args.scale_step < float("inf"):
+        raise ConfigError(f"--scale-step must be a finite number > 1, got {args.scale_step}")
     if not 0.0 < args.nms_iou <= 1.0:
         raise ConfigError(f"--nms-iou must be in (0, 1], got {args.nms_iou}")
     if not 0.0 <= args.pad <= 0.5:

@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.detect.training import train_detector
     from torchtrack.errors import ConfigError
 
-    check_output_file(args.out, "--out")  # before the training, not after it
+    check_output_file(args.out, "--out", (".safetensors",))  # before the training, not after
     overrides = _overrides(args)
     if args.config:
         cfg = load_train_config(args.config, overrides)
