@@ -1254,3 +1254,17 @@ def test_detect_that_fails_midway_leaves_no_annotated_frames(corpus, tmp_path, c
     assert main([*argv, "-o", str(out), "--annotate", str(ann), "-q"]) == 1
     assert "Traceback" not in capsys.readouterr().err
     assert not ann.exists() and not out.exists()
+
+
+def test_warnings_print_as_one_line_like_errors():
+    """A library warning under the CLI reads `torchtrack COMMAND: warning: ...`, without the
+    warning class, the module's path and its code line; the format is restored afterwards."""
+    import warnings
+
+    from torchtrack.cli import _plain_warnings
+
+    before = warnings.formatwarning
+    with _plain_warnings("eval"):
+        text = warnings.formatwarning("sequence X: 240 rows", UserWarning, "/a/b/io.py", 413)
+    assert text == "torchtrack eval: warning: sequence X: 240 rows\n"
+    assert warnings.formatwarning is before

@@ -57,6 +57,25 @@ def _close_progress_bars() -> None:
             bar.close()
 
 
+@contextlib.contextmanager
+def _plain_warnings(command: str):
+    """Warnings printed as one line, ``torchtrack COMMAND: warning: ...``, like the errors (no
+    source path and code line of the module that warned). Only the printed form changes:
+    filters and recorders (``warnings.catch_warnings(record=True)``) are untouched."""
+    import warnings
+
+    old = warnings.formatwarning
+
+    def one_line(message, category, filename, lineno, line=None) -> str:
+        return f"torchtrack {command}: warning: {message}\n"
+
+    warnings.formatwarning = one_line
+    try:
+        yield
+    finally:
+        warnings.formatwarning = old
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torchtrack",
@@ -82,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchtrack.cli._common import trust_scope
 
     try:
-        with _sigterm_as_interrupt(), trust_scope(args):
+        with _sigterm_as_interrupt(), trust_scope(args), _plain_warnings(args.command):
             return int(args.func(args) or 0)
     except TorchTrackError as exc:
         _close_progress_bars()
