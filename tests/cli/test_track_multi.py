@@ -216,5 +216,5 @@ def test_a_run_that_fails_midway_leaves_no_output(tmp_path, capsys, extra):
         argv += ["--mot", str(mot)]
     assert main(argv) == 1
     err = capsys.readouterr().err
-    assert "frame size changed" in err and "Traceback" not in err
+    assert "frame size changed" in err and "0002.png" in err and "Traceback" not in err
     assert {p.name for p in tmp_path.iterdir()} == {"frames"}

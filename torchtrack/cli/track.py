@@ -317,6 +317,14 @@ def track_source(
     return _run_single(args, tracker, box, src, source, out=out, video=video)
 
 
+def _with_file(exc, src, i: int):
+    """``exc`` with the frame file's name where the source is a folder of images."""
+    files = src.files
+    if files is None or not 0 <= i < len(files):
+        return exc
+    return type(exc)(f"{exc} ({files[i]})")
+
+
 def _finish(writers, ok: bool) -> None:
     for w in writers:
         if w is None:
@@ -331,7 +339,7 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
     import time
 
     from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
-    from torchtrack.errors import TrackerError
+    from torchtrack.errors import ShapeError, TrackerError
 
     csv = BoxWriter(out) if out else None
     vid = VideoOut(video, src.fps) if video else None
@@ -340,6 +348,7 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
     status = 0
     pending_bad: list[int] = []  # unreadable frames before the first tracked one
     failed = False
+    i = -1
     progress = _progress(src, args)
     try:
         for i, frame in src.items():
@@ -374,6 +383,9 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
                 vid.write(draw(frame, state, tracker if args.particles else None))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
         status = _interrupted(exc)
+    except ShapeError as exc:  # e.g. a frame of another size: name its file
+        failed = True
+        raise _with_file(exc, src, i) from None
     except BaseException:
         failed = True  # an error: no output is kept (it would look like a finished run)
         raise
@@ -509,7 +521,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         VideoOut,
         draw_multi,
     )
-    from torchtrack.errors import TrackerError
+    from torchtrack.errors import ShapeError, TrackerError
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_workers
 
     dets = external_detections(args, len(src) or None) if args.detections else None
@@ -522,6 +534,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
     status = 0
     failed = False
+    i = -1
     seen: set[int] = set()
     progress = _progress(src, args)
 
@@ -556,6 +569,9 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 vid.write(draw_multi(frame, res, trails, parts))
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
         status = _interrupted(exc)
+    except ShapeError as exc:  # e.g. a frame of another size: name its file
+        failed = True
+        raise _with_file(exc, src, i) from None
     except BaseException:
         failed = True  # an error: no output is kept (it would look like a finished run)
         raise
