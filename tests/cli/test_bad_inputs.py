@@ -1035,6 +1035,11 @@ CASES += [
         "detect {c}/toy.safetensors {c}/frames --scale-step 1",
         "--scale-step must be",
     ),
+    E(
+        "detect-scan-workers-negative",
+        "detect {c}/toy.safetensors {c}/frames --scan-workers -1",
+        "--scan-workers must be >= 0",
+    ),
     E("detect-model-is-a-folder", "detect {c}/frames {c}/frames -o {o}/d.jsonl", "is a folder"),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),

@@ -15,6 +15,7 @@ from torchtrack.data import demo_clip_path
 from torchtrack.detect.bundled import load_model
 from torchtrack.detect.scan import scan
 from torchtrack.io.video import open_source, read_image
+from torchtrack.track.scan_ahead import fork_available
 
 
 def records(text: str) -> list[dict]:
@@ -185,6 +186,31 @@ def test_small_image_in_folder_is_skipped(car_images, tmp_path, capsys):
     shutil.copy(car_images / "test-0.pgm", d / "a.pgm")
     cv2.imwrite(str(d / "b.png"), np.zeros((20, 20), np.uint8))
     assert main(["detect", "vehicle", str(d)]) == 0
+    cap = capsys.readouterr()
+    assert [r["source"] for r in records(cap.out)] == ["a.pgm"]
+    assert "skipped frame 1" in cap.err and "smaller than the detector window" in cap.err
+
+
+@pytest.mark.skipif(not fork_available(), reason="scan workers are forked processes (Linux)")
+def test_scan_workers_write_the_same_records(tmp_path, capsys):
+    """The bundled clip scanned in two forked workers and in this process: the same JSON
+    lines, byte for byte (batches of 2 over 7 frames: more batches in flight than workers)."""
+    outs = []
+    for w in ("0", "2"):
+        out = tmp_path / f"d{w}.jsonl"
+        args = ["detect", "pedestrian", str(demo_clip_path()), "--max-frames", "7", "--batch", "2"]
+        assert main([*args, "--scan-workers", w, "-o", str(out), "--quiet"]) == 0
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1] and outs[0].count(b"\n") == 7
+
+
+@pytest.mark.skipif(not fork_available(), reason="scan workers are forked processes (Linux)")
+def test_small_image_in_folder_is_skipped_by_a_worker_too(car_images, tmp_path, capsys):
+    d = tmp_path / "mixed"
+    d.mkdir()
+    shutil.copy(car_images / "test-0.pgm", d / "a.pgm")
+    cv2.imwrite(str(d / "b.png"), np.zeros((20, 20), np.uint8))
+    assert main(["detect", "vehicle", str(d), "--scan-workers", "2", "--batch", "1"]) == 0
     cap = capsys.readouterr()
     assert [r["source"] for r in records(cap.out)] == ["a.pgm"]
     assert "skipped frame 1" in cap.err and "smaller than the detector window" in cap.err

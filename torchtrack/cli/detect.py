@@ -138,6 +138,13 @@ def register(subparsers) -> None:
     p.add_argument(
         "--batch", type=int, default=4, metavar="B", help="frames scored together (default 4)"
     )
+    p.add_argument(
+        "--scan-workers",
+        type=int,
+        metavar="N",
+        help="scan the batches in N forked processes while this one reads and writes (the same "
+        "detections; default 2 on Linux with two cores or more, else 0 = in this process)",
+    )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
     add_progress(p)
@@ -225,6 +232,10 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--vote-iou must be in [0, 1] (0: off), got {args.vote_iou}")
     if args.batch < 1:
         raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    if args.scan_workers is not None and args.scan_workers < 0:
+        raise ConfigError(
+            f"--scan-workers must be >= 0 (0: scan in this process), got {args.scan_workers}"
+        )
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.video is not None and Path(args.video).suffix.lower() != ".mp4":
@@ -368,8 +379,10 @@ class _Writers:
 
 
 def run(args: argparse.Namespace) -> int:
+    import collections
     import contextlib
     import math
+    from concurrent.futures.process import BrokenProcessPool
 
     import torch
     from tqdm import tqdm
@@ -378,6 +391,7 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.detect.bundled import load_model
     from torchtrack.errors import DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
+    from torchtrack.track.scan_ahead import call, default_scan_workers, fork_pool
 
     _check_args(args)
     apply_threads(args)
@@ -392,6 +406,7 @@ def run(args: argparse.Namespace) -> int:
     skipped: list[tuple[int, str]] = []
     n_frames = n_det = 0
     scan_kw = scan_kwargs(args, det)
+    workers = args.scan_workers if args.scan_workers is not None else default_scan_workers()
     total = len(src) or None
     if args.max_frames is not None and total is not None:
         total = min(total, args.max_frames)
@@ -405,23 +420,44 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         pending: list[tuple[int, torch.Tensor]] = []
+        # batches being scanned by the workers, in order: (frames, future)
+        inflight: collections.deque = collections.deque()
+        pool = None
 
         def flush() -> None:
-            nonlocal n_frames, n_det
+            nonlocal pool
             if not pending:
                 return
-            frames = torch.stack([f for _, f in pending])
+            batch = list(pending)
+            pending.clear()
+            frames = torch.stack([f for _, f in batch])
+            if workers == 0:
+                finish(batch, None, frames)
+                return
+            if pool is None:
+                pool = fork_pool(lambda fr: det.scan(fr, **scan_kw), workers)
+            inflight.append((batch, pool.submit(call, frames)))
+            while len(inflight) > 2 * workers:
+                finish(*inflight.popleft())
+
+        def finish(batch, fut, frames=None) -> None:
+            nonlocal n_frames, n_det
             try:
-                results = det.scan(frames, **scan_kw)
+                results = det.scan(frames, **scan_kw) if fut is None else fut.result()
+            except BrokenProcessPool:
+                raise DataError(
+                    f"a scan worker stopped unexpectedly at frame {batch[0][0]} (killed for "
+                    "memory?): run again with --scan-workers 0 to scan in this process"
+                ) from None
             except ShapeError as exc:
                 if files is not None and len(files) > 1 and not args.strict:
                     # one small image in a folder: skip it like an unreadable one
-                    for i, _ in pending:
+                    for i, _ in batch:
                         skipped.append((i, str(exc)))
-                    pending.clear()
+                    bar.update(len(batch))
                     return
                 raise
-            for (i, frame), (boxes, probs) in zip(pending, results, strict=True):
+            for (i, frame), (boxes, probs) in zip(batch, results, strict=True):
                 name = files[i].name if files is not None else None
                 rec = {
                     "frame": i,
@@ -437,8 +473,7 @@ def run(args: argparse.Namespace) -> int:
                 n_det += len(rec["boxes"])
                 if args.annotate or args.video:
                     writers.write(i, name, draw_detections(frame, boxes, probs))
-            bar.update(len(pending))
-            pending.clear()
+            bar.update(len(batch))
 
         seen = 0
         try:
@@ -459,7 +494,11 @@ def run(args: argparse.Namespace) -> int:
                 if len(pending) >= args.batch:
                     flush()
             flush()
+            while inflight:
+                finish(*inflight.popleft())
         finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
             bar.close()
         if src.ended_early and args.strict:
             raise DataError(f"{src.bad_frames[-1].reason} in {args.source} (--strict)")

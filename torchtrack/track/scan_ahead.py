@@ -36,10 +36,11 @@ import torch
 
 from torchtrack.errors import ConfigError, TrackerError
 
-__all__ = ["ScanAhead", "default_scan_workers", "fork_available"]
+__all__ = ["ScanAhead", "call", "default_scan_workers", "fork_available", "fork_pool"]
 
-# The tracker whose detect() the forked workers call (inherited through fork, never pickled).
-_TRACKER: Any = None
+# The function the forked workers call (inherited through fork, never pickled): one pool at a
+# time per process.
+_FN: Any = None
 
 
 def fork_available() -> bool:
@@ -89,8 +90,29 @@ def _init_worker(parent: int) -> None:
     torch.set_num_threads(1)
 
 
-def _scan(frame: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    return _TRACKER.detect(frame)
+def call(arg: Any) -> Any:
+    """What to submit to a :func:`fork_pool`: ``pool.submit(call, arg)`` runs ``fn(arg)``."""
+    return _FN(arg)
+
+
+def fork_pool(fn: Any, workers: int) -> Any:
+    """A ``ProcessPoolExecutor`` of ``workers`` forked processes that run ``fn`` (submit
+    :func:`call` with ``fn``'s argument): the workers share this process's memory as it is now
+    (a loaded model, a tracker's settings), so nothing but the arguments and the results
+    crosses a pipe. They ignore Ctrl-C and SIGTERM (the caller handles those and shuts the
+    pool down), take one torch thread each, and die with this process if it is killed."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    global _FN
+    _FN = fn
+    return ProcessPoolExecutor(
+        workers,
+        mp_context=mp.get_context("fork"),
+        initializer=_init_worker,
+        initargs=(os.getpid(),),
+    )
+
 
 
 class ScanAhead:
@@ -134,17 +156,7 @@ class ScanAhead:
             self._pool = None
 
     def _start(self) -> Any:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        global _TRACKER
-        _TRACKER = self.tracker
-        self._pool = ProcessPoolExecutor(
-            self.workers,
-            mp_context=mp.get_context("fork"),
-            initializer=_init_worker,
-            initargs=(os.getpid(),),
-        )
+        self._pool = fork_pool(self.tracker.detect, self.workers)
         return self._pool
 
     def frames(
@@ -190,7 +202,7 @@ class ScanAhead:
                 fut = None
                 if frame is not None:
                     if k % every == 0:
-                        fut = pool.submit(_scan, frame)
+                        fut = pool.submit(call, frame)
                     k += 1
                 queue.append((i, frame, fut))
             if not queue:
