@@ -41,6 +41,19 @@ def test_load_mixed_folder(folder):
     assert np.array_equal(cs.images[1, 0].numpy(), b)
 
 
+def test_a_crop_far_smaller_than_the_window_is_skipped_with_its_size(folder):
+    """A 1x1 image (or anything under a quarter of the window on a side) is not blown up into
+    a training example; one just above a quarter is resized as before."""
+    cv2.imwrite(str(folder / "dot.png"), np.zeros((1, 1), np.uint8))
+    cv2.imwrite(str(folder / "d.png"), np.zeros((5, 3), np.uint8))  # 5 >= 20 / 4, 3 >= 10 / 4
+    cs = load_crops(folder, (20, 10))
+    reasons = dict((p.rsplit("/", 1)[1], why) for p, why in cs.skipped)
+    assert "1x1 px, under a quarter of the 20x10 crop" in reasons["dot.png"]
+    assert "d.png" not in reasons and cs.images.shape[0] == 4
+    with pytest.raises(DataError, match="dot.png"):
+        load_crops(folder, (20, 10), strict=True)
+
+
 def test_strict_names_every_bad_path(folder):
     with pytest.raises(DataError, match=r"2 unusable file\(s\)(.|\n)*broken.png(.|\n)*notes.bin"):
         load_crops(folder, (20, 10), strict=True)

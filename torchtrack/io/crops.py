@@ -202,7 +202,9 @@ def load_crops(
         only: file names to keep (all others are left out).
         pattern: shell pattern the file names must match (e.g. ``"pos-*.pgm"``); files that
             do not match are left out silently.
-        strict: raise instead of skipping unreadable or non-image files.
+        strict: raise instead of skipping unreadable or non-image files, and images under a
+            quarter of the crop size in either side (skipped otherwise: resized more than 4x
+            they would be a smear, not an example, e.g. a 1x1 PNG among the crops).
         progress: show a progress bar.
         colour: decode as RGB (``(N, 3, H, W)``).
         keep_context: with ``region``: keep the whole crop (resized to ``crop_size``), not
@@ -231,10 +233,18 @@ def load_crops(
     else:
         files_iter = files
     imgs, sources, resized = [], [], 0
+    want = tuple(crop_size) if region is not None else tuple(window)  # the size crops become
     for p in files_iter:
         img, why = _decode(p, colour)
         if img is None:
             skipped.append((str(p), why))
+            continue
+        if img.shape[0] * 4 < want[0] or img.shape[1] * 4 < want[1]:
+            # blown up more than 4x it would be a smear, not an example of the object
+            skipped.append(
+                (str(p), f"{img.shape[0]}x{img.shape[1]} px, under a quarter of the "
+                         f"{want[0]}x{want[1]} crop it is resized to")
+            )  # fmt: skip
             continue
         win, was_resized = _to_window(img, window, region, crop_size, keep_context)
         resized += was_resized
