@@ -50,7 +50,7 @@ def test_a_crop_far_smaller_than_the_window_is_skipped_with_its_size(folder):
     reasons = dict((p.rsplit("/", 1)[1], why) for p, why in cs.skipped)
     assert "1x1 px, under a quarter of the 20x10 crop" in reasons["dot.png"]
     assert "d.png" not in reasons and cs.images.shape[0] == 4
-    with pytest.raises(DataError, match="dot.png"):
+    with pytest.raises(DataError, match=r"dot\.png"):
         load_crops(folder, (20, 10), strict=True)
 
 

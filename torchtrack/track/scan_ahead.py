@@ -114,7 +114,6 @@ def fork_pool(fn: Any, workers: int) -> Any:
     )
 
 
-
 class ScanAhead:
     """Detector scans of the coming frames in ``workers`` forked processes (see the module).
 
