@@ -325,36 +325,56 @@ def _with_file(exc, src, i: int):
     return type(exc)(f"{exc} ({files[i]})")
 
 
-def _finish(writers, ok: bool) -> None:
-    for w in writers:
-        if w is None:
-            continue
-        if ok:
-            w.close()
-        else:
-            w.discard()
+class _Outputs:
+    """The end of a tracking loop, for both loops: on Ctrl-C / SIGTERM the rows so far are
+    kept (``status`` 130 / 143); on an error nothing is kept (a partial file would look like a
+    finished run) and a frame error names the frame's file; otherwise the writers are closed
+    once a frame was tracked. The loop sets ``index`` (the frame at hand) and ``tracked``."""
+
+    def __init__(self, src, progress, writers) -> None:
+        self.src, self.progress, self.writers = src, progress, writers
+        self.index, self.tracked, self.status = -1, 0, 0
+
+    def __enter__(self) -> _Outputs:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        from torchtrack.errors import ShapeError
+
+        failed = exc_type is not None and not issubclass(exc_type, KeyboardInterrupt)
+        self.progress.close()
+        keep = self.tracked > 0 and not failed
+        for w in (w for w in self.writers if w is not None):
+            if keep:
+                w.close()
+            else:
+                w.discard()
+        self.src.close()
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+            self.status = _interrupted(exc)  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
+            return True
+        if isinstance(exc, ShapeError):  # e.g. a frame of another size: name its file
+            raise _with_file(exc, self.src, self.index) from None
+        return False
 
 
 def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
     import time
 
     from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
-    from torchtrack.errors import ShapeError, TrackerError
+    from torchtrack.errors import TrackerError
 
     csv = BoxWriter(out) if out else None
     vid = VideoOut(video, src.fps) if video else None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
     last = None
-    status = 0
     pending_bad: list[int] = []  # unreadable frames before the first tracked one
-    failed = False
-    i = -1
-    progress = _progress(src, args)
-    try:
+    with _Outputs(src, _progress(src, args), (csv, vid)) as run:
         for i, frame in src.items():
             if args.max_frames is not None and i >= args.max_frames:
                 break
-            progress.update(1)
+            run.index = i
+            run.progress.update(1)
             if frame is None:
                 if csv is not None and last is not None:
                     csv.write_bad(i, last)
@@ -376,26 +396,15 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
                 for j in pending_bad:  # frames before the first readable one: no box yet
                     csv.write_state(j, _nan_state(state))
             n_frames += 1
+            run.tracked = n_frames
             last = state
             if csv is not None:
                 csv.write_state(i, state)
             if vid is not None:
                 vid.write(draw(frame, state, tracker if args.particles else None))
-    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
-        status = _interrupted(exc)
-    except ShapeError as exc:  # e.g. a frame of another size: name its file
-        failed = True
-        raise _with_file(exc, src, i) from None
-    except BaseException:
-        failed = True  # an error: no output is kept (it would look like a finished run)
-        raise
-    finally:
-        progress.close()
-        _finish((csv, vid), ok=last is not None and not failed)
-        src.close()
-    if last is None and status == 0:
+    if last is None and run.status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
-    return _summary(source, src, n_frames, t0, t_track, status)
+    return _summary(source, src, n_frames, t0, t_track, run.status)
 
 
 def _interrupted(exc: BaseException) -> int:
@@ -511,6 +520,7 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
 
 
 def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
+    import itertools
     import sys
     import time
 
@@ -521,34 +531,28 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         VideoOut,
         draw_multi,
     )
-    from torchtrack.errors import ShapeError, TrackerError
+    from torchtrack.errors import TrackerError
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_workers
 
     dets = external_detections(args, len(src) or None) if args.detections else None
     workers = args.scan_workers if args.scan_workers is not None else default_scan_workers()
-    ahead = ScanAhead(mt, workers if dets is None else 0)
     csv = MultiCsvWriter(out) if out else None
     motw = MotStreamWriter(mot) if mot else None
     vid = VideoOut(video, src.fps) if video else None
     trails = Trails() if vid is not None else None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
-    status = 0
-    failed = False
-    i = -1
     seen: set[int] = set()
-    progress = _progress(src, args)
-
-    def items():
-        for i, frame in src.items():
-            if args.max_frames is not None and i >= args.max_frames:
-                return
-            yield i, frame
-
-    try:
-        # With outside detections the tracker does not scan: ScanAhead passes the frames on.
-        frames = ahead.frames(items()) if dets is None else ((i, f, None) for i, f in items())
+    n_max = args.max_frames
+    items = itertools.takewhile(lambda p: n_max is None or p[0] < n_max, src.items())
+    with (
+        ScanAhead(mt, workers if dets is None else 0) as ahead,
+        _Outputs(src, _progress(src, args), (csv, motw, vid)) as run,
+    ):
+        # With outside detections the tracker does not scan: the frames pass on without one.
+        frames = ahead.frames(items) if dets is None else ((i, f, None) for i, f in items)
         for i, frame, scan in frames:
-            progress.update(1)
+            run.index = i
+            run.progress.update(1)
             if frame is None:
                 continue
             t1 = time.perf_counter()
@@ -558,6 +562,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 res = mt.update(frame, scan=scan)
             t_track += time.perf_counter() - t1
             n_frames += 1
+            run.tracked = n_frames
             seen.update(res.ids.tolist())
             if csv is not None:
                 csv.write_targets(i, res)
@@ -567,19 +572,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 trails.add(i, res)
                 parts = mt.particle_boxes() if args.particles else None
                 vid.write(draw_multi(frame, res, trails, parts))
-    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
-        status = _interrupted(exc)
-    except ShapeError as exc:  # e.g. a frame of another size: name its file
-        failed = True
-        raise _with_file(exc, src, i) from None
-    except BaseException:
-        failed = True  # an error: no output is kept (it would look like a finished run)
-        raise
-    finally:
-        ahead.close()
-        progress.close()
-        _finish((csv, motw, vid), ok=n_frames > 0 and not failed)
-        src.close()
+    status = run.status
     if n_frames == 0 and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
     if not seen and status == 0:

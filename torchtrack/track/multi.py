@@ -815,19 +815,16 @@ def track_sequence(
         per_frame = detections.split(n)
         boxes_all = torch.from_numpy(detections.boxes)
         conf_all = torch.from_numpy(detections.conf.astype(np.float64)).clamp(0.0, 1.0)
+    import itertools
+
     from torchtrack.track.scan_ahead import ScanAhead
 
     f_, i_, b_, c_ = [], [], [], []
     empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
 
-    def items():
-        for i, frame in frames.items():
-            if max_frames is not None and i >= max_frames:
-                return
-            yield i, frame
-
+    items = itertools.takewhile(lambda p: max_frames is None or p[0] < max_frames, frames.items())
     with ScanAhead(tracker, scan_workers if per_frame is None else 0) as ahead:
-        stream = ahead.frames(items()) if per_frame is None else ((i, f, None) for i, f in items())
+        stream = ahead.frames(items) if per_frame is None else ((i, f, None) for i, f in items)
         for i, frame, scan in stream:
             if frame is None:
                 continue
