@@ -379,10 +379,8 @@ class _Writers:
 
 
 def run(args: argparse.Namespace) -> int:
-    import collections
     import contextlib
     import math
-    from concurrent.futures.process import BrokenProcessPool
 
     import torch
     from tqdm import tqdm
@@ -391,7 +389,7 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.detect.bundled import load_model
     from torchtrack.errors import DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
-    from torchtrack.track.scan_ahead import call, default_scan_workers, fork_pool
+    from torchtrack.track.scan_ahead import Ahead, default_scan_workers
 
     _check_args(args)
     apply_threads(args)
@@ -419,68 +417,20 @@ def run(args: argparse.Namespace) -> int:
             desc="detect",
             file=sys.stderr,
         )
-        pending: list[tuple[int, torch.Tensor]] = []
-        # batches being scanned by the workers, in order: (frames, future)
-        inflight: collections.deque = collections.deque()
-        pool = None
 
-        def flush() -> None:
-            nonlocal pool
-            if not pending:
-                return
-            batch = list(pending)
-            pending.clear()
-            frames = torch.stack([f for _, f in batch])
-            if workers == 0:
-                finish(batch, None, frames)
-                return
-            if pool is None:
-                pool = fork_pool(lambda fr: det.scan(fr, **scan_kw), workers)
-            inflight.append((batch, pool.submit(call, frames)))
-            while len(inflight) > 2 * workers:
-                finish(*inflight.popleft())
-
-        def finish(batch, fut, frames=None) -> None:
-            nonlocal n_frames, n_det
+        def scan_or_error(frames: torch.Tensor):
             try:
-                results = det.scan(frames, **scan_kw) if fut is None else fut.result()
-            except BrokenProcessPool:
-                raise DataError(
-                    f"a scan worker stopped unexpectedly at frame {batch[0][0]} (killed for "
-                    "memory?): run again with --scan-workers 0 to scan in this process"
-                ) from None
-            except ShapeError as exc:
-                if files is not None and len(files) > 1 and not args.strict:
-                    # one small image in a folder: skip it like an unreadable one
-                    for i, _ in batch:
-                        skipped.append((i, str(exc)))
-                    bar.update(len(batch))
-                    return
-                raise
-            for (i, frame), (boxes, probs) in zip(batch, results, strict=True):
-                name = files[i].name if files is not None else None
-                rec = {
-                    "frame": i,
-                    "source": name,
-                    "time": round(i / fps, 6) if fps else None,
-                    "width": int(frame.shape[-1]),
-                    "height": int(frame.shape[-2]),
-                    "boxes": [[round(v, 2) for v in b] for b in boxes.tolist()],
-                    "probabilities": [round(p, 6) for p in probs.tolist()],
-                }
-                out.write(json.dumps(rec) + "\n")
-                n_frames += 1
-                n_det += len(rec["boxes"])
-                if args.annotate or args.video:
-                    writers.write(i, name, draw_detections(frame, boxes, probs))
-            bar.update(len(batch))
+                return det.scan(frames, **scan_kw)
+            except ShapeError as exc:  # returned, so that the batches after it go on
+                return exc
 
-        seen = 0
-        try:
-            for i, frame in src.items():
+        def batches():
+            """Batches of equal-size frames, ``(batch, stacked frames)``; unreadable frames
+            are counted as skipped (or stop the run with --strict)."""
+            pending: list[tuple[int, torch.Tensor]] = []
+            for seen, (i, frame) in enumerate(src.items()):
                 if args.max_frames is not None and seen >= args.max_frames:
                     break
-                seen += 1
                 if frame is None:
                     reason = src.bad_frames[-1].reason if src.bad_frames else "unreadable"
                     if args.strict:
@@ -488,17 +438,43 @@ def run(args: argparse.Namespace) -> int:
                     skipped.append((i, reason))
                     bar.update(1)
                     continue
-                if pending and pending[0][1].shape != frame.shape:
-                    flush()
+                if pending and (pending[0][1].shape != frame.shape or len(pending) >= args.batch):
+                    yield pending, torch.stack([f for _, f in pending])
+                    pending = []
                 pending.append((i, frame))
-                if len(pending) >= args.batch:
-                    flush()
-            flush()
-            while inflight:
-                finish(*inflight.popleft())
+            if pending:
+                yield pending, torch.stack([f for _, f in pending])
+
+        try:
+            # batches scanned ahead in forked workers (or here, with 0), back in order
+            with Ahead(scan_or_error, workers) as ahead:
+                scanned = ahead.map(batches(), where=lambda batch: f"frame {batch[0][0]}")
+                for batch, results in scanned:
+                    if isinstance(results, ShapeError):
+                        if files is None or len(files) < 2 or args.strict:
+                            raise results
+                        # one small image in a folder: skip it like an unreadable one
+                        skipped.extend((i, str(results)) for i, _ in batch)
+                        bar.update(len(batch))
+                        continue
+                    for (i, frame), (boxes, probs) in zip(batch, results, strict=True):
+                        name = files[i].name if files is not None else None
+                        rec = {
+                            "frame": i,
+                            "source": name,
+                            "time": round(i / fps, 6) if fps else None,
+                            "width": int(frame.shape[-1]),
+                            "height": int(frame.shape[-2]),
+                            "boxes": [[round(v, 2) for v in b] for b in boxes.tolist()],
+                            "probabilities": [round(p, 6) for p in probs.tolist()],
+                        }
+                        out.write(json.dumps(rec) + "\n")
+                        n_frames += 1
+                        n_det += len(rec["boxes"])
+                        if args.annotate or args.video:
+                            writers.write(i, name, draw_detections(frame, boxes, probs))
+                    bar.update(len(batch))
         finally:
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
             bar.close()
         if src.ended_early and args.strict:
             raise DataError(f"{src.bad_frames[-1].reason} in {args.source} (--strict)")
@@ -507,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
             detail = "; ".join(r for _, r in skipped[:3])
             raise DataError(f"no frame of {args.source} could be processed ({detail})")
     if not args.quiet:
-        for i, reason in skipped:
+        for i, reason in sorted(skipped):
             print(f"skipped frame {i}: {reason}", file=sys.stderr)
         if src.ended_early:
             print(

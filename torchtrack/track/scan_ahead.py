@@ -20,6 +20,9 @@ The workers are forked from this process, so they share its loaded model: nothin
 serialised but the frames and the detections (``"fork"`` start method, Linux). Where fork is
 unavailable, or with ``workers=0``, the scans run in this process, one per frame, as
 ``mt.update(frame)`` would run them.
+
+:class:`Ahead` is the mechanism without the tracker: any function over a stream of arguments,
+ahead and in order (``torchtrack detect`` scans its batches of frames with it).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import torch
 
 from torchtrack.errors import ConfigError, TrackerError
 
-__all__ = ["ScanAhead", "call", "default_scan_workers", "fork_available", "fork_pool"]
+__all__ = ["Ahead", "ScanAhead", "default_scan_workers", "fork_available"]
 
 # The function the forked workers call (inherited through fork, never pickled): one pool at a
 # time per process.
@@ -90,14 +93,14 @@ def _init_worker(parent: int) -> None:
     torch.set_num_threads(1)
 
 
-def call(arg: Any) -> Any:
-    """What to submit to a :func:`fork_pool`: ``pool.submit(call, arg)`` runs ``fn(arg)``."""
+def _call(arg: Any) -> Any:
+    """What to submit to a :func:`_fork_pool`: ``pool.submit(_call, arg)`` runs ``fn(arg)``."""
     return _FN(arg)
 
 
-def fork_pool(fn: Any, workers: int) -> Any:
+def _fork_pool(fn: Any, workers: int) -> Any:
     """A ``ProcessPoolExecutor`` of ``workers`` forked processes that run ``fn`` (submit
-    :func:`call` with ``fn``'s argument): the workers share this process's memory as it is now
+    :func:`_call` with ``fn``'s argument): the workers share this process's memory as it is now
     (a loaded model, a tracker's settings), so nothing but the arguments and the results
     crosses a pipe. They ignore Ctrl-C and SIGTERM (the caller handles those and shuts the
     pool down), take one torch thread each, and die with this process if it is killed."""
@@ -114,7 +117,89 @@ def fork_pool(fn: Any, workers: int) -> Any:
     )
 
 
-class ScanAhead:
+class Ahead:
+    """``fn`` over a stream of arguments in ``workers`` forked processes, ahead of the caller
+    and handed back in order (:meth:`map`); at most ``depth`` calls in flight, so memory stays
+    bounded. With ``workers=0`` (or no fork here) each call runs in this process when its
+    result is asked for.
+
+    Raises:
+        ConfigError: ``workers < 0`` or ``depth < 1``.
+    """
+
+    def __init__(self, fn: Any, workers: int, depth: int | None = None) -> None:
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+            raise ConfigError(f"scan workers must be an integer >= 0, got {workers!r}")
+        if depth is not None and (
+            isinstance(depth, bool) or not isinstance(depth, int) or depth < 1
+        ):
+            raise ConfigError(f"scan-ahead depth must be an integer >= 1, got {depth!r}")
+        self.fn = fn
+        self.workers = workers if fork_available() else 0
+        self.depth = depth if depth is not None else max(1, 2 * self.workers)
+        self._pool = None
+        #: seconds this process spent on the calls: running them (no workers) or waiting
+        self.seconds = 0.0
+
+    def __enter__(self) -> Ahead:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the workers (pending calls are dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def map(self, items: Iterable[tuple[Any, Any]], where: Any = str) -> Iterator[tuple[Any, Any]]:
+        """``(key, result)`` for every ``(key, arg)`` of ``items``, in order: ``result`` is
+        ``fn(arg)``, or None where ``arg`` is None (no call).
+
+        Raises:
+            TrackerError: a worker died (e.g. killed for memory), naming ``where(key)``; an error
+                raised by ``fn`` (e.g. :class:`~torchtrack.errors.ShapeError`) comes back as it
+                was raised, when its result is reached.
+        """
+        from concurrent.futures.process import BrokenProcessPool
+
+        queue: collections.deque = collections.deque()
+        it = iter(items)
+        done = False
+        while True:
+            while not done and len(queue) < self.depth:
+                try:
+                    key, arg = next(it)
+                except StopIteration:
+                    done = True
+                    break
+                if arg is not None and self.workers:
+                    if self._pool is None:
+                        self._pool = _fork_pool(self.fn, self.workers)
+                    arg = self._pool.submit(_call, arg)
+                queue.append((key, arg))
+            if not queue:
+                return
+            key, arg = queue.popleft()
+            if arg is None:
+                yield key, None
+                continue
+            t0 = time.perf_counter()
+            try:
+                result = arg.result() if self.workers else self.fn(arg)
+            except BrokenProcessPool:
+                self.close()
+                raise TrackerError(
+                    f"a scan worker stopped unexpectedly at {where(key)} (killed for memory?): run "
+                    "again with --scan-workers 0 to scan in this process"
+                ) from None
+            finally:
+                self.seconds += time.perf_counter() - t0
+            yield key, result
+
+
+class ScanAhead(Ahead):
     """Detector scans of the coming frames in ``workers`` forked processes (see the module).
 
     Args:
@@ -129,34 +214,8 @@ class ScanAhead:
     """
 
     def __init__(self, tracker: Any, workers: int, depth: int | None = None) -> None:
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
-            raise ConfigError(f"scan workers must be an integer >= 0, got {workers!r}")
-        if depth is not None and (
-            isinstance(depth, bool) or not isinstance(depth, int) or depth < 1
-        ):
-            raise ConfigError(f"scan-ahead depth must be an integer >= 1, got {depth!r}")
+        super().__init__(tracker.detect, workers, depth)
         self.tracker = tracker
-        self.workers = workers if fork_available() else 0
-        self.depth = depth if depth is not None else max(1, 2 * self.workers)
-        self._pool = None
-        #: seconds this process spent on scans: scanning (no workers) or waiting for a worker
-        self.seconds = 0.0
-
-    def __enter__(self) -> ScanAhead:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Stop the workers (pending scans are dropped)."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-
-    def _start(self) -> Any:
-        self._pool = fork_pool(self.tracker.detect, self.workers)
-        return self._pool
 
     def frames(
         self, items: Iterable[tuple[int, torch.Tensor | None]]
@@ -172,49 +231,13 @@ class ScanAhead:
                 (e.g. :class:`~torchtrack.errors.ShapeError`) comes back as it was raised.
         """
         every = int(self.tracker.config.scan_every)
-        if self.workers == 0:
+
+        def scans():
             k = 0
             for i, frame in items:
-                scan = None
-                if frame is not None:
-                    if k % every == 0:
-                        t0 = time.perf_counter()
-                        scan = self.tracker.detect(frame)
-                        self.seconds += time.perf_counter() - t0
-                    k += 1
-                yield i, frame, scan
-            return
-        from concurrent.futures.process import BrokenProcessPool
+                scanned = frame is not None and k % every == 0
+                k += frame is not None
+                yield (i, frame), frame if scanned else None
 
-        pool = self._pool or self._start()
-        queue: collections.deque = collections.deque()
-        it = iter(items)
-        k = 0
-        done = False
-        while True:
-            while not done and len(queue) < self.depth:
-                try:
-                    i, frame = next(it)
-                except StopIteration:
-                    done = True
-                    break
-                fut = None
-                if frame is not None:
-                    if k % every == 0:
-                        fut = pool.submit(call, frame)
-                    k += 1
-                queue.append((i, frame, fut))
-            if not queue:
-                return
-            i, frame, fut = queue.popleft()
-            t0 = time.perf_counter()
-            try:
-                scan = fut.result() if fut is not None else None
-            except BrokenProcessPool:
-                self.close()
-                raise TrackerError(
-                    f"a scan worker stopped unexpectedly at frame {i + 1} (killed for memory?): "
-                    "run again with --scan-workers 0 to scan in this process"
-                ) from None
-            self.seconds += time.perf_counter() - t0
+        for (i, frame), scan in self.map(scans(), where=lambda key: f"frame {key[0] + 1}"):
             yield i, frame, scan
