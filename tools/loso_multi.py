@@ -38,6 +38,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from torchtrack.errors import ConfigError  # noqa: E402
 from torchtrack.eval.mot import gt_as_detections, score_mot  # noqa: E402
 from torchtrack.io.mot import (  # noqa: E402
     MotRows,
@@ -46,7 +47,8 @@ from torchtrack.io.mot import (  # noqa: E402
     read_mot,
     write_mot,
 )
-from torchtrack.track.config import MultiTrackerConfig  # noqa: E402
+from torchtrack.track.base import parse_tracker_spec  # noqa: E402
+from torchtrack.track.config import MultiTrackerConfig, apply_overrides  # noqa: E402
 from torchtrack.track.multi import (  # noqa: E402
     MultiTargetTracker,
     score_probabilities,
@@ -127,8 +129,13 @@ def parse_grid(spec: str) -> tuple[str, list]:
     key, _, values = spec.partition("=")
     if key not in {f.name for f in dataclasses.fields(MultiTrackerConfig)} or not values:
         raise SystemExit(f"--grid must be KEY=v1,v2,... with a MultiTrackerConfig key: {spec!r}")
-    cast = type(getattr(MultiTrackerConfig(), key))
-    return key, [cast(v) for v in values.split(",")]
+    # the CLI's reading of `key=value` (true / false / null / numbers), checked like a config
+    out = [parse_tracker_spec(f"multi:{key}={v}")[1][key] for v in values.split(",")]
+    try:
+        out = [getattr(apply_overrides(MultiTrackerConfig(), {key: v}), key) for v in out]
+    except ConfigError as exc:
+        raise SystemExit(f"--grid {spec!r}: {exc}") from None
+    return key, out
 
 
 def main(argv: list[str] | None = None) -> int:
