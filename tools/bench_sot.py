@@ -1,8 +1,9 @@
 """Single-object trackers over seeds: mean and spread, leave-one-sequence-out, BoBoT Table I.
 
 Reads ``torchtrack eval`` output folders, one per seed (every folder the same trackers and
-sequences, e.g. ``for s in 0 1 2 3 4; do torchtrack eval ... --seed $s --out runs/dev/seed$s``)
-and writes a markdown page:
+sequences, e.g. ``for s in 0 1 2 3 4; do torchtrack eval ... --seed $s --out runs/dev/seed$s``;
+folders of the same name, such as ``runs/dev/seed0`` and ``runs/mot_sot/seed0``, are one seed's
+runs split over several calls and are merged) and writes a markdown page:
 
 * **Dev set over seeds**: per tracker the mean AUC over the sequences of each seed run, then the
   mean and standard deviation of that over the seeds; precision@20, the median fps, losses
@@ -37,23 +38,27 @@ PAPER_TABLE_I = {"histogram": 68.94, "adaptive-haar:adapt=none": 48.97,
 
 
 def load_runs(folders: list[Path]) -> dict[str, dict[str, dict[str, dict]]]:
-    """``{seed folder: {tracker: {sequence: record}}}`` of the OPE records under each folder."""
+    """``{seed: {tracker: {sequence: record}}}`` of the OPE records under each folder.
+
+    Folders with the same name (``runs/dev/seed0`` and ``runs/heldout/seed0``) are one seed's
+    runs split over several ``torchtrack eval`` calls (other trackers, other sequences) and
+    are merged; a record found twice keeps the last folder's."""
     out: dict[str, dict[str, dict[str, dict]]] = {}
     for d in folders:
-        runs: dict[str, dict[str, dict]] = {}
-        for f in sorted((d / "sequences").glob("*/*.json")):
+        files = sorted((d / "sequences").glob("*/*.json"))
+        if not files:
+            sys.exit(f"no sequence results under {d}")
+        runs = out.setdefault(d.name, {})
+        for f in files:
             rec = json.loads(f.read_text())
             runs.setdefault(rec["tracker"], {})[rec["sequence"]] = rec
-        if not runs:
-            sys.exit(f"no sequence results under {d}")
-        out[str(d)] = runs
     return out
 
 
-def _gt(data: Path) -> dict:
+def _gt(data: list[Path]) -> dict:
     from torchtrack.io.sequences import find_sequences
 
-    return {s.name: s.boxes for s in find_sequences(data)}
+    return {s.name: s.boxes for d in data if d.exists() for s in find_sequences(d)}
 
 
 def _loss_counts(rec: dict, gt) -> tuple[int, int]:
@@ -109,13 +114,17 @@ def dev_table(runs, trackers: list[str], seqs: list[str], gt) -> list[str]:
         fps = [r["fps"] for per in runs.values() for r in per.get(t, {}).values() if r.get("fps")]
         lost, found = [], []
         for per in runs.values():
-            counts = [_loss_counts(per.get(t, {}).get(s, {}), gt.get(s)) for s in seqs]
+            if not all(s in per.get(t, {}) for s in seqs):
+                continue  # a seed this tracker was not run on (a deterministic peer: one run)
+            counts = [_loss_counts(per[t][s], gt.get(s)) for s in seqs]
             lost.append(sum(c[0] for c in counts))
             found.append(sum(c[1] for c in counts))
         lines.append(
             f"| {t} | **{_ms(aucs)}** | {' / '.join(f'{a:.3f}' for a in aucs)} | {_ms(p20)} | "
             f"{_f(statistics.median(fps), 1) if fps else '-'} | "
             f"{statistics.mean(lost):.1f} / {statistics.mean(found):.1f} |"
+            if lost
+            else "- |"
         )
     lines += ["", "| sequence | " + " | ".join(trackers) + " |", "|---" * (len(trackers) + 1) + "|"]
     for s in seqs:
@@ -180,7 +189,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--bobot", nargs="*", type=Path, default=[], help="BoBoT folders, one per seed")
     ap.add_argument("--loso", nargs="*", default=[], metavar="LABEL=SPEC")
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "tracking")
+    ap.add_argument(
+        "--data",
+        nargs="+",
+        type=Path,
+        default=[REPO.parent / "shared" / "data" / "tracking"],
+        help="the sequences' folders (ground truth for losses and re-acquisitions)",
+    )
     ap.add_argument("--title", default="Single-object trackers over seeds")
     ap.add_argument("--note", default="", help="text under the title (command, load, machine)")
     ap.add_argument("--out", type=Path, default=None, help="markdown page to write")
@@ -192,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
         runs = load_runs(a.results)
         trackers = list(dict.fromkeys(t for per in runs.values() for t in per))
         seqs = sorted({s for per in runs.values() for t in per.values() for s in t})
-        gt = _gt(a.data) if a.data.exists() else {}
-        lines += [f"## Dev set: {len(seqs)} sequences, {len(runs)} seeds", ""]
+        gt = _gt(a.data)
+        lines += [f"## {len(seqs)} sequences, {len(runs)} seeds", ""]
         lines += [*dev_table(runs, trackers, seqs, gt), ""]
         if a.loso:
             cands = dict(x.split("=", 1) for x in a.loso)
