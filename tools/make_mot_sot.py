@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
+    from torchtrack.errors import TorchTrackError
     from torchtrack.io.mot import load_mot_sequence
 
     mot = DATA / "mot"
@@ -125,7 +126,10 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "TUD-Stadtmitte": lambda: load_mot_sequence(mot / "TUD-Stadtmitte"),
     }
-    sources = [load() for name, load in loaders.items() if not args.only or name in args.only]
+    try:
+        sources = [load() for name, load in loaders.items() if not args.only or name in args.only]
+    except TorchTrackError as exc:
+        sys.exit(f"make_mot_sot: {exc} (the MOT data is looked up in {DATA}; set TORCHTRACK_DATA)")
     args.out.mkdir(parents=True, exist_ok=True)
     lines = []
     for seq in sources:
