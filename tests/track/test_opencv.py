@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchtrack.boxes import box_iou
-from torchtrack.errors import ConfigError
+from torchtrack.errors import ConfigError, TrackerError
 from torchtrack.io.sequences import load_bobot
 from torchtrack.io.video import to_numpy_bgr
 from torchtrack.track.base import create_tracker
@@ -98,6 +98,18 @@ def _square_frames(n=8, size=(80, 100), gray=False, vanish_at=None):
         frames.append(img[:1] if gray else img)
         boxes.append([x, y, 16, 16])
     return frames, torch.tensor(boxes, dtype=torch.float64)
+
+
+def test_opencv_exception_becomes_a_tracker_error():
+    # OpenCV 5's MIL throws std::bad_alloc on a box reaching above the frame: a TrackerError
+    # that names the box and the frame, not a cv2.error
+    frame = torch.randint(
+        0, 255, (3, 240, 320), dtype=torch.uint8, generator=torch.Generator().manual_seed(0)
+    )
+    with pytest.raises(
+        TrackerError, match=r"mil failed to initialise on box \(25, -16, 75, 186\) in a 320x240"
+    ):
+        create_tracker("mil").init(frame, torch.tensor([25.0, -16.0, 75.0, 186.0]))
 
 
 def test_camshift_follows_a_coloured_target():

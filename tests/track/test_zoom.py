@@ -16,27 +16,27 @@ _spec.loader.exec_module(bench_zoom)
 
 
 @pytest.fixture(scope="module")
-def crossing_zoom_in(data_dir):
+def david_zoom_in(data_dir):
     bench_zoom.DATA = data_dir
-    return bench_zoom.case_frames("otb/Crossing", 3.0, 60, "in")
+    return bench_zoom.case_frames("otb/David", 3.0, 100, "in")
 
 
-def test_zoom_sequence_boxes_follow_the_zoom(crossing_zoom_in):
-    _, frames, boxes = crossing_zoom_in
-    assert len(frames) == 60 and frames[0].shape == frames[-1].shape
+def test_zoom_sequence_boxes_follow_the_zoom(david_zoom_in):
+    _, frames, boxes = david_zoom_in
+    assert len(frames) == 100 and frames[0].shape == frames[-1].shape
     assert boxes[-1, 2] / boxes[0, 2] == pytest.approx(3.0)
     centre = boxes[:, :2] + boxes[:, 2:] / 2
     assert (centre - centre[0]).abs().max() < 1e-9  # zoomed about the target's centre
 
 
-def test_adaptive_haar_box_grows_with_the_target(crossing_zoom_in, one_thread):
-    _, frames, boxes = crossing_zoom_in
+def test_adaptive_haar_box_grows_with_the_target(david_zoom_in, one_thread):
+    _, frames, boxes = david_zoom_in
     r = bench_zoom.run_tracker("adaptive-haar", frames, boxes, seed=0)
     assert 0.75 < r["ratio"] < 1.33, r
     assert r["iou"] > 0.7, r
 
 
-def test_cotrain_keeps_its_first_size(crossing_zoom_in, one_thread):
-    _, frames, boxes = crossing_zoom_in
+def test_cotrain_keeps_its_first_size(david_zoom_in, one_thread):
+    _, frames, boxes = david_zoom_in
     r = bench_zoom.run_tracker("cotrain", frames, boxes, seed=0)
     assert r["ratio"] == pytest.approx(1 / 3, rel=1e-6)

@@ -120,7 +120,13 @@ class OpenCVTracker(Tracker):
         # Boosting tracker of OpenCV 5.0 crashes (segfault) on fractional boxes.
         x1, y1 = round(x), round(y)
         rect = (x1, y1, max(1, round(x + w) - x1), max(1, round(y + h) - y1))
-        ok = self._cv.init(img, rect)
+        try:
+            ok = self._cv.init(img, rect)
+        except cv2.error as exc:  # e.g. MIL's std::bad_alloc on some large boxes
+            raise TrackerError(
+                f"OpenCV {self.kind} failed to initialise on box {rect} in a "
+                f"{img.shape[1]}x{img.shape[0]} frame: {str(exc).strip()}"
+            ) from None
         if ok is False:
             raise TrackerError(f"OpenCV {self.kind} failed to initialise on box {rect}")
         self._last = boxes[:1].clone()
@@ -128,7 +134,12 @@ class OpenCVTracker(Tracker):
         return TrackState.single(self._last[0])
 
     def _update(self, frame: torch.Tensor) -> TrackState:
-        ok, b = self._cv.update(to_numpy_bgr(frame))
+        try:
+            ok, b = self._cv.update(to_numpy_bgr(frame))
+        except cv2.error as exc:
+            raise TrackerError(
+                f"OpenCV {self.kind} failed on a frame: {str(exc).strip()}"
+            ) from None
         if ok and b is not None and b[2] > 0 and b[3] > 0:
             box = _box_from_cv(b, self.frame_size)
             if box[0, 2] > 0 and box[0, 3] > 0:
