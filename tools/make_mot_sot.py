@@ -32,31 +32,25 @@ import os
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TORCHTRACK_DATA", REPO.parent / "shared" / "data"))
+sys.path.insert(0, str(REPO))
 
-
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of xywh boxes ``a (n, 4)`` against ``b (m, 4)``."""
-    ax2, ay2 = a[:, 0] + a[:, 2], a[:, 1] + a[:, 3]
-    bx2, by2 = b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]
-    iw = np.clip(
-        np.minimum(ax2[:, None], bx2[None]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
-    )
-    ih = np.clip(
-        np.minimum(ay2[:, None], by2[None]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
-    )
-    inter = iw * ih
-    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+from torchtrack.boxes import box_iou  # noqa: E402
+from torchtrack.errors import TorchTrackError  # noqa: E402
+from torchtrack.io.mot import load_mot_sequence  # noqa: E402
+from torchtrack.io.video import to_numpy_bgr  # noqa: E402
 
 
 def track_spans(gt, width: int, height: int, max_iou: float, min_frames: int):
     """``[(id, first, last, {frame: box})]`` by the rules of the module doc (0-based frames,
     as :class:`~torchtrack.io.mot.MotRows` holds them)."""
     frames, ids, boxes, conf = gt.frames, gt.ids, gt.boxes, gt.conf
+    tboxes = torch.from_numpy(boxes)
     by_frame = {int(f): np.flatnonzero(frames == f) for f in np.unique(frames)}
     spans = []
     for tid in np.unique(ids[conf > 0]):
@@ -68,7 +62,7 @@ def track_spans(gt, width: int, height: int, max_iou: float, min_frames: int):
             if x < 0 or y < 0 or x + w > width or y + h > height:
                 continue
             others = [k for k in by_frame[int(frames[r])] if k != r]
-            if others and iou_matrix(boxes[r : r + 1], boxes[others]).max() >= max_iou:
+            if others and box_iou(tboxes[r], tboxes[others]).max() >= max_iou:
                 continue
             start = int(frames[r])
             break
@@ -88,20 +82,17 @@ def frame_files(seq, out: Path) -> list[Path]:
     into ``out/.frames/<name>/``, named by the 1-based MOT frame number)."""
     if seq.frames is not None:
         return [Path(p).resolve() for p in seq.frames]
-    import cv2
-
     d = out / ".frames" / seq.name
     files = [d / f"{i + 1:06d}.png" for i in range(seq.n_frames)]
-    if all(f.is_file() for f in files):
-        return [f.resolve() for f in files]
-    d.mkdir(parents=True, exist_ok=True)
-    cap = cv2.VideoCapture(str(seq.video))
-    for f in files:
-        ok, img = cap.read()
-        if not ok:
-            sys.exit(f"{seq.video} ended before frame {f.stem}")
-        cv2.imwrite(str(f), img)
-    cap.release()
+    if not all(f.is_file() for f in files):
+        d.mkdir(parents=True, exist_ok=True)
+        with seq.open() as src:  # the frames the trackers would read from the video
+            n = 0
+            for f, frame in zip(files, src, strict=False):
+                cv2.imwrite(str(f), to_numpy_bgr(frame))
+                n += 1
+        if n < len(files):
+            sys.exit(f"{seq.video} ended before frame {n + 1} of {len(files)}")
     return [f.resolve() for f in files]
 
 
@@ -114,10 +105,6 @@ def main(argv: list[str] | None = None) -> int:
         "--only", nargs="*", choices=("PETS09-S2L1", "TUD-Stadtmitte"), help="default: both"
     )
     args = ap.parse_args(argv)
-    sys.path.insert(0, str(REPO))
-    from torchtrack.errors import TorchTrackError
-    from torchtrack.io.mot import load_mot_sequence
-
     mot = DATA / "mot"
     loaders = {
         "PETS09-S2L1": lambda: load_mot_sequence(
@@ -134,8 +121,6 @@ def main(argv: list[str] | None = None) -> int:
     lines = []
     for seq in sources:
         files = frame_files(seq, args.out)
-        import cv2
-
         height, width = cv2.imread(str(files[0])).shape[:2]
         for tid, first, last, rows in track_spans(
             seq.gt, width, height, args.max_iou, args.min_frames
