@@ -188,9 +188,11 @@ def test_same_seed_same_tracks():
         assert torch.equal(a, b)
 
 
-def test_track_sequence_uses_cached_scans_on_the_scan_frames_only():
+@pytest.mark.parametrize("unreadable", [None, 1])
+def test_track_sequence_uses_cached_scans_on_the_scan_frames_only(unreadable):
     """Detections given to track_sequence stand for the tracker's scans: with scan_every = 2
-    only every second frame's are used, as the tracker would scan."""
+    only every second readable frame's are used, as the tracker would scan (an unreadable frame
+    is skipped by the count, as the tracker's own scan schedule and ScanAhead skip it)."""
     from torchtrack.io.mot import MotRows
     from torchtrack.track.multi import track_sequence
 
@@ -201,12 +203,15 @@ def test_track_sequence_uses_cached_scans_on_the_scan_frames_only():
 
     class Frames:
         def items(self):
-            return ((t, blank()) for t in range(n))
+            return ((t, None if t == unreadable else blank()) for t in range(n))
 
     got = track_sequence(make(scan_every=2), Frames(), rows)
-    mt, want = make(scan_every=2), []
+    mt, want, k = make(scan_every=2), [], 0
     for t in range(n):
-        out = mt.update(blank(), (people(t), torch.ones(3)) if t % 2 == 0 else None)
+        if t == unreadable:
+            continue
+        out = mt.update(blank(), (people(t), torch.ones(3)) if k % 2 == 0 else None)
+        k += 1
         want += [(t, int(i), *b.tolist()) for i, b in zip(out.ids, out.boxes, strict=True)]
     assert len(want) > 0
     assert [(int(f), int(i), *b) for f, i, b in zip(got.frames, got.ids, got.boxes.tolist(),

@@ -796,7 +796,8 @@ def track_sequence(
         detections: optional per-frame detections: a :class:`~torchtrack.io.mot.MotRows` of
             object boxes with scores in [0, 1] (e.g. public detections, or a cache of the
             tracker's own scans), used instead of scans on the frames the tracker would scan
-            (every ``scan_every``-th, from the first).
+            (every ``scan_every``-th readable frame, from the first; unreadable frames are
+            skipped by the count).
         max_frames: stop after this many frames.
         scan_workers: without ``detections``, scan the coming frames in this many forked
             processes (:class:`~torchtrack.track.scan_ahead.ScanAhead`: the same tracks); 0
@@ -829,7 +830,8 @@ def track_sequence(
             if frame is None:
                 continue
             d = None
-            if per_frame is not None and i % tracker.config.scan_every == 0:
+            # the frames the tracker would scan: every scan_every-th readable one, its own count
+            if per_frame is not None and (tracker.frame_index + 1) % tracker.config.scan_every == 0:
                 idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
                 d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
             out = tracker.update(frame, d, scan=scan)
