@@ -11,6 +11,7 @@ from torchtrack.features.centre_surround import (
     channel_integrals,
     klein_pool,
 )
+from torchtrack.features.channels import ChannelSet, compute_channels
 
 
 def area_sum(img: np.ndarray, y0: float, x0: float, y1: float, x1: float) -> float:
@@ -30,11 +31,17 @@ def reference(frame: torch.Tensor, boxes: list, pool: CentreSurroundPool) -> np.
     img = frame.double().numpy()
     if img.shape[0] == 1:
         img = np.repeat(img, 3, 0)
-    img = img - img.mean(axis=(1, 2), keepdims=True)  # outside = mean colour = 0 after centring
+    chans = [img[list(s)].mean(0) for s in CHANNEL_SUBSETS]
+    if pool.gradients:
+        names = ("grad", "orient") if pool.gradients > 1 else ("grad",)
+        cs = ChannelSet(names=names, orientations=max(pool.gradients - 1, 1))
+        chans += list(compute_channels(frame[None], cs)[0].double().numpy() * 255)
+    chans = np.stack(chans)
+    chans -= chans.mean(axis=(1, 2), keepdims=True)  # outside = mean = 0 after centring
     out = np.zeros((len(boxes), len(pool)))
     for n, (x, y, w, h) in enumerate(boxes):
         for i, (c, cx, cy, hc, hs) in enumerate(pool.table.tolist()):
-            im = img[list(CHANNEL_SUBSETS[int(c)])].mean(0)
+            im = chans[int(c)]
             sc = area_sum(
                 im, y + (cy - hc) * h, x + (cx - hc) * w, y + (cy + hc) * h, x + (cx + hc) * w
             )
@@ -74,6 +81,32 @@ def test_features_match_pixel_sum_reference():
     ].numpy()
     ref = reference(frame, boxes, pool)
     np.testing.assert_allclose(got, ref, atol=2e-3, rtol=1e-4)
+
+
+@pytest.mark.parametrize("gradients", [1, 5])
+def test_gradient_channels_match_reference_and_leave_colour_features_alone(gradients):
+    g = torch.Generator().manual_seed(4)
+    frame = torch.randint(0, 256, (3, 36, 44), dtype=torch.uint8, generator=g)
+    boxes = [[5.3, 4.7, 20.2, 25.9], [-3.5, -2.0, 20.0, 21.0]]
+    pool = CentreSurroundPool(gradients=gradients)
+    assert len(pool) == 77 * (7 + gradients) and pool.n_channels == 7 + gradients
+    assert pool.describe(539)["channels"] == "grad"
+    assert pool.describe(len(pool) - 1)["channels"] == ("grad" if gradients == 1 else "orient3")
+    ints = channel_integrals(frame[None], gradients)
+    assert ints.n_subsets == 7 + gradients
+    got = centre_surround_features(ints, torch.tensor([boxes]), pool)[0]
+    np.testing.assert_allclose(got.numpy(), reference(frame, boxes, pool), atol=5e-3, rtol=1e-4)
+    colour = centre_surround_features(channel_integrals(frame[None]), torch.tensor([boxes]),
+                                      klein_pool())[0]  # fmt: skip
+    torch.testing.assert_close(got[:, :539], colour, atol=2e-3, rtol=1e-4)  # taller stack: rounding
+    # a gray frame: the same gradients as the RGB frame of equal channels
+    gray = frame[:1]
+    a = centre_surround_features(channel_integrals(gray[None], gradients), torch.tensor([boxes]),
+                                 pool)  # fmt: skip
+    b = centre_surround_features(
+        channel_integrals(gray.expand(3, -1, -1)[None], gradients), torch.tensor([boxes]), pool
+    )
+    torch.testing.assert_close(a, b, atol=1e-3, rtol=1e-4)  # luma of gray vs of RGB: rounding
 
 
 def test_float32_tables_precise_on_full_size_frame():
@@ -140,6 +173,13 @@ def test_pool_config_roundtrip_and_errors():
         CentreSurroundPool(surround=1.0)
     with pytest.raises(ConfigError, match=r"centre sizes must be in \(0, 1\]"):
         CentreSurroundPool(grids=(3,), sizes=(1.5,))
+    with pytest.raises(ConfigError, match=r"gradients must be an integer in \[0, 19\]"):
+        CentreSurroundPool(gradients=20)
+    with pytest.raises(ConfigError, match="gradients must be an integer"):
+        channel_integrals(torch.zeros((1, 3, 8, 8)), gradients=-1)
+    grad = CentreSurroundPool(gradients=3)
+    assert CentreSurroundPool.from_dict(grad.to_dict()) == grad
+    assert CentreSurroundPool.from_dict({"grids": [2], "sizes": [0.4]}).gradients == 0
 
 
 def test_shape_errors():
@@ -153,6 +193,8 @@ def test_shape_errors():
         centre_surround_features(ints, torch.zeros((2, 1, 4)), pool)
     with pytest.raises(ShapeError, match="out of range"):
         centre_surround_features(ints, torch.ones((1, 1, 4)), pool, torch.tensor([539]))
+    with pytest.raises(ShapeError, match=r"reads 8 channels but the integrals hold 7.*gradients=1"):
+        centre_surround_features(ints, torch.ones((1, 1, 4)), CentreSurroundPool(gradients=1))
     with pytest.raises(ShapeError, match=r"\(B, N, K\)"):
         centre_surround_features(
             ints, torch.ones((1, 2, 4)), pool, torch.zeros((1, 3, 2), dtype=torch.int64)
