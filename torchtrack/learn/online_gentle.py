@@ -358,7 +358,15 @@ def _sorted_splits(x: torch.Tensor, valid: torch.Tensor):
     thresholds ``thr (M, F, S - 1)`` between consecutive distinct values of valid samples and
     ``ok (M, F, S - 1)`` where such a split exists."""
     xv = x.masked_fill(~valid.unsqueeze(2), math.inf).transpose(1, 2).contiguous()
-    xs, order = xv.sort(dim=2)
+    if xv.device.type == "cpu":
+        # numpy's introsort of these short rows (S ~ 120 samples, F ~ 1000 features) is about
+        # 6x faster than torch.sort on CPU (one thread: 0.6 against 3.8 ms per frame). The
+        # order of ties does not matter: empty slots (+inf) weigh 0 and equal values are never
+        # split, so only float rounding of the running sums can differ.
+        order = torch.from_numpy(np.argsort(xv.numpy(), axis=2, kind="quicksort"))
+        xs = xv.gather(2, order)
+    else:
+        xs, order = xv.sort(dim=2)
     a, b = xs[:, :, :-1], xs[:, :, 1:]
     ok = (b > a) & torch.isfinite(b)
     mid = (a.double() + b.double()).mul_(0.5).to(x.dtype)
