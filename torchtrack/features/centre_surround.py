@@ -79,6 +79,7 @@ class CentreSurroundPool:
     surround: float = 2.0
     gradients: int = 0
     _table: torch.Tensor | None = field(default=None, repr=False, compare=False)
+    _gradient_set: Any = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if len(self.grids) == 0 or len(self.grids) != len(self.sizes):
@@ -96,9 +97,7 @@ class CentreSurroundPool:
             raise ConfigError(
                 f"surround must be > 1 (times the centre side), got {self.surround!r}"
             )
-        g = self.gradients
-        if not isinstance(g, int) or isinstance(g, bool) or not 0 <= g <= 19:
-            raise ConfigError(f"gradients must be an integer in [0, 19], got {g!r}")
+        object.__setattr__(self, "_gradient_set", _gradient_set(self.gradients))
         rows = []
         for ch in range(self.n_channels):
             for g, s in zip(self.grids, self.sizes, strict=True):
@@ -113,6 +112,17 @@ class CentreSurroundPool:
         """Channels the features read: the 7 RGB subsets, then ``gradients`` gradient
         channels (:func:`channel_integrals`)."""
         return len(CHANNEL_SUBSETS) + self.gradients
+
+    def channel_name(self, ch: int) -> str:
+        """Name of channel ``ch``: an RGB subset (``"RG"``), ``"grad"`` or ``"orient<i>"``."""
+        n_rgb = len(CHANNEL_SUBSETS)
+        if ch < n_rgb:
+            return "".join("RGB"[c] for c in CHANNEL_SUBSETS[ch])
+        return self._gradient_set.channels[ch - n_rgb]
+
+    def integrals(self, frames: torch.Tensor) -> ChannelIntegrals:
+        """:func:`channel_integrals` of ``frames`` with the channels this pool reads."""
+        return channel_integrals(frames, self.gradients)
 
     @property
     def table(self) -> torch.Tensor:
@@ -139,7 +149,7 @@ class CentreSurroundPool:
     def describe(self, i: int) -> dict[str, Any]:
         ch, cx, cy, hc, hs = self.table[i].tolist()
         return {
-            "channels": _channel_name(int(ch)),
+            "channels": self.channel_name(int(ch)),
             "cx": cx,
             "cy": cy,
             "centre": 2 * hc,
@@ -224,11 +234,21 @@ class ChannelIntegrals(NamedTuple):
         return self.tables[b * self.n_subsets + s, : self.size[0] + 1]
 
 
-def _channel_name(ch: int) -> str:
-    n_rgb = len(CHANNEL_SUBSETS)
-    if ch < n_rgb:
-        return "".join("RGB"[c] for c in CHANNEL_SUBSETS[ch])
-    return "grad" if ch == n_rgb else f"orient{ch - n_rgb - 1}"
+def _gradient_set(gradients: Any):
+    """The :class:`~torchtrack.features.channels.ChannelSet` of ``gradients`` gradient channels
+    (the magnitude, then ``gradients - 1`` orientation bins; None for 0).
+
+    Raises:
+        ConfigError: not an integer in [0, 19].
+    """
+    if not isinstance(gradients, int) or isinstance(gradients, bool) or not 0 <= gradients <= 19:
+        raise ConfigError(f"gradients must be an integer in [0, 19], got {gradients!r}")
+    if gradients == 0:
+        return None
+    from torchtrack.features.channels import ChannelSet
+
+    names = ("grad", "orient") if gradients > 1 else ("grad",)
+    return ChannelSet(names=names, orientations=max(gradients - 1, 1))
 
 
 def channel_integrals(frames: torch.Tensor, gradients: int = 0) -> ChannelIntegrals:
@@ -256,8 +276,7 @@ def channel_integrals(frames: torch.Tensor, gradients: int = 0) -> ChannelIntegr
     if not isinstance(frames, torch.Tensor) or frames.ndim != 4 or frames.shape[1] not in (1, 3):
         got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
         raise ShapeError(f"frames must be (B, C, H, W) with C = 1 or 3, got {got}")
-    if not isinstance(gradients, int) or isinstance(gradients, bool) or not 0 <= gradients <= 19:
-        raise ConfigError(f"gradients must be an integer in [0, 19], got {gradients!r}")
+    cs = _gradient_set(gradients)
     bsz, c, h, w = frames.shape
     n_rgb = len(CHANNEL_SUBSETS)
     n_sub = n_rgb + gradients
@@ -281,11 +300,9 @@ def channel_integrals(frames: torch.Tensor, gradients: int = 0) -> ChannelIntegr
     torch.add(r, b, out=inner[:, 4]).mul_(0.5)
     torch.add(g, b, out=inner[:, 5]).mul_(0.5)
     torch.add(inner[:, 3], b, alpha=0.5, out=inner[:, 6]).mul_(2.0 / 3.0)
-    if gradients:
-        from torchtrack.features.channels import ChannelSet, compute_channels
+    if cs is not None:
+        from torchtrack.features.channels import compute_channels
 
-        names = ("grad", "orient") if gradients > 1 else ("grad",)
-        cs = ChannelSet(names=names, orientations=max(gradients - 1, 1))
         gr = compute_channels(frames, cs).mul_(255.0)
         gr.sub_(gr.to(torch.float64).mean(dim=(2, 3), keepdim=True).to(torch.float32))
         torch.cumsum(gr, 2, out=gr)
@@ -378,8 +395,8 @@ def centre_surround_features(
     if pool.n_channels > ints.n_subsets:
         raise ShapeError(
             f"the pool reads {pool.n_channels} channels but the integrals hold "
-            f"{ints.n_subsets}: compute them with channel_integrals(frames, "
-            f"gradients={pool.gradients})"
+            f"{ints.n_subsets}: compute them with pool.integrals(frames), i.e. "
+            f"channel_integrals(frames, gradients={pool.gradients})"
         )
     n = boxes.shape[1]
     dev = ints.tables.device
@@ -439,5 +456,4 @@ class CentreSurroundFeatures(nn.Module):
 
     def forward(self, frames: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
         """``frames (B, C, H, W)``, ``boxes (B, N, 4)`` -> ``(B, N, K)``."""
-        ints = channel_integrals(frames, self.pool.gradients)
-        return centre_surround_features(ints, boxes, self.pool, self.index)
+        return centre_surround_features(self.pool.integrals(frames), boxes, self.pool, self.index)

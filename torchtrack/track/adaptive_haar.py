@@ -119,7 +119,6 @@ from torchtrack.errors import ConfigError
 from torchtrack.features.centre_surround import (
     CentreSurroundPool,
     centre_surround_features,
-    channel_integrals,
 )
 from torchtrack.filter.motion import KleinAR
 from torchtrack.filter.particles import dominant_mode_mean, normalize_log_weights
@@ -514,7 +513,7 @@ class AdaptiveHaarTracker(Tracker):
         cfg = self.config
         boxes = boxes.to(torch.float64)
         b = boxes.shape[0]
-        ints = channel_integrals(frame[None], self.config.gradients)
+        ints = self.pool.integrals(frame[None])
         negs = _random_negatives(boxes, cfg.neg_max, self.frame_size, cfg.neg_iou, self.generator)
         if cfg.scale_negatives > 0:
             negs = torch.cat([_scaled_boxes(boxes, cfg.scale_factor), negs[:, 6:]], 1)
@@ -569,7 +568,7 @@ class AdaptiveHaarTracker(Tracker):
     def _update(self, frame: torch.Tensor) -> TrackState:
         cfg = self.config
         self._frame += 1
-        ints = channel_integrals(frame[None], self.config.gradients)
+        ints = self.pool.integrals(frame[None])
         # Condensation (sec. II): resample, predict with eq. (1), weight with eq. (3).
         anc, prior_lw, _ = resample(self._log_w, cfg.resample, None, self.generator)
         states = self._states.gather(1, anc.unsqueeze(2).expand(-1, -1, self._states.shape[2]))
