@@ -140,6 +140,29 @@ def test_scan_cascade_threshold_overrides_the_models(trained, frame):
         scan_batch(det, frame[None], cascade_threshold=float("-inf"), **kw)
 
 
+def test_scales_scored_together_equal_one_call_per_scale(trained, frame, monkeypatch):
+    """The scan scores the windows of several scales in one cascade call; capping the group at
+    one scale (one call per scale, as before) gives the same windows and margins, bit for bit,
+    with and without the cascade, on two frames at once and with windows over the edges."""
+    import torchtrack.detect.scan as scan_module
+
+    det, _ = trained
+    frames = torch.stack([frame, frame.flip(-1)])
+    kw = {"min_scale": 0.5, "max_scale": 1.2, "scale_step": 1.15, "stride": 0.125, "pad": 0.1}
+    kw |= {"threshold": None, "margin": True, "nms_iou": None}
+    runs, big = {}, scan_module._GROUP_VALUES
+    assert big > 10_000  # several scales of this frame fit one group
+    for group in (big, 1):
+        monkeypatch.setattr(scan_module, "_GROUP_VALUES", group)
+        runs[group] = [scan_batch(det, frames, cascade_threshold=c, **kw) for c in (None, -1e9)] + [
+            scan_batch(det, frames, cascade=False, **kw)
+        ]
+    assert runs[1][0][0][0].shape[0] > 0
+    for together, alone in zip(runs[big], runs[1], strict=True):
+        for (wa, ma), (wb, mb) in zip(together, alone, strict=True):
+            assert torch.equal(wa, wb) and torch.equal(ma, mb)
+
+
 def test_scan_is_box_scoring_with_a_cascade_and_reports_object_boxes(trained, frame):
     det, _ = trained
     kw = {"min_scale": 0.5, "max_scale": 0.9, "scale_step": 1.25, "stride": 0.125}

@@ -311,6 +311,13 @@ def _lattice_capable(detector) -> bool:
     return isinstance(detector.bank, ChannelBank) and hasattr(detector.classifier, "cascade")
 
 
+#: lattice values (float64) scored together in one cascade call: scales are grouped up to this
+#: many, so that one call serves most of a frame's scales (the cascade's per-call work is then
+#: paid once per group instead of once per scale) while a batch of large frames stays bounded
+#: (~64 MiB of lattice per group)
+_GROUP_VALUES = 1 << 23
+
+
 def _scan_lattice(
     detector,
     frames: torch.Tensor,
@@ -322,7 +329,12 @@ def _scan_lattice(
     cascade_threshold: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
-    margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``)."""
+    margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``).
+
+    The windows of consecutive scales (lattices of up to :data:`_GROUP_VALUES` values in all)
+    are scored by one cascade call; each scale's windows read their own lattice with that
+    scale's point offsets and area factors, the values and the arithmetic of one call per scale
+    (the same margins, bit for bit)."""
     from torchtrack.features.channels import scale_lattice
 
     bank, clf = detector.bank, detector.classifier
@@ -336,48 +348,82 @@ def _scan_lattice(
     step = (max(1, round(stride * wh / bank.cell)), max(1, round(stride * ww / bank.cell)))
     nb = frames.shape[0]
     out_f, out_b, out_m = [], [], []
-    for s in scales:
-        lat = scale_lattice(ints, bank, s, step, outside=(ky, kx), frame_pad=(py, px))
-        if lat is None:
-            continue
-        li, lj = lat.shape
-        nc = lat.channels
-        m = lat.origins.shape[0]
-        off = (pi * lj + pj) * nc + pc  # (K, P) offsets of every feature's points
-        factor = lat.norm * torch.exp(lat.logr * lam)  # (K,)
-        base = (
-            torch.arange(nb, device=dev)[:, None] * (li * lj * nc)
-            + ((lat.origins[:, 0] * lj + lat.origins[:, 1]) * nc)[None, :]
-        ).reshape(-1)  # (B * M,)
-        values = lat.values
 
-        def read(
-            rows: torch.Tensor, f: torch.Tensor, base=base, off=off, factor=factor, values=values
-        ):
+    def score_group(group: list) -> None:
+        nc = group[0].channels
+        bases, offs, factors, frame_of, boxes, starts = [], [], [], [], [], [0]
+        for lat in group:
+            li, lj = lat.shape
+            m = lat.origins.shape[0]
+            offs.append((pi * lj + pj) * nc + pc)  # (K, P) offsets of every feature's points
+            factors.append(lat.norm * torch.exp(lat.logr * lam))  # (K,)
+            bases.append(
+                (
+                    torch.arange(nb, device=dev)[:, None] * (li * lj * nc)
+                    + ((lat.origins[:, 0] * lj + lat.origins[:, 1]) * nc)[None, :]
+                ).reshape(-1)
+            )  # (B * M,) frame-major, as one call per scale numbers them
+            frame_of.append(torch.arange(nb, device=dev).repeat_interleave(m))
+            boxes.append(lat.boxes.repeat(nb, 1))
+            starts.append(starts[-1] + nb * m)
+        base, frame_row, box_row = torch.cat(bases), torch.cat(frame_of), torch.cat(boxes)
+        bounds = torch.tensor(starts[1:-1], dtype=torch.int64, device=dev)
+
+        def read(rows: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+            # rows are increasing, so each scale's windows are one run of them: read each run
+            # with its scale's tables, exactly as one call per scale would
             # f: (A, T) per window, or (T,) shared by every window (broadcast tables)
-            idx = base.index_select(0, rows)[:, None, None] + (
-                off[f] if f.ndim == 2 else off.index_select(0, f)[None]
-            )
-            # index_select on the flat indices: the same values as values[idx], ~2x faster on
-            # CPU than advanced indexing (the scan's hottest gather)
-            g = values.index_select(0, idx.view(-1)).view(idx.shape)
-            v = (g * coef[f]).sum(-1)  # (A, T, P) -> (A, T)
-            return (v * factor[f]).to(torch.float32)
+            cut = torch.searchsorted(rows, bounds).tolist()
+            parts = []
+            for g, (r0, r1) in enumerate(zip([0, *cut], [*cut, rows.shape[0]], strict=True)):
+                if r1 == r0:
+                    continue
+                fg = f[r0:r1] if f.ndim == 2 else f
+                off = offs[g]
+                idx = base.index_select(0, rows[r0:r1])[:, None, None] + (
+                    off[fg] if fg.ndim == 2 else off.index_select(0, fg)[None]
+                )
+                # index_select on the flat indices: the same values as values[idx], ~2x faster
+                # on CPU than advanced indexing (the scan's hottest gather)
+                v = group[g].values.index_select(0, idx.view(-1)).view(idx.shape)
+                v = (v * coef[fg]).sum(-1)  # (A, T, P) -> (A, T)
+                parts.append((v * factors[g][fg]).to(torch.float32))
+            if len(parts) == 1:
+                return parts[0]
+            if not parts:
+                return torch.zeros((0, f.shape[-1]), dtype=torch.float32, device=dev)
+            return torch.cat(parts)
 
-        total = nb * m
+        total = base.shape[0]
         for r0 in range(0, total, batch):
             n_chunk = min(batch, total - r0)
 
-            def read_chunk(rows, f, r0=r0, read=read):
+            def read_chunk(rows, f, r0=r0):
                 return read(rows + r0, f)
 
             rows, marg = clf.cascade(
                 read_chunk, n_chunk, device=dev, reject=cascade, reject_at_most=cascade_threshold
             )
             rows = rows + r0
-            out_f.append(rows // m)
-            out_b.append(lat.boxes[rows % m])
+            out_f.append(frame_row[rows])
+            out_b.append(box_row[rows])
             out_m.append(marg)
+
+    group: list = []
+    size = 0
+    for s in scales:
+        lat = scale_lattice(ints, bank, s, step, outside=(ky, kx), frame_pad=(py, px))
+        if lat is None:
+            continue
+        # without a cascade every window reads every tree: one scale per call keeps each
+        # call's tables small (grouping only saves the cascade's per-call work)
+        if group and (not cascade or size + lat.values.numel() > _GROUP_VALUES):
+            score_group(group)
+            group, size = [], 0
+        group.append(lat)
+        size += lat.values.numel()
+    if group:
+        score_group(group)
     if not out_f:
         z = torch.zeros(0, device=dev)
         return z.long(), torch.zeros((0, 4), device=dev), z
