@@ -163,6 +163,31 @@ def test_batched_frames_equal_single_frames(capsys):
         np.testing.assert_allclose(a["probabilities"], b["probabilities"], atol=1e-5)
 
 
+def test_a_looser_cascade_finds_more_and_equals_the_library_scan(capsys):
+    """--cascade -8 lowers the soft cascade: the records are Detector.scan's with
+    cascade_threshold=-8, and the frame's people are found at least as often as at the model's
+    own cascade."""
+    found = {}
+    for extra in ([], ["--cascade", "-8"]):
+        args = ["detect", "pedestrian", str(demo_clip_path()), "--max-frames", "2", "--quiet"]
+        assert main(args + extra) == 0
+        found[len(extra)] = records(capsys.readouterr().out)
+    det = load_model("pedestrian")
+    from torchtrack.cli import detect as d
+
+    kw = {"threshold": d.THRESHOLD, "scale_step": d.SCALE_STEP, "stride": d.STRIDE}
+    kw |= {"min_scale": d.MIN_HEIGHT / d.object_height(det), "nms_iou": d.NMS_IOU}
+    kw |= {"nms_overlap": d.NMS_OVERLAP, "vote_iou": d.VOTE_IOU, "pad": d.PAD}
+    with open_source(demo_clip_path()) as src:
+        frames = [f for _, f in zip(range(2), src, strict=False)]
+    for f, own, loose in zip(frames, found[0], found[2], strict=True):
+        boxes, probs = det.scan(f, cascade_threshold=-8.0, **kw)
+        np.testing.assert_allclose(loose["boxes"], boxes.numpy().reshape(-1, 4), atol=0.01)
+        np.testing.assert_allclose(loose["probabilities"], probs.numpy(), atol=1e-5)
+        assert len(loose["boxes"]) >= len(own["boxes"]) >= 1
+    assert sum(len(r["boxes"]) for r in found[2]) > sum(len(r["boxes"]) for r in found[0])
+
+
 def test_video_that_cannot_be_opened(tmp_path, capsys):
     bad = tmp_path / "broken.mp4"
     bad.write_bytes(b"this is not a video" * 10)
@@ -231,6 +256,8 @@ def test_unknown_model_lists_bundled(tmp_path, capsys):
         (["--nms-iou", "0"], "--nms-iou"),
         (["--vote-iou", "1.5"], "--vote-iou"),
         (["--video", "out.avi"], ".mp4"),
+        (["--cascade", "nan"], "--cascade"),
+        (["--cascade", "-5", "--no-cascade"], "--no-cascade"),
     ],
 )
 def test_bad_options(tmp_path, capsys, args, match):
