@@ -26,8 +26,8 @@ score order); recall = matched / ground-truth boxes, false positives = unmatched
 soft cascades (every tree's rejection threshold lowered to at most that running margin,
 ``Detector.scan(cascade_threshold=...)``; the other settings as above): the issue's goal
 compares speed at equal or higher recall than HOG, and the model's own cascade stops below
-HOG's recall on PETS. The summary line names the fastest of
-our rows whose recall reaches HOG's on each sequence.
+HOG's recall on PETS. The summary line names the fastest of our rows whose recall reaches
+HOG's on each sequence.
 
 Times: median milliseconds per frame over the scanned frames (the frames are scanned once per
 method, interleaved frame by frame so that machine load hits every method alike), one frame
