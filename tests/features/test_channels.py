@@ -302,3 +302,37 @@ def test_many_boxes_of_mixed_levels_equal_one_box_at_a_time(chunk, monkeypatch):
     for j in range(n):
         one = channel_features_at(ints, boxes[:, j : j + 1], bank)
         assert torch.equal(many[0, j], one[0, 0])
+
+
+def test_a_few_features_read_only_their_lattice_points_with_the_same_values(monkeypatch):
+    """A feature subset that reads a small share of the cell lattice (a tracking head) samples
+    only those points, channel by channel: the values equal the whole lattice's read bit for
+    bit, on two frames, boxes of three octave levels, partly outside the frame."""
+    import torchtrack.features.channels as channels_mod
+
+    x = frames(2, h=90, w=120)
+    bank = small_bank()
+    index = torch.tensor([3, 17, 40, 41, 77, 90, 101, 118])
+    g = torch.Generator().manual_seed(3)
+    n = 300
+    scale = torch.rand(2, n, generator=g, dtype=torch.float64) * 4.0 + 0.4
+    wh = torch.stack((16 * scale, 32 * scale), -1)
+    xy = torch.rand(2, n, 2, generator=g, dtype=torch.float64) * torch.tensor([110.0, 80.0]) - 8
+    boxes = torch.cat((xy, wh), -1)
+    ints = bank.integrals(x)
+    hc, wc = bank.grid
+    compact = channels_mod._compact_lattice(
+        bank.points(index, torch.device("cpu")),
+        len(index),
+        wc + 1,
+        (hc + 1) * (wc + 1),
+        len(bank.channels.channels),
+        torch.device("cpu"),
+    )
+    assert compact is not None and compact[1].numel() < 0.1 * 10 * (hc + 1) * (wc + 1)
+    few = channel_features_at(ints, boxes, bank, index, check=False)
+    monkeypatch.setattr(channels_mod, "_COMPACT_SHARE", 0.0)
+    monkeypatch.setattr(channels_mod, "_COMPACT", {})
+    whole = channel_features_at(ints, boxes, bank, index, check=False)
+    assert torch.equal(few, whole)
+    assert torch.equal(whole, channel_features_at(ints, boxes, bank, check=False)[..., index])

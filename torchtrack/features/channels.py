@@ -883,6 +883,7 @@ def channel_features_at(
     li = torch.arange(lh, dtype=torch.float64, device=dev) * cell
     lj = torch.arange(lw, dtype=torch.float64, device=dev) * cell
     out = torch.empty((b, n, k), dtype=torch.float32, device=dev)
+    compact = _compact_lattice(pts, k, lw, lh * lw, len(bank.channels.channels), dev)
     present = torch.unique(levels).tolist()
     for lev in present:
         if len(present) == 1:
@@ -911,24 +912,56 @@ def channel_features_at(
             # lattice point (i, j) of a box: (x + j cell sx, y + i cell sy) frame pixels, / 2^k
             gx = ((xs[..., None] + sxs[..., None] * lj) / f) * (2.0 / max(wk, 1)) - 1.0
             gy = ((ys[..., None] + sys_[..., None] * li) / f) * (2.0 / max(hk, 1)) - 1.0
-            # Sample points ordered (i, j, box), the box axis innermost: grid_sample's output
-            # (bb, C, Lh Lw nn) is then the lattice-major (bb, C Lh Lw, nn) with no copy, and
-            # every corner read of _combine_lattice_major is a contiguous row of nn values.
-            grid = torch.stack(
-                (
-                    gx.transpose(1, 2)[:, None, :, :].expand(bb, lh, lw, nn),
-                    gy.transpose(1, 2)[:, :, None, :].expand(bb, lh, lw, nn),
-                ),
-                -1,
-            ).reshape(bb, lh * lw * nn, 1, 2)
-            vals = F.grid_sample(
-                tab, grid, mode="bilinear", padding_mode="border", align_corners=True
-            )
-            vals = vals.view(bb, -1, nn)  # (bb, C Lh Lw, nn)
+            if compact is None:
+                # Sample points ordered (i, j, box), the box axis innermost: grid_sample's
+                # output (bb, C, Lh Lw nn) is then the lattice-major (bb, C Lh Lw, nn) with no
+                # copy, and every corner read of _combine_lattice_major is a contiguous row of
+                # nn values.
+                grid = torch.stack(
+                    (
+                        gx.transpose(1, 2)[:, None, :, :].expand(bb, lh, lw, nn),
+                        gy.transpose(1, 2)[:, :, None, :].expand(bb, lh, lw, nn),
+                    ),
+                    -1,
+                ).reshape(bb, lh * lw * nn, 1, 2)
+                vals = F.grid_sample(
+                    tab, grid, mode="bilinear", padding_mode="border", align_corners=True
+                )
+                vals = vals.view(bb, -1, nn)  # (bb, C Lh Lw, nn)
+            else:
+                # Only the lattice values the features read: each channel is sampled as an
+                # image of its own (the channels-last table's channel planes, no copy) at its
+                # own positions, the box axis innermost; the same coordinates give the same
+                # bilinear values as the whole lattice's read.
+                pos, rows, _ = compact
+                nch, npos = pos.shape
+                pj_, pi_ = (pos % lw).reshape(-1), (pos // lw).reshape(-1)
+                vals = torch.stack(
+                    [
+                        F.grid_sample(
+                            tab[i].unsqueeze(1),
+                            torch.stack(  # (C P, nn, 2): channel, position, then box
+                                (
+                                    gx[i].t().index_select(0, pj_),
+                                    gy[i].t().index_select(0, pi_),
+                                ),
+                                -1,
+                            ).view(nch, npos * nn, 1, 2),
+                            mode="bilinear",
+                            padding_mode="border",
+                            align_corners=True,
+                        )
+                        .view(nch * npos, nn)
+                        .index_select(0, rows)
+                        for i in range(bb)
+                    ]
+                )  # (bb, R, nn)
             rx, ry = sxs / f, sys_ / f
             norm = 1.0 / (cell * cell * rx * ry)
             logr = 0.5 * torch.log(rx * ry)
-            feats = _combine_lattice_major(vals, pts, k, lw, lh * lw, norm, logr)
+            feats = _combine_lattice_major(
+                vals, pts, k, lw, lh * lw, norm, logr, None if compact is None else compact[2]
+            )
             feats = feats.to(torch.float32)
             if isinstance(sel, slice):
                 out[fs, sel] = feats
@@ -968,6 +1001,66 @@ def _sparse_combination(
     return w
 
 
+_COMPACT: dict[tuple[int, int, int, int, str], tuple[_Points, Any]] = {}
+
+#: read only the lattice points the features use when they are at most this share of the
+#: lattice (a detector's tracking head reads ~700 of a window's 5,610 channel lattice values)
+_COMPACT_SHARE = 0.5
+
+
+def _compact_lattice(
+    pts: _Points, k: int, lattice_w: int, lattice_hw: int, n_ch: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The lattice points the features of ``pts`` read, channel by channel, or ``None`` when
+    they are more than :data:`_COMPACT_SHARE` of the ``n_ch x lattice_hw`` lattice values.
+
+    Returns ``(pos (C, P), rows (R,), w)``: ``pos[c]`` the lattice positions (``i * Lw + j``,
+    increasing; padded with position 0) channel ``c`` is sampled at, ``rows`` where the ``R``
+    used values (channel-major, then position: the order of the whole lattice's rows) lie in
+    the ``C x P`` samples, and ``w`` the ``(K, R)`` CSR combination matrix: the matrix of
+    :func:`_sparse_combination` with its unused columns left out (the same entries in the same
+    order, so the same sums)."""
+    key = (id(pts), lattice_w, lattice_hw, n_ch, str(device))
+    hit = _COMPACT.get(key)
+    if hit is not None and hit[0] is pts:
+        return hit[1]
+    flat = torch.cat(
+        [
+            (gc * lattice_hw + gi * lattice_w + gj).reshape(-1).cpu()
+            for _, gc, gi, gj, _ in pts.groups
+        ]
+    )
+    used = torch.unique(flat)  # sorted
+    out = None
+    if used.numel() <= _COMPACT_SHARE * n_ch * lattice_hw:
+        ch, pos = used // lattice_hw, used % lattice_hw
+        counts = torch.bincount(ch, minlength=n_ch)
+        rank = torch.arange(used.numel()) - (torch.cumsum(counts, 0) - counts)[ch]
+        p_max = int(counts.max())
+        pos_pad = torch.zeros((n_ch, p_max), dtype=torch.int64)
+        pos_pad[ch, rank] = pos
+        colmap = torch.full((n_ch * lattice_hw,), -1, dtype=torch.int64)
+        colmap[used] = torch.arange(used.numel())
+        rows_, cols, coefs = [], [], []
+        for sel, gc, gi, gj, coef in pts.groups:
+            f = (gc * lattice_hw + gi * lattice_w + gj).cpu()
+            rows_.append(sel.cpu()[:, None].expand_as(f).reshape(-1))
+            cols.append(colmap[f.reshape(-1)])
+            coefs.append(coef.cpu().reshape(-1))
+        idx = torch.stack((torch.cat(rows_), torch.cat(cols)))
+        with warnings.catch_warnings():  # "sparse CSR support is in beta state"
+            warnings.simplefilter("ignore", UserWarning)
+            coo = torch.sparse_coo_tensor(
+                idx, torch.cat(coefs), (k, used.numel()), check_invariants=True
+            ).coalesce()
+            w = coo.to_sparse_csr().to(device)
+        out = (pos_pad.to(device), (ch * p_max + rank).to(device), w)
+    if len(_COMPACT) >= 32:
+        _COMPACT.pop(next(iter(_COMPACT)))
+    _COMPACT[key] = (pts, out)
+    return out
+
+
 def _combine_lattice_major(
     vals: torch.Tensor,
     pts: _Points,
@@ -976,13 +1069,16 @@ def _combine_lattice_major(
     lattice_hw: int,
     norm: torch.Tensor,
     logr: torch.Tensor,
+    w: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """:func:`_combine` of lattices stored lattice-major, ``vals (B, C * Lh * Lw, N)``: the
+    """:func:`_combine` of lattices stored lattice-major, ``vals (B, C * Lh * Lw, N)`` (or the
+    used rows only, ``vals (B, R, N)`` with ``w`` from :func:`_compact_lattice`): the
     features are one sparse ``(K, C Lh Lw)`` matrix (a feature's few corner coefficients,
     in the points' order) times the lattice values, every read a whole row of N boxes.
     Returns ``(B, N, K)`` float64 (a transposed view)."""
     b, n_lat, _ = vals.shape
-    w = _sparse_combination(pts, k, lattice_w, lattice_hw, n_lat, vals.device)
+    if w is None:
+        w = _sparse_combination(pts, k, lattice_w, lattice_hw, n_lat, vals.device)
     out = torch.stack([w @ vals[i] for i in range(b)])  # (B, K, N)
     # r ** lambda per box and feature: lambda takes a few values (one per channel type), so
     # exponentiate each once per box and spread (the same products, the same exp inputs).
