@@ -973,6 +973,32 @@ def channel_features_at(
 _SPARSE: dict[tuple[int, int, int, int, str], tuple[_Points, torch.Tensor]] = {}
 
 
+def _combination_matrix(
+    pts: _Points,
+    k: int,
+    lattice_w: int,
+    lattice_hw: int,
+    n_cols: int,
+    device: torch.device,
+    colmap: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``(K, n_cols)`` float64 CSR matrix of :class:`_Points` coefficients: row = feature,
+    column = the lattice row ``c Lh Lw + i Lw + j`` of each point, or ``colmap`` of it."""
+    rows, cols, coefs = [], [], []
+    for sel, gc, gi, gj, coef in pts.groups:
+        flat = (gc * lattice_hw + gi * lattice_w + gj).reshape(-1)  # (K_g P_g,)
+        rows.append(sel[:, None].expand(-1, gc.shape[1]).reshape(-1))
+        cols.append(flat if colmap is None else colmap.to(flat.device)[flat])
+        coefs.append(coef.reshape(-1))
+    idx = torch.stack((torch.cat(rows), torch.cat(cols)))
+    with warnings.catch_warnings():  # "sparse CSR support is in beta state"
+        warnings.simplefilter("ignore", UserWarning)
+        coo = torch.sparse_coo_tensor(
+            idx, torch.cat(coefs), (k, n_cols), check_invariants=True
+        ).coalesce()
+        return coo.to_sparse_csr().to(device)
+
+
 def _sparse_combination(
     pts: _Points, k: int, lattice_w: int, lattice_hw: int, n_lat: int, device: torch.device
 ) -> torch.Tensor:
@@ -982,19 +1008,7 @@ def _sparse_combination(
     hit = _SPARSE.get(key)
     if hit is not None and hit[0] is pts:  # a new table may reuse a dead one's id
         return hit[1]
-    rows, cols, coefs = [], [], []
-    for sel, gc, gi, gj, coef in pts.groups:
-        flat = gc * lattice_hw + gi * lattice_w + gj  # (K_g, P_g)
-        rows.append(sel[:, None].expand_as(flat).reshape(-1))
-        cols.append(flat.reshape(-1))
-        coefs.append(coef.reshape(-1))
-    idx = torch.stack((torch.cat(rows), torch.cat(cols)))
-    with warnings.catch_warnings():  # "sparse CSR support is in beta state"
-        warnings.simplefilter("ignore", UserWarning)
-        coo = torch.sparse_coo_tensor(
-            idx, torch.cat(coefs), (k, n_lat), check_invariants=True
-        ).coalesce()
-        w = coo.to_sparse_csr().to(device)
+    w = _combination_matrix(pts, k, lattice_w, lattice_hw, n_lat, device)
     if len(_SPARSE) >= 32:
         _SPARSE.pop(next(iter(_SPARSE)))
     _SPARSE[key] = (pts, w)
@@ -1041,19 +1055,7 @@ def _compact_lattice(
         pos_pad[ch, rank] = pos
         colmap = torch.full((n_ch * lattice_hw,), -1, dtype=torch.int64)
         colmap[used] = torch.arange(used.numel())
-        rows_, cols, coefs = [], [], []
-        for sel, gc, gi, gj, coef in pts.groups:
-            f = (gc * lattice_hw + gi * lattice_w + gj).cpu()
-            rows_.append(sel.cpu()[:, None].expand_as(f).reshape(-1))
-            cols.append(colmap[f.reshape(-1)])
-            coefs.append(coef.cpu().reshape(-1))
-        idx = torch.stack((torch.cat(rows_), torch.cat(cols)))
-        with warnings.catch_warnings():  # "sparse CSR support is in beta state"
-            warnings.simplefilter("ignore", UserWarning)
-            coo = torch.sparse_coo_tensor(
-                idx, torch.cat(coefs), (k, used.numel()), check_invariants=True
-            ).coalesce()
-            w = coo.to_sparse_csr().to(device)
+        w = _combination_matrix(pts, k, lattice_w, lattice_hw, used.numel(), device, colmap)
         out = (pos_pad.to(device), (ch * p_max + rank).to(device), w)
     if len(_COMPACT) >= 32:
         _COMPACT.pop(next(iter(_COMPACT)))
