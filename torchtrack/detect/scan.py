@@ -351,7 +351,7 @@ def _scan_lattice(
 
     def score_group(group: list) -> None:
         nc = group[0].channels
-        bases, offs, factors, frame_of, boxes, starts = [], [], [], [], [], [0]
+        bases, offs, factors, starts = [], [], [], [0]
         for lat in group:
             li, lj = lat.shape
             m = lat.origins.shape[0]
@@ -363,11 +363,14 @@ def _scan_lattice(
                     + ((lat.origins[:, 0] * lj + lat.origins[:, 1]) * nc)[None, :]
                 ).reshape(-1)
             )  # (B * M,) frame-major, as one call per scale numbers them
-            frame_of.append(torch.arange(nb, device=dev).repeat_interleave(m))
-            boxes.append(lat.boxes.repeat(nb, 1))
             starts.append(starts[-1] + nb * m)
-        base, frame_row, box_row = torch.cat(bases), torch.cat(frame_of), torch.cat(boxes)
+        base = torch.cat(bases)
         bounds = torch.tensor(starts[1:-1], dtype=torch.int64, device=dev)
+        # a passing window's scale, frame and box follow from its row: no per-window tables
+        first = torch.tensor(starts[:-1], dtype=torch.int64, device=dev)
+        per_frame = torch.tensor([lat.origins.shape[0] for lat in group], device=dev)
+        box_first = torch.cumsum(per_frame, 0) - per_frame
+        box_all = torch.cat([lat.boxes for lat in group])
 
         def read(rows: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
             # rows are increasing, so each scale's windows are one run of them: read each run
@@ -405,8 +408,10 @@ def _scan_lattice(
                 read_chunk, n_chunk, device=dev, reject=cascade, reject_at_most=cascade_threshold
             )
             rows = rows + r0
-            out_f.append(frame_row[rows])
-            out_b.append(box_row[rows])
+            g = torch.searchsorted(bounds, rows, right=True)
+            local, m = rows - first[g], per_frame[g]
+            out_f.append(local // m)
+            out_b.append(box_all[box_first[g] + local % m])
             out_m.append(marg)
 
     group: list = []
