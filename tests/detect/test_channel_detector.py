@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -161,6 +162,40 @@ def test_scales_scored_together_equal_one_call_per_scale(trained, frame, monkeyp
     for together, alone in zip(runs[big], runs[1], strict=True):
         for (wa, ma), (wb, mb) in zip(together, alone, strict=True):
             assert torch.equal(wa, wb) and torch.equal(ma, mb)
+
+
+@pytest.mark.parametrize("pad", [0.0, 0.1])
+def test_kept_windows_are_scored_as_in_the_whole_scan(trained, frame, pad):
+    """``keep_windows`` (a band of window bottoms, as a ground plane gives, and a column
+    range): the lattice covers only the rows and columns those windows read, and each kept
+    window gets the margin of the whole scan, bit for bit; the rest are not scored."""
+    det, _ = trained
+    frames = torch.stack([frame, frame.flip(-1)])
+    kw = {"min_scale": 0.5, "max_scale": 1.2, "scale_step": 1.15, "stride": 0.125, "pad": pad}
+    kw |= {"threshold": None, "margin": True, "nms_iou": None}
+
+    def keep(w):
+        bottom = w[:, 1] + w[:, 3]
+        return (bottom > 0.6 * w[:, 3] + 40) & (bottom < 1.4 * w[:, 3] + 60) & (w[:, 0] > 10)
+
+    calls = []
+
+    def spy(w):
+        calls.append(w.shape[0])
+        return keep(w)
+
+    for c in (None, -1e9):
+        whole = scan_batch(det, frames, cascade_threshold=c, **kw)
+        part = scan_batch(det, frames, cascade_threshold=c, keep_windows=spy, **kw)
+        for (wa, ma), (wb, mb) in zip(whole, part, strict=True):
+            k = keep(wa)
+            assert 0 < int(k.sum()) < wa.shape[0]
+            wa, ma = wa[k], ma[k]
+            oa, ob = (torch.from_numpy(np.lexsort(w.T.numpy()[::-1].copy())) for w in (wa, wb))
+            assert torch.equal(wa[oa], wb[ob]) and torch.equal(ma[oa], mb[ob])
+    assert len(calls) >= 4  # once per scale
+    none = scan_batch(det, frames, keep_windows=lambda w: w[:, 0] < -1e6, **kw)
+    assert all(w.shape[0] == 0 for w, _ in none)
 
 
 def test_scan_is_box_scoring_with_a_cascade_and_reports_object_boxes(trained, frame):

@@ -26,6 +26,7 @@ uses both (0.1 and 0.5).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -327,6 +328,7 @@ def _scan_lattice(
     batch: int,
     pad: float = 0.0,
     cascade_threshold: float | None = None,
+    keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
     margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``).
@@ -417,7 +419,9 @@ def _scan_lattice(
     group: list = []
     size = 0
     for s in scales:
-        lat = scale_lattice(ints, bank, s, step, outside=(ky, kx), frame_pad=(py, px))
+        lat = scale_lattice(
+            ints, bank, s, step, outside=(ky, kx), frame_pad=(py, px), keep_windows=keep_windows
+        )
         if lat is None:
             continue
         # without a cascade every window reads every tree: one scale per call keeps each
@@ -453,6 +457,7 @@ def scan(
     vote_iou: float | None = None,
     pad: float = 0.0,
     cascade_threshold: float | None = None,
+    keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Detect by scoring every sliding window of one frame.
 
@@ -485,6 +490,10 @@ def scan(
             threshold lowered to at most this running margin (a looser cascade: more windows
             survive, more found, slower; never stricter than the model's own); ``None``: the
             model's thresholds. Ignored by detectors without a cascade.
+        keep_windows: ``keep_windows(boxes (M, 4)) -> (M,) bool``: only the windows it keeps are scored
+            (called once per scale with that scale's windows, in frame coordinates): a region
+            of interest, or the sizes that fit a ground plane (the multi-target tracker's
+            ``ground_gate``). None: every window.
 
     Returns:
         ``boxes (K, 4)`` (windows, possibly starting at negative coordinates with ``pad``)
@@ -516,6 +525,7 @@ def scan(
         vote_iou=vote_iou,
         pad=pad,
         cascade_threshold=cascade_threshold,
+        keep_windows=keep_windows,
     )[0]
 
 
@@ -537,6 +547,7 @@ def scan_batch(
     vote_iou: float | None = None,
     pad: float = 0.0,
     cascade_threshold: float | None = None,
+    keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """:func:`scan` over a batch of same-size frames: batched integral images, the same
     windows scored on every frame, then threshold and NMS per frame.
@@ -586,7 +597,7 @@ def scan_batch(
             max_scale=max_scale,
         )
         fidx, boxes, marg = _scan_lattice(
-            detector, frames, scales, stride, cascade, batch, pad, cascade_threshold
+            detector, frames, scales, stride, cascade, batch, pad, cascade_threshold, keep_windows
         )
         scores = marg if margin else detector.proba_from_margin(marg)
         per_frame = [(boxes[fidx == f], scores[fidx == f]) for f in range(nb)]
@@ -600,6 +611,8 @@ def scan_batch(
             max_scale=max_scale,
             pad=pad,
         ).to(frames.device)
+        if keep_windows is not None:
+            boxes = boxes[keep_windows(boxes)]
         # windows reach at most pad x their size over an edge; the largest is s_max x window
         s_max = float(boxes[:, 2].max()) / detector.window[1] if boxes.shape[0] else 0.0
         py = math.ceil(pad * detector.window[0] * s_max - 1e-6)

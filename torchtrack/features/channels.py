@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -1199,6 +1200,7 @@ def scale_lattice(
     *,
     outside: tuple[int, int] = (0, 0),
     frame_pad: tuple[float, float] = (0.0, 0.0),
+    keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> Lattice | None:
     """The cell lattice of windows of ``scale`` (x the bank's window) over whole frames.
 
@@ -1210,9 +1212,13 @@ def scale_lattice(
     ``(i0, j0)`` reads the points ``(i0 + i, j0 + j)``; the values equal
     :func:`channel_features_at` of its box (in the frames of ``ints``).
 
+    ``keep_windows(boxes (M, 4)) -> (M,) bool`` keeps only some of the windows (frame pixels, as
+    the lattice's ``boxes``): the lattice then covers the rows and columns those windows read,
+    and nothing else is sampled.
+
     Returns:
         a :class:`Lattice` (boxes in the coordinates of the frame without its padding), or
-        ``None`` when no window fits.
+        ``None`` when no window fits (or ``keep_windows`` keeps none).
     """
     wh, ww = bank.window
     fh, fw = ints.frame_size
@@ -1245,9 +1251,6 @@ def scale_lattice(
     cols_j = (n_j - 1) * st_j + wc + 1
     tab = ints.level(lev)
     dev = tab.device
-    ys = torch.arange(rows_i, dtype=torch.float64, device=dev) * d + y_start / f
-    xs = torch.arange(cols_j, dtype=torch.float64, device=dev) * d + x_start / f
-    lat = _sample_product(tab, ys, xs)  # (B, rows_i, cols_j, C)
     oi = torch.arange(n_i, device=dev) * st_i
     oj = torch.arange(n_j, device=dev) * st_j
     gi, gj = torch.meshgrid(oi, oj, indexing="ij")
@@ -1261,6 +1264,19 @@ def scale_lattice(
         ),
         1,
     )
+    i0 = j0 = 0
+    if keep_windows is not None:
+        keep = keep_windows(boxes)
+        if not bool(keep.any()):
+            return None
+        origins, boxes = origins[keep], boxes[keep]
+        i0, j0 = int(origins[:, 0].min()), int(origins[:, 1].min())
+        rows_i = int(origins[:, 0].max()) - i0 + hc + 1
+        cols_j = int(origins[:, 1].max()) - j0 + wc + 1
+        origins = origins - torch.tensor([i0, j0], device=dev)
+    ys = (torch.arange(rows_i, dtype=torch.float64, device=dev) + i0) * d + y_start / f
+    xs = (torch.arange(cols_j, dtype=torch.float64, device=dev) + j0) * d + x_start / f
+    lat = _sample_product(tab, ys, xs)  # (B, rows_i, cols_j, C)
     return Lattice(
         lat.reshape(-1),
         (rows_i, cols_j),
