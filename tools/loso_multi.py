@@ -114,13 +114,9 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
 
 
 def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool) -> dict:
-    params = dict(params)
-    if own:  # cached scans come in as outside detections: keep the scan's birth threshold
-        cfg = MultiTrackerConfig(**params)
-        params.setdefault("external_birth_threshold", cfg.birth_threshold)
     mt = MultiTargetTracker(generator=torch.Generator().manual_seed(seed), **params)
-    with seq.open() as src:
-        rows = track_sequence(mt, src, dets, max_frames=seq.n_frames)
+    with seq.open() as src:  # cached scans go in as the tracker's own scans
+        rows = track_sequence(mt, src, dets, max_frames=seq.n_frames, as_scans=own)
     m = score_mot(seq.gt, rows, seq.n_frames, name=seq.name)
     return {"hota": 100 * m.hota, "mota": 100 * m.mota, "idf1": 100 * m.idf1}
 

@@ -106,6 +106,47 @@ def test_low_probability_detections_extend_but_never_start_targets():
         assert bool(out.detected.all()) and out.ids.tolist() == [1, 2, 3]
 
 
+def walkers(t):
+    """Four people on a ground plane seen from above: lower in the frame is taller (height
+    0.3 * foot row + 5), walking right at 2 px per frame."""
+    out = []
+    for i, foot in enumerate((100.0, 140.0, 180.0, 220.0)):
+        h = 0.3 * foot + 5.0
+        out.append([20.0 + 70 * i + 2 * t, foot - h, 0.4 * h, h])
+    return torch.tensor(out, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("gate", [0.4, 0.0])
+def test_a_confident_detection_off_the_ground_plane_starts_no_target(gate):
+    mt = make(ground_gate=gate)
+    for t in range(12):  # the line is learnt from the confirmed walkers' matches
+        out = mt.update(blank(), scan=(walkers(t), torch.ones(4)))
+    assert out.ids.tolist() == [1, 2, 3, 4]
+    assert mt.ground.fitted == (gate > 0)
+    # a person-sized window where a person would be 3.5x taller (a part of the background)
+    odd = torch.tensor([[250.0, 200.0, 8.0, 20.0]], dtype=torch.float64)
+    for t in range(12, 16):
+        out = mt.update(blank(), scan=(torch.cat([walkers(t), odd]), torch.ones(5)))
+    if gate > 0:
+        assert out.ids.tolist() == [1, 2, 3, 4]
+        assert mt.stats["detections off the ground plane"] == 4
+        a, b = mt.ground.line_.a, mt.ground.line_.b
+        assert abs(a - 0.3) < 0.01 and abs(b - 5.0) < 2.0
+    else:
+        assert out.ids.tolist() == [1, 2, 3, 4, 5]
+        assert mt.stats["detections off the ground plane"] == 0
+
+
+def test_detections_from_outside_are_not_gated_by_the_ground_plane():
+    mt = make()
+    odd = torch.tensor([[250.0, 200.0, 8.0, 20.0]], dtype=torch.float64)
+    for t in range(16):
+        boxes = walkers(t) if t < 12 else torch.cat([walkers(t), odd])
+        out = mt.update(blank(), (boxes, torch.ones(boxes.shape[0])))
+    assert out.ids.tolist() == [1, 2, 3, 4, 5]
+    assert not mt.ground.fitted and mt.scan_ground(40) is None
+
+
 def test_max_targets_bounds_the_batch():
     mt = make(max_targets=2)
     with pytest.warns(RuntimeWarning, match="max_targets=2"):
@@ -222,7 +263,7 @@ def test_reset_forgets_outside_detections():
     """After a video tracked on outside detections, reset() scans the next video again."""
     mt = make()
     calls = []
-    mt.detect = lambda frame: calls.append(1) or (torch.zeros((0, 4)), torch.zeros(0))
+    mt.detect = lambda frame, ground=None: calls.append(1) or (torch.zeros((0, 4)), torch.zeros(0))
     mt.update(blank(), (people(0), torch.ones(3)))
     mt.update(blank())
     assert calls == []  # outside detections given: no scan
@@ -251,6 +292,8 @@ def test_reset_forgets_outside_detections():
         ({"scan_cascade": float("-inf")}, "scan_cascade"),
         ({"scan_pad": 0.6}, "scan_pad"),
         ({"scan_vote": float("nan")}, "scan_vote"),
+        ({"ground_gate": -0.1}, "ground_gate"),
+        ({"ground_gate": float("inf")}, "ground_gate"),
     ],
 )
 def test_bad_config(kw, match):

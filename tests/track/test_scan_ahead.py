@@ -65,7 +65,7 @@ def test_frames_come_back_in_order_and_only_scan_frames_are_scanned(clip, monkey
     mt = make(scan_every=3)
     calls = []
     monkeypatch.setattr(
-        mt, "detect", lambda f: calls.append(1) or (torch.zeros(0, 4), torch.zeros(0))
+        mt, "detect", lambda f, g=None: calls.append(1) or (torch.zeros(0, 4), torch.zeros(0))
     )
     with ScanAhead(mt, 0) as ahead:
         got = list(ahead.frames(clip))
@@ -79,7 +79,7 @@ def test_frames_come_back_in_order_and_only_scan_frames_are_scanned(clip, monkey
 def test_an_error_in_a_worker_comes_back_typed(clip, monkeypatch):
     mt = make()
 
-    def bad(frame):
+    def bad(frame, ground=None):
         raise ShapeError("a scan failed on purpose")
 
     monkeypatch.setattr(mt, "detect", bad)  # inherited by the forked workers
@@ -90,7 +90,8 @@ def test_an_error_in_a_worker_comes_back_typed(clip, monkeypatch):
 @needs_fork
 def test_a_worker_that_dies_is_a_tracker_error(clip, monkeypatch):
     mt = make()
-    monkeypatch.setattr(mt, "detect", lambda frame: os._exit(3))  # in the forked worker
+    # in the forked worker
+    monkeypatch.setattr(mt, "detect", lambda frame, ground=None: os._exit(3))
     with ScanAhead(mt, 1) as ahead, pytest.raises(TrackerError, match="--scan-workers 0"):
         list(ahead.frames(clip))
 
@@ -102,6 +103,8 @@ def test_bad_settings_and_misplaced_scans(clip):
             ScanAhead(mt, bad)
     with pytest.raises(ConfigError, match="depth"):
         ScanAhead(mt, 1, depth=0)
+    with pytest.raises(ConfigError, match="at most 16 frames"):
+        ScanAhead(mt, 1, depth=17)  # beyond the ground plane's lag
     frame = clip[0][1]
     none = (torch.zeros(0, 4), torch.zeros(0))
     mt.update(frame, scan=none)  # frame 1: scanned
@@ -110,6 +113,27 @@ def test_bad_settings_and_misplaced_scans(clip):
     mt.update(frame)
     with pytest.raises(TrackerError, match="does not scan"):
         mt.update(frame, none, scan=none)  # with outside detections
+
+
+@needs_fork
+def test_scans_that_keep_the_ground_plane_windows_give_the_same_tracks_ahead(one_thread):
+    """Once the ground plane is learnt, each scan scores only the windows that fit the line of
+    GROUND_LAG frames before: the same line whether the scan runs here or ahead in a worker."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+    from torchtrack.track.multi import GROUND_LAG
+
+    with open_source(demo_clip_path()) as src:
+        frames = list(itertools.islice(src.items(), GROUND_LAG + 14))
+    alone = make()
+    ref = [alone.update(f) for _, f in frames]
+    assert alone.scan_ground(len(frames) - 1) is not None  # the last scans were restricted
+    assert alone.ground.fitted and alone.ground.line_.a > 0
+    mt = make()
+    got, _ = run(mt, frames, workers=2)
+    same_tracks(ref, got)
+    with pytest.raises(TrackerError, match="at most 16 frames ahead"):
+        mt.scan_ground(len(frames) + GROUND_LAG)
 
 
 @needs_fork

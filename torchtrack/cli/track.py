@@ -39,6 +39,10 @@ modes:
   frames, all targets share one batched particle filter whose likelihood is the detector's
   calibrated probability, detections are assigned to targets optimally, new targets are
   confirmed over a few scans and end when lost or out of the frame (at most --max-targets).
+  The ground plane (object height against foot row) is learnt from the video's confirmed
+  targets: once it holds, the scans skip the windows of the wrong size for their place and
+  such detections are dropped (multi:ground_gate=0 turns it off; nothing changes in a scene
+  that is not one ground plane).
   Options of the multi-target tracker: --tracker multi:key=value,... or --config
   configs/trackers/multi.toml. With --box x,y,w,h (pixels, top-left corner, 0-based, on the first
   readable frame) one target is followed by --tracker (default: detector); a box sticking out of

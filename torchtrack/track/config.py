@@ -226,6 +226,16 @@ class MultiTrackerConfig:
             leave-one-sequence-out, ``docs/multi_target.md``) keeps a detection that barely
             touches a target, most often a neighbour's, from pulling it over; it also means a
             matched target is never re-seeded while ``reseed_overlap`` is 0.3.
+        ground_gate: detections whose height is further than this (a log ratio, 0.4 = 49% taller
+            or 33% shorter) from the video's own ground-plane line, height against foot row
+            (:class:`torchtrack.track.ground.GroundPlane`, fitted online to the boxes of
+            confirmed, confidently matched targets), are dropped before association: windows
+            of a person's size at the wrong place. Boxes cut by the frame's top or bottom edge
+            are kept; until the line rests on enough boxes, and in a scene that is not a ground
+            plane (a moving camera), nothing is dropped. Once the line holds, the scans score
+            only the windows that fit it (the line of ``GROUND_LAG`` frames before), which is
+            what makes the scan faster. Detections given from outside (``--detections``) are
+            taken as they come. 0: off.
         max_cost: pairs costing more are not made (see :mod:`torchtrack.track.association`).
         w_overlap, w_appearance: weights of the overlap and appearance cues in the cost.
         appearance: ``"colour"`` (an online HSV histogram per target, Pérez et al. 2002) or
@@ -289,6 +299,7 @@ class MultiTrackerConfig:
     max_targets: int = 100
     birth_overlap: float = 0.3
     overlap_gate: float = 0.3
+    ground_gate: float = 0.4
     max_cost: float = 0.8
     w_overlap: float = 1.0
     w_appearance: float = 0.5
@@ -363,6 +374,7 @@ class MultiTrackerConfig:
             "appearance_lambda",
             "lost_noise_growth",
             "exclusion",
+            "ground_gate",
         ):
             v = getattr(self, k)
             if not (math.isfinite(v) and v >= 0):

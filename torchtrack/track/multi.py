@@ -8,6 +8,11 @@ predicted and weighted in one call per frame. Per frame:
 1. **Predict** every target (its motion noise widens while it goes unmatched).
 2. **Detect** every ``scan_every`` frames (or take detections given from outside): the detector
    scans the frame; its windows become object boxes (:meth:`~torchtrack.detect.Detector.window_to_object`).
+   Once the video's ground plane (:class:`~torchtrack.track.ground.GroundPlane`: object height
+   against foot row, learnt from the confirmed targets' confident matches) holds, the scan
+   scores only the windows whose object box fits it (the line of ``GROUND_LAG`` frames before,
+   so that scans run ahead in other processes give the same detections) and detections that do
+   not fit the current line are dropped (``ground_gate``).
 3. **Associate** (:mod:`torchtrack.track.association`, ``scipy.optimize.linear_sum_assignment``)
    in ByteTrack's order, which calibrated probabilities make meaningful: confirmed targets with
    the confident detections (``>= birth_threshold``) on overlap through the filter plus
@@ -43,6 +48,7 @@ Example::
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import warnings
@@ -60,8 +66,14 @@ from torchtrack.observe.detector import DetectorObservation
 from torchtrack.track.association import association_cost, expected_iou, linear_assignment
 from torchtrack.track.config import MultiTrackerConfig, apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import load_dynamics, resolve_detector
+from torchtrack.track.ground import GroundLine, GroundPlane
 
 __all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_sequence"]
+
+#: the scan of frame t keeps the windows that fit the ground plane as it was after frame
+#: t - GROUND_LAG (so scans run ahead in other processes, at most this many frames ahead, use
+#: the same line as scans run here)
+GROUND_LAG = 16
 
 
 @dataclass
@@ -132,6 +144,7 @@ class MultiTargetTracker:
 
             self._bins = HSVBins()
         self._warned_full = False
+        self.ground = GroundPlane()
         self.reset()
 
     # -- state -------------------------------------------------------------------------------
@@ -156,6 +169,8 @@ class MultiTargetTracker:
         self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
         self._next_id = 1
         self._scans = 0
+        self.ground.reset()
+        self._lines: collections.deque = collections.deque(maxlen=GROUND_LAG + 1)
         # the detector's noise, squared (estimated from the video: detection_sigma_rate)
         self._sigma2 = self.config.detection_sigma**2
         #: counts of what happened: births, confirmations, re-seeds, deaths by reason
@@ -194,9 +209,15 @@ class MultiTargetTracker:
         return self.detector.window_to_object(self._windows(self.states, self.ref))
 
     # -- detections ----------------------------------------------------------------------------
-    def detect(self, frame: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def detect(
+        self, frame: torch.Tensor, ground: GroundLine | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scan ``frame (C, H, W)``: object boxes ``(M, 4)`` float64 and calibrated
-        probabilities ``(M,)`` of the detections at least ``detection_threshold``."""
+        probabilities ``(M,)`` of the detections at least ``detection_threshold``.
+
+        ``ground`` (:meth:`scan_ground`, with ``ground_gate`` on): only the windows whose
+        object box fits that line (or that the frame's top or bottom edge cuts) are scored;
+        the rest of the frame's windows would be dropped before association anyway."""
         from torchtrack.detect.scan import scan
 
         cfg = self.config
@@ -217,8 +238,37 @@ class MultiTargetTracker:
             vote_iou=cfg.scan_vote or None,
             pad=cfg.scan_pad,
             cascade_threshold=cfg.scan_cascade or None,
+            keep_windows=None if ground is None or cfg.ground_gate <= 0 else self._fits(ground, fh),
         )
         return self.detector.window_to_object(wins.double()), p.double()
+
+    def _fits(self, line: GroundLine, height: int):
+        """The scan's window filter for ``line`` on frames ``height`` pixels tall."""
+        tol = self.config.ground_gate
+
+        def keep(windows: torch.Tensor) -> torch.Tensor:
+            boxes = self.detector.window_to_object(windows.double())
+            return _cut(boxes, height) | line.consistent(boxes, tol)
+
+        return keep
+
+    def scan_ground(self, t: int) -> GroundLine | None:
+        """The line the scan of frame ``t`` (0-based, counted as :meth:`update` counts) uses:
+        the ground plane as it was after frame ``t - GROUND_LAG``; None before that, while it
+        is not fitted, or with ``ground_gate`` off.
+
+        Raises:
+            TrackerError: that frame is further back than this tracker remembers, or not
+                tracked yet (a scan more than ``GROUND_LAG`` frames ahead)."""
+        if not self._ground_on() or t < GROUND_LAG:
+            return None
+        for i, line in self._lines:
+            if i == t - GROUND_LAG:
+                return line
+        raise TrackerError(
+            f"the scan of frame {t + 1} needs the ground plane after frame {t - GROUND_LAG + 1}, "
+            f"which this tracker does not hold (scans at most {GROUND_LAG} frames ahead)"
+        )
 
     # -- the frame step ------------------------------------------------------------------------
     def update(
@@ -264,12 +314,18 @@ class MultiTargetTracker:
         elif scan is not None:
             det_boxes, det_p = self._check_detections(scan)
         elif not self._external and t % cfg.scan_every == 0:
-            det_boxes, det_p = self.detect(frame)
+            det_boxes, det_p = self.detect(frame, self.scan_ground(t))
         else:
             det_boxes = det_p = None
         scan = det_boxes is not None
         if scan:
             keep = det_p >= cfg.detection_threshold
+            if self._ground_on() and bool(keep.any()):
+                # a window of a person's size at the wrong place: a patch of background, a
+                # part of one person, a group
+                off = keep & ~self._on_ground(det_boxes)
+                self.stats["detections off the ground plane"] += int(off.sum())
+                keep &= ~off
             det_boxes, det_p = det_boxes[keep], det_p[keep]
         bin_map = None
         need = (scan and det_boxes.shape[0] > 0) or (
@@ -316,6 +372,8 @@ class MultiTargetTracker:
             free = [j for j in range(det_boxes.shape[0]) if j not in used]
             self._births(det_boxes, det_p, free, bin_map)
         self._deaths()
+        if self._ground_on():
+            self._lines.append((t, self.ground.line_))
         return self._report()
 
     # -- steps ---------------------------------------------------------------------------------
@@ -352,6 +410,18 @@ class MultiTargetTracker:
         ok = torch.isfinite(boxes).all(1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
         ok &= torch.isfinite(p)
         return boxes[ok], p[ok].clamp(0.0, 1.0)
+
+    def _ground_on(self) -> bool:
+        """The ground plane is learnt and used on this tracker's own scans (``ground_gate``);
+        detections given from outside are taken as they come."""
+        return self.config.ground_gate > 0 and not self._external
+
+    def _on_ground(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` bool: object boxes ``(M, 4)`` whose height agrees with the ground plane
+        learnt so far (``ground_gate``), or that the frame's top or bottom edge cuts."""
+        return _cut(boxes, self.frame_size[0]) | self.ground.consistent(
+            boxes, self.config.ground_gate
+        )
 
     def _predict(self) -> None:
         cfg = self.config
@@ -592,6 +662,12 @@ class MultiTargetTracker:
             self._next_id += 1
         self.confirmed |= newly
         self.stats["confirmed"] += int(newly.sum())
+        if self._ground_on() and bool(hit.any()):
+            # the ground plane learns from the confident matches of confirmed targets
+            sure = hit & self.confirmed & (det_p[matched.clamp_min(0)] >= self._birth_threshold())
+            if bool(sure.any()):
+                boxes = det_boxes[matched[sure]]
+                self.ground.add(boxes[~_cut(boxes, self.frame_size[0])])
         if bin_map is not None and cfg.appearance_rate > 0:
             rows = torch.nonzero(hit).flatten()
             if rows.numel():
@@ -780,12 +856,19 @@ class MultiTargetTracker:
         )
 
 
+def _cut(boxes: torch.Tensor, height: int) -> torch.Tensor:
+    """``(M,)`` bool: object boxes ``(M, 4)`` that the top or bottom edge of a frame ``height``
+    pixels tall cuts (their height says nothing of where their foot is)."""
+    return (boxes[:, 1] <= 0) | (boxes[:, 1] + boxes[:, 3] >= height - 1)
+
+
 def track_sequence(
     tracker: MultiTargetTracker,
     frames,
     detections=None,
     max_frames: int | None = None,
     scan_workers: int = 0,
+    as_scans: bool = False,
 ):
     """Run ``tracker`` over ``frames`` and collect the reported targets.
 
@@ -802,6 +885,9 @@ def track_sequence(
         scan_workers: without ``detections``, scan the coming frames in this many forked
             processes (:class:`~torchtrack.track.scan_ahead.ScanAhead`: the same tracks); 0
             scans in this process.
+        as_scans: ``detections`` are a cache of this tracker's own scans (:meth:`detect`):
+            they go in as ``update(frame, scan=...)``, with the scan's thresholds and the
+            ground plane, instead of as detections from outside.
 
     Returns:
         :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target.
@@ -834,6 +920,8 @@ def track_sequence(
             if per_frame is not None and (tracker.frame_index + 1) % tracker.config.scan_every == 0:
                 idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
                 d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
+            if as_scans:
+                d, scan = None, d
             out = tracker.update(frame, d, scan=scan)
             if len(out):
                 f_.append(torch.full((len(out),), i, dtype=torch.int64))

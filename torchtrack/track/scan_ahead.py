@@ -1,8 +1,10 @@
 """Scan ahead: the multi-target tracker's detector scans of the coming frames, in worker
 processes, while the tracker steps the current frame.
 
-A scan depends on its frame only (not on the targets), so the frames the tracker will scan can
-be scanned before it gets to them. :class:`ScanAhead` keeps up to ``depth`` frames in flight
+A scan depends on its frame and on the tracker's ground plane as it was ``GROUND_LAG`` frames
+before (:meth:`~torchtrack.track.multi.MultiTargetTracker.scan_ground`; not on the targets of
+the moment), so the frames the tracker will scan can be scanned before it gets to them, up to
+``GROUND_LAG`` frames ahead. :class:`ScanAhead` keeps up to ``depth`` frames in flight
 over ``workers`` processes and hands them back in order, each with its scan::
 
     mt = MultiTargetTracker("pedestrian")
@@ -11,8 +13,8 @@ over ``workers`` processes and hands them back in order, each with its scan::
             out = mt.update(frame, scan=scan)
 
 The tracks are the ones of ``mt.update(frame)`` (the workers run the tracker's own
-:meth:`~torchtrack.track.multi.MultiTargetTracker.detect`, one torch thread each); only the
-time changes. On two cores the scan of a 480x360 frame takes ~160 ms and the rest of the step
+:meth:`~torchtrack.track.multi.MultiTargetTracker.detect` with the line ``scan_ground`` gives,
+one torch thread each); only the time changes. On two cores the scan of a 480x360 frame takes ~160 ms and the rest of the step
 ~40 ms: two workers let the scans of two frames and the tracker's step share the cores
 (``docs/multi_target.md``, "Speed").
 
@@ -199,6 +201,15 @@ class Ahead:
             yield key, result
 
 
+def _scan_with(tracker: Any) -> Any:
+    """``(frame, ground line) -> tracker.detect(frame, line)``: what the workers run."""
+
+    def fn(arg: tuple[torch.Tensor, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        return tracker.detect(*arg)
+
+    return fn
+
+
 class ScanAhead(Ahead):
     """Detector scans of the coming frames in ``workers`` forked processes (see the module).
 
@@ -207,14 +218,22 @@ class ScanAhead(Ahead):
             (its ``detect`` and ``config.scan_every``); it must be fresh or reset, since the
             frames it scans are counted from the first one given here.
         workers: processes; 0 (or no fork on this platform): the scans run in this process.
-        depth: frames in flight at most (default ``2 * workers``); memory stays bounded.
+        depth: frames in flight at most (default ``2 * workers``, at most ``GROUND_LAG``);
+            memory stays bounded.
 
     Raises:
-        ConfigError: ``workers < 0`` or ``depth < 1``.
+        ConfigError: ``workers < 0``, ``depth < 1`` or ``depth > GROUND_LAG``.
     """
 
     def __init__(self, tracker: Any, workers: int, depth: int | None = None) -> None:
-        super().__init__(tracker.detect, workers, depth)
+        super().__init__(_scan_with(tracker), workers, depth)
+        from torchtrack.track.multi import GROUND_LAG
+
+        if self.depth > GROUND_LAG:
+            raise ConfigError(
+                f"scan-ahead depth must be at most {GROUND_LAG} frames (the scans use the "
+                f"tracker's ground plane of {GROUND_LAG} frames before), got {self.depth}"
+            )
         self.tracker = tracker
 
     def frames(
@@ -222,7 +241,8 @@ class ScanAhead(Ahead):
     ) -> Iterator[tuple[int, torch.Tensor | None, tuple[torch.Tensor, torch.Tensor] | None]]:
         """``(index, frame, scan)`` for every ``(index, frame)`` of ``items``, in order.
 
-        ``scan`` is this frame's ``tracker.detect(frame)`` on the frames the tracker scans
+        ``scan`` is this frame's ``tracker.detect(frame, tracker.scan_ground(k))`` (``k`` the
+        tracker's count of the frame) on the frames the tracker scans
         (every ``scan_every``-th readable frame, from the first), None on the others and for
         unreadable frames (``frame`` None, skipped by the count as the tracker skips them).
 
@@ -236,8 +256,11 @@ class ScanAhead(Ahead):
             k = 0
             for i, frame in items:
                 scanned = frame is not None and k % every == 0
+                # asked for when the frame is sent: the tracker is then at most `depth` frames
+                # behind it, so the line of GROUND_LAG frames before is known
+                arg = (frame, self.tracker.scan_ground(k)) if scanned else None
                 k += frame is not None
-                yield (i, frame), frame if scanned else None
+                yield (i, frame), arg
 
         for (i, frame), scan in self.map(scans(), where=lambda key: f"frame {key[0] + 1}"):
             yield i, frame, scan
