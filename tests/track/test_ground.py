@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchtrack.errors import ConfigError
 from torchtrack.track.ground import GroundPlane
 
 
@@ -129,3 +130,18 @@ def test_the_ground_truth_of_both_mot_sequences_lies_on_a_learnt_line_real_data(
         half[:, 1] += half[:, 3] / 2
         half[:, 3] /= 2
         assert float(gp.consistent(half, 0.4).double().mean()) < 0.05, seq.name
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"capacity": 10, "min_samples": 20}, "min_samples"),
+        ({"min_samples": 1}, "min_samples"),
+        ({"max_sd": 0.0}, "max_sd"),
+        ({"min_inliers": 1.5}, "min_inliers"),
+        ({"min_spread": float("nan")}, "min_spread"),
+    ],
+)
+def test_bad_settings(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        GroundPlane(**kw)

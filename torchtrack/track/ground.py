@@ -28,6 +28,8 @@ from typing import NamedTuple
 
 import torch
 
+from torchtrack.errors import ConfigError
+
 __all__ = ["GroundLine", "GroundPlane"]
 
 #: floor of the residuals' robust spread: adults' heights alone vary by about 5% (log sd), so a
@@ -93,6 +95,18 @@ class GroundPlane:
         max_sd: float = 0.15,
         min_inliers: float = 0.6,
     ) -> None:
+        if not 2 <= int(min_samples) <= int(capacity):
+            raise ConfigError(
+                f"need 2 <= min_samples <= capacity, got min_samples={min_samples}, "
+                f"capacity={capacity}"
+            )
+        for name, v, ok in (
+            ("min_spread", min_spread, min_spread >= 0),
+            ("max_sd", max_sd, max_sd > 0),
+            ("min_inliers", min_inliers, 0 < min_inliers <= 1),
+        ):
+            if not (ok and math.isfinite(v)):
+                raise ConfigError(f"GroundPlane {name} out of range: {v}")
         self.capacity = int(capacity)
         self.min_samples = int(min_samples)
         self.min_spread = float(min_spread)
