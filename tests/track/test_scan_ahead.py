@@ -105,6 +105,7 @@ def test_bad_settings_and_misplaced_scans(clip):
         ScanAhead(mt, 1, depth=0)
     with pytest.raises(ConfigError, match="at most 16 frames"):
         ScanAhead(mt, 1, depth=17)  # beyond the ground plane's lag
+    assert ScanAhead(mt, 12).depth == 16  # many workers: capped, not refused
     frame = clip[0][1]
     none = (torch.zeros(0, 4), torch.zeros(0))
     mt.update(frame, scan=none)  # frame 1: scanned

@@ -218,17 +218,19 @@ class ScanAhead(Ahead):
             (its ``detect`` and ``config.scan_every``); it must be fresh or reset, since the
             frames it scans are counted from the first one given here.
         workers: processes; 0 (or no fork on this platform): the scans run in this process.
-        depth: frames in flight at most (default ``2 * workers``, at most ``GROUND_LAG``);
-            memory stays bounded.
+        depth: frames in flight at most (default ``2 * workers``, capped at ``GROUND_LAG``;
+            a larger one is an error); memory stays bounded.
 
     Raises:
         ConfigError: ``workers < 0``, ``depth < 1`` or ``depth > GROUND_LAG``.
     """
 
     def __init__(self, tracker: Any, workers: int, depth: int | None = None) -> None:
-        super().__init__(_scan_with(tracker), workers, depth)
         from torchtrack.track.multi import GROUND_LAG
 
+        super().__init__(_scan_with(tracker), workers, depth)
+        if depth is None:  # many workers: no more in flight than the ground plane allows
+            self.depth = min(self.depth, GROUND_LAG)
         if self.depth > GROUND_LAG:
             raise ConfigError(
                 f"scan-ahead depth must be at most {GROUND_LAG} frames (the scans use the "
