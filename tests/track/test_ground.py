@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.track.ground import GroundPlane
 
 
@@ -145,3 +145,19 @@ def test_the_ground_truth_of_both_mot_sequences_lies_on_a_learnt_line_real_data(
 def test_bad_settings(kw, match):
     with pytest.raises(ConfigError, match=match):
         GroundPlane(**kw)
+
+
+def test_two_things_seen_on_many_frames_draw_no_line():
+    """Two static boxes (false detections of the background, say) repeated over 30 frames fit
+    a line perfectly; the line needs boxes of three targets."""
+    a = torch.tensor([[10.0, 100.0, 16.0, 40.0]], dtype=torch.float64)
+    b = torch.tensor([[200.0, 150.0, 30.0, 80.0]], dtype=torch.float64)
+    gp = GroundPlane()
+    for _ in range(30):
+        gp.add(torch.cat([a, b]), torch.tensor([1, 2]))
+    assert not gp.fitted
+    walker = on_line(10, a=40.0 / 140.0, b=0.0, noise=0.0, seed=5)  # on the same line
+    gp.add(walker, torch.full((10,), 3))
+    assert gp.fitted
+    with pytest.raises(ShapeError, match="3 ids"):
+        gp.add(on_line(2), torch.tensor([1, 2, 3]))

@@ -3,17 +3,18 @@
 People (or cars) stand on the ground: with the camera above it and no roll, an object of height
 ``H`` whose foot point is on image row ``y`` appears ``h = H (y - y_0) / y_c`` pixels tall
 (``y_0`` the horizon's row, ``y_c`` the camera's height; Hoiem, Efros and Hebert, "Putting
-objects in perspective", CVPR 2006, eq. 1). With object heights alike, the image height is a
+objects in perspective", CVPR 2006). With object heights alike, the image height is a
 straight line in the foot row, ``h = a y + b`` with ``a > 0``: lower in the frame is nearer and
 taller. A detection whose height is far from that line is a window the size of a person at the
 wrong place: a patch of texture, a part of one person, a group of several.
 
 :class:`GroundPlane` fits that line online, robustly, to the boxes of confirmed, confidently
 matched targets, and says how far a box's height is from it as a log ratio. It makes no claim
-before it has the evidence: the line is used only once it rests on ``min_samples`` boxes whose
-foot rows spread over at least ``min_spread`` of their median height, its slope is positive, and
-at least ``min_inliers`` of the boxes lie within ``max_sd``-scaled residuals of it; a moving or
-tilting camera, or objects of very different heights, leave it unfitted (nothing gated). Far
+before it has the evidence: the line is used only once it rests on ``min_samples`` boxes of at
+least ``min_targets`` targets whose foot rows spread over at least ``min_spread`` of their
+median height, its slope is positive, its residuals' robust spread is at most ``max_sd`` and
+at least ``min_inliers`` of the boxes lie within three such spreads of it; a moving or tilting
+camera, or objects of very different heights, leave it unfitted (nothing gated). Far
 from the rows it was fitted on, the allowance grows with the fit's standard error there (a
 regression's prediction interval), so an extrapolated line does not reject what it never saw.
 
@@ -28,7 +29,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = ["GroundLine", "GroundPlane"]
 
@@ -85,6 +86,9 @@ class GroundPlane:
             scene is not a ground plane with objects of one height: the line is not used.
         min_inliers: fraction of the boxes within three robust spreads of the line below which
             the line is not used.
+        min_targets: the line's inliers must come from at least this many targets (the
+            ``ids`` given to :meth:`add`): two things seen on many frames, false detections of
+            a static background say, draw a line too.
     """
 
     def __init__(
@@ -94,6 +98,7 @@ class GroundPlane:
         min_spread: float = 0.1,
         max_sd: float = 0.15,
         min_inliers: float = 0.6,
+        min_targets: int = 3,
     ) -> None:
         if not 2 <= int(min_samples) <= int(capacity):
             raise ConfigError(
@@ -112,12 +117,15 @@ class GroundPlane:
         self.min_spread = float(min_spread)
         self.max_sd = float(max_sd)
         self.min_inliers = float(min_inliers)
+        self.min_targets = max(1, int(min_targets))
         self.reset()
 
     def reset(self) -> None:
         """Forget every box (a new video)."""
         self._foot = torch.zeros(0, dtype=torch.float64)
         self._height = torch.zeros(0, dtype=torch.float64)
+        self._ids = torch.zeros(0, dtype=torch.int64)
+        self._anon = 0  # boxes added without ids count as one target each (negative ids)
         #: the line while it is used, else None
         self.line_: GroundLine | None = None
 
@@ -126,16 +134,24 @@ class GroundPlane:
         """True while the line is used."""
         return self.line_ is not None
 
-    def add(self, boxes: torch.Tensor) -> None:
-        """Remember object boxes ``(M, 4)`` x, y, w, h in pixels (boxes with a non-positive or
-        non-finite height are ignored); only the last ``capacity`` are kept."""
+    def add(self, boxes: torch.Tensor, ids: torch.Tensor | None = None) -> None:
+        """Remember object boxes ``(M, 4)`` x, y, w, h in pixels of the targets ``ids (M,)``
+        (None: each box its own target); boxes with a non-positive or non-finite height are
+        ignored; only the last ``capacity`` are kept."""
         boxes = torch.as_tensor(boxes, dtype=torch.float64).reshape(-1, 4)
+        if ids is None:
+            ids = -1 - self._anon - torch.arange(boxes.shape[0], dtype=torch.int64)
+            self._anon += boxes.shape[0]
+        ids = torch.as_tensor(ids, dtype=torch.int64).reshape(-1)
+        if ids.shape[0] != boxes.shape[0]:
+            raise ShapeError(f"{boxes.shape[0]} boxes but {ids.shape[0]} ids")
         ok = torch.isfinite(boxes).all(1) & (boxes[:, 3] > 0)
         if not bool(ok.any()):
             return
         boxes = boxes[ok]
         self._foot = torch.cat([self._foot, boxes[:, 1] + boxes[:, 3]])[-self.capacity :]
         self._height = torch.cat([self._height, boxes[:, 3]])[-self.capacity :]
+        self._ids = torch.cat([self._ids, ids[ok]])[-self.capacity :]
         self._refit()
 
     def _refit(self) -> None:
@@ -176,6 +192,8 @@ class GroundPlane:
         if int(inl.sum()) < self.min_samples:
             return
         if not (a > 0 and sd <= self.max_sd and float(inl.double().mean()) >= self.min_inliers):
+            return
+        if int(torch.unique(self._ids[inl]).numel()) < self.min_targets:
             return
         yi = y[inl]
         mean = float(yi.mean())

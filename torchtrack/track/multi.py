@@ -666,8 +666,9 @@ class MultiTargetTracker:
             # the ground plane learns from the confident matches of confirmed targets
             sure = hit & self.confirmed & (det_p[matched.clamp_min(0)] >= self._birth_threshold())
             if bool(sure.any()):
-                boxes = det_boxes[matched[sure]]
-                self.ground.add(boxes[~_cut(boxes, self.frame_size[0])])
+                boxes, ids = det_boxes[matched[sure]], self.ids[sure]
+                whole = ~_cut(boxes, self.frame_size[0])
+                self.ground.add(boxes[whole], ids[whole])
         if bin_map is not None and cfg.appearance_rate > 0:
             rows = torch.nonzero(hit).flatten()
             if rows.numel():
