@@ -490,10 +490,10 @@ def scan(
             threshold lowered to at most this running margin (a looser cascade: more windows
             survive, more found, slower; never stricter than the model's own); ``None``: the
             model's thresholds. Ignored by detectors without a cascade.
-        keep_windows: ``keep_windows(boxes (M, 4)) -> (M,) bool``: only the windows it keeps are scored
-            (called once per scale with that scale's windows, in frame coordinates): a region
-            of interest, or the sizes that fit a ground plane (the multi-target tracker's
-            ``ground_gate``). None: every window.
+        keep_windows: ``keep_windows(boxes (M, 4)) -> (M,) bool``: only the windows it keeps
+            are scored (called once per scale with that scale's windows, in frame
+            coordinates): a region of interest, or the sizes that fit a ground plane (the
+            multi-target tracker's ``ground_gate``). None: every window.
 
     Returns:
         ``boxes (K, 4)`` (windows, possibly starting at negative coordinates with ``pad``)
