@@ -51,7 +51,8 @@ def test_external_detections_to_csv_and_mot(clip, dets, tmp_path, capsys):
     first = next(r for r in m if r[1] == "1")
     assert int(first[0]) == 2 and abs(float(first[2]) - 27.0) < 4  # 1-based frame and pixels
     assert vid.stat().st_size > 0
-    assert "2 target(s)" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "2 target(s)" in said and "ground plane" not in said  # outside detections: no line
 
 
 def test_video_without_any_target_writes_empty_tracks(clip, tmp_path, capsys):
@@ -180,7 +181,10 @@ def test_the_readme_main_job_follows_the_clips_people_with_one_identity_each(
 
     out = tmp_path / "demo.mot.txt"
     assert main(["track", "demo", "--mot", str(out), "--no-progress"]) == 0
-    capsys.readouterr()
+    # the summary says what ground plane the clip gave (PETS: about h = 0.23 y + 11)
+    said = capsys.readouterr().out
+    a = float(said.split("ground plane: h = ")[1].split(" y")[0])
+    assert 0.15 < a < 0.3, said
     res = np.loadtxt(out, delimiter=",", ndmin=2)
     gt = np.loadtxt(data_dir / "mot" / "PETS09-S2L1" / "gt" / "gt.txt", delimiter=",")
     gt = gt[(gt[:, 0] > 600) & (gt[:, 0] <= 670) & (gt[:, 6] != 0)]

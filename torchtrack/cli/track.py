@@ -279,6 +279,7 @@ class TrackSummary:
     ended_early: bool
     status: int
     identities: int | None = None
+    ground: str | None = None
 
     @property
     def fps(self) -> float:
@@ -290,7 +291,8 @@ class TrackSummary:
             f"tracked {self.frames} frames in {self.seconds:.1f} s: {self.fps:.1f} fps (tracker "
             f"only), {self.frames / max(self.seconds, 1e-9):.1f} fps overall; {self.unreadable} "
             "unreadable frame(s)" + (" (the video ended early)" if self.ended_early else "") + who
-        )
+            + (f"; {self.ground}" if self.ground else "")
+        )  # fmt: skip
 
 
 def track_source(
@@ -421,7 +423,9 @@ def _interrupted(exc: BaseException) -> int:
     return status
 
 
-def _summary(source, src, n_frames, t0, t_track, status, identities=None) -> TrackSummary:
+def _summary(
+    source, src, n_frames, t0, t_track, status, identities=None, ground=None
+) -> TrackSummary:
     import time
 
     return TrackSummary(
@@ -433,6 +437,7 @@ def _summary(source, src, n_frames, t0, t_track, status, identities=None) -> Tra
         ended_early=bool(src.ended_early),
         status=status,
         identities=identities,
+        ground=ground,
     )
 
 
@@ -585,7 +590,9 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
             file=sys.stderr,
         )
     t_track += ahead.seconds  # the scans, or the wait for them
-    return _summary(source, src, n_frames, t0, t_track, status, identities=len(seen))
+    return _summary(
+        source, src, n_frames, t0, t_track, status, identities=len(seen), ground=mt.ground_summary()
+    )
 
 
 def parse_box(text: str):

@@ -411,6 +411,21 @@ class MultiTargetTracker:
         ok &= torch.isfinite(p)
         return boxes[ok], p[ok].clamp(0.0, 1.0)
 
+    def ground_summary(self) -> str | None:
+        """One line on the ground plane of the video so far (None when it is not in use: off,
+        or detections given from outside)."""
+        if not self._ground_on():
+            return None
+        off = self.stats["detections off the ground plane"]
+        line = self.ground.line_
+        if line is None:
+            return "no ground plane learnt (every window scanned)"
+        return (
+            f"ground plane: h = {line.a:.3f} y {'+' if line.b >= 0 else '-'} {abs(line.b):.1f} px "
+            f"at foot row y ({line.n} boxes, log-height sd {line.sd:.3f}); {off} detection(s) "
+            "off it dropped"
+        )
+
     def _ground_on(self) -> bool:
         """The ground plane is learnt and used on this tracker's own scans (``ground_gate``);
         detections given from outside are taken as they come."""
