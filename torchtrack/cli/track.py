@@ -287,12 +287,13 @@ class TrackSummary:
 
     def line(self) -> str:
         who = "" if self.identities is None else f"; {self.identities} target(s)"
+        if self.ground:
+            who += f"; {self.ground}"
         return (
             f"tracked {self.frames} frames in {self.seconds:.1f} s: {self.fps:.1f} fps (tracker "
             f"only), {self.frames / max(self.seconds, 1e-9):.1f} fps overall; {self.unreadable} "
             "unreadable frame(s)" + (" (the video ended early)" if self.ended_early else "") + who
-            + (f"; {self.ground}" if self.ground else "")
-        )  # fmt: skip
+        )
 
 
 def track_source(

@@ -885,6 +885,8 @@ def channel_features_at(
     lj = torch.arange(lw, dtype=torch.float64, device=dev) * cell
     out = torch.empty((b, n, k), dtype=torch.float32, device=dev)
     compact = _compact_lattice(pts, k, lw, lh * lw, len(bank.channels.channels), dev)
+    if compact is not None:  # the lattice columns and rows of the points each channel reads
+        pj_, pi_ = (compact[0] % lw).reshape(-1), (compact[0] // lw).reshape(-1)
     present = torch.unique(levels).tolist()
     for lev in present:
         if len(present) == 1:
@@ -936,7 +938,6 @@ def channel_features_at(
                 # bilinear values as the whole lattice's read.
                 pos, rows, _ = compact
                 nch, npos = pos.shape
-                pj_, pi_ = (pos % lw).reshape(-1), (pos // lw).reshape(-1)
                 vals = torch.stack(
                     [
                         F.grid_sample(
