@@ -238,19 +238,19 @@ class MultiTargetTracker:
             vote_iou=cfg.scan_vote or None,
             pad=cfg.scan_pad,
             cascade_threshold=cfg.scan_cascade or None,
-            keep_windows=None if ground is None or cfg.ground_gate <= 0 else self._fits(ground, fh),
+            keep_windows=None
+            if ground is None or cfg.ground_gate <= 0
+            else lambda w: self._on_line(self.detector.window_to_object(w.double()), ground, fh),
         )
         return self.detector.window_to_object(wins.double()), p.double()
 
-    def _fits(self, line: GroundLine, height: int):
-        """The scan's window filter for ``line`` on frames ``height`` pixels tall."""
-        tol = self.config.ground_gate
-
-        def keep(windows: torch.Tensor) -> torch.Tensor:
-            boxes = self.detector.window_to_object(windows.double())
-            return _cut(boxes, height) | line.consistent(boxes, tol)
-
-        return keep
+    def _on_line(self, boxes: torch.Tensor, line: GroundLine | None, height: int) -> torch.Tensor:
+        """``(M,)`` bool: object boxes ``(M, 4)`` whose height fits ``line`` (``ground_gate``),
+        or that the top or bottom edge of a frame ``height`` pixels tall cuts; all True
+        without a line."""
+        if line is None:
+            return torch.ones(boxes.shape[0], dtype=torch.bool, device=boxes.device)
+        return _cut(boxes, height) | line.consistent(boxes, self.config.ground_gate)
 
     def scan_ground(self, t: int) -> GroundLine | None:
         """The line the scan of frame ``t`` (0-based, counted as :meth:`update` counts) uses:
@@ -323,7 +323,7 @@ class MultiTargetTracker:
             if self._ground_on() and bool(keep.any()):
                 # a window of a person's size at the wrong place: a patch of background, a
                 # part of one person, a group
-                off = keep & ~self._on_ground(det_boxes)
+                off = keep & ~self._on_line(det_boxes, self.ground.line_, self.frame_size[0])
                 self.stats["detections off the ground plane"] += int(off.sum())
                 keep &= ~off
             det_boxes, det_p = det_boxes[keep], det_p[keep]
@@ -374,6 +374,7 @@ class MultiTargetTracker:
         self._deaths()
         if self._ground_on():
             self._lines.append((t, self.ground.line_))
+            self.stats["frames with a ground plane"] += self.ground.line_ is not None
         return self._report()
 
     # -- steps ---------------------------------------------------------------------------------
@@ -416,27 +417,28 @@ class MultiTargetTracker:
         or detections given from outside)."""
         if not self._ground_on():
             return None
-        off = self.stats["detections off the ground plane"]
-        line = self.ground.line_
-        if line is None:
+        used, off = (
+            self.stats["frames with a ground plane"],
+            self.stats["detections off the ground plane"],
+        )
+        if not used:
             return "no ground plane learnt (every window scanned)"
+        line = self.ground.line_
+        now = (
+            "no line at the end (its boxes no longer agreed on one)"
+            if line is None
+            else f"h = {line.a:.3f} y {'+' if line.b >= 0 else '-'} {abs(line.b):.1f} px at foot "
+            f"row y ({line.n} boxes, log-height sd {line.sd:.3f})"
+        )
         return (
-            f"ground plane: h = {line.a:.3f} y {'+' if line.b >= 0 else '-'} {abs(line.b):.1f} px "
-            f"at foot row y ({line.n} boxes, log-height sd {line.sd:.3f}); {off} detection(s) "
-            "off it dropped"
+            f"ground plane: {now}; a line on {used} of {self.frame_index + 1} frames, "
+            f"{off} detection(s) off it dropped"
         )
 
     def _ground_on(self) -> bool:
         """The ground plane is learnt and used on this tracker's own scans (``ground_gate``);
         detections given from outside are taken as they come."""
         return self.config.ground_gate > 0 and not self._external
-
-    def _on_ground(self, boxes: torch.Tensor) -> torch.Tensor:
-        """``(M,)`` bool: object boxes ``(M, 4)`` whose height agrees with the ground plane
-        learnt so far (``ground_gate``), or that the frame's top or bottom edge cuts."""
-        return _cut(boxes, self.frame_size[0]) | self.ground.consistent(
-            boxes, self.config.ground_gate
-        )
 
     def _predict(self) -> None:
         cfg = self.config
