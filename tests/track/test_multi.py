@@ -294,6 +294,10 @@ def test_reset_forgets_outside_detections():
         ({"scan_vote": float("nan")}, "scan_vote"),
         ({"ground_gate": -0.1}, "ground_gate"),
         ({"ground_gate": float("inf")}, "ground_gate"),
+        ({"birth_floor": 0.05}, "birth_floor"),
+        ({"birth_floor": 1.5}, "birth_floor"),
+        ({"birth_margin": -1.0}, "birth_margin"),
+        ({"birth_margin": float("nan")}, "birth_margin"),
     ],
 )
 def test_bad_config(kw, match):
@@ -417,3 +421,83 @@ def test_score_probabilities_of_raw_scores():
     assert p(-0.15, 61.0, 122.0) == [0.0, 0.5, 1.0]  # MOT15-like: / the highest
     assert p(-5.0, -3.0, -1.0) == [0.0, 0.5, 1.0]  # none positive: lowest -> 0, highest -> 1
     assert p(-1.0, -1.0) == [1.0, 1.0]  # no ranking at all: every detection counts
+
+
+def painted(t, boxes=None):
+    """A still grey frame with the walkers of frame ``t`` painted on it (they move, so their
+    boxes change from frame to frame while the background does not)."""
+    f = blank()
+    for x, y, w, h in (walkers(t) if boxes is None else boxes).round().long().tolist():
+        f[:, y : y + h, x : x + w] = 200
+    return f
+
+
+def test_births_adapt_to_a_video_whose_people_all_score_low():
+    """Four walkers whose every detection is 0.997 (logit 5.8, below birth_threshold's 9.2):
+    with a fixed threshold nobody is ever started; adapted to the video's level (5.8 - 2 logits,
+    held at birth_floor 0.995) all four are, once MIN_LEVEL_SCANS scans gave that level."""
+    from torchtrack.track.multi import MIN_LEVEL_SCANS
+
+    def run(**kw):
+        mt = make(ground_gate=0.0, **kw)
+        seen = []
+        for t in range(20):
+            out = mt.update(painted(t), scan=(walkers(t), torch.full((4,), 0.997)))
+            seen.append(out.ids.tolist())
+        return mt, seen
+
+    mt, seen = run()
+    assert seen[-1] == [1, 2, 3, 4]
+    assert all(s == [] for s in seen[: MIN_LEVEL_SCANS - 1])  # the level is not known yet
+    assert abs(mt._birth_threshold() - 0.995) < 1e-9
+    assert "threshold down to 0.995 (from 0.9999)" in mt.birth_summary()
+    fixed, seen = run(birth_floor=0.9999)
+    assert all(s == [] for s in seen) and fixed.birth_summary() is None
+    # a video whose detections reach the detector's usual level is not touched
+    sure = make(ground_gate=0.0)
+    for t in range(20):
+        sure.update(painted(t), scan=(walkers(t), torch.full((4,), 0.99999)))
+    assert sure._birth_threshold() == 0.9999 and sure.birth_summary() is None
+
+
+def test_an_adapted_birth_must_be_moving():
+    """The same low-level detections on a still patch of background (nothing changes in their
+    boxes) start nobody: below birth_threshold a window must also move."""
+    mt = make(ground_gate=0.0)
+    still = walkers(0)
+    for _ in range(20):
+        out = mt.update(painted(0, still), scan=(still, torch.full((4,), 0.997)))
+        assert len(out) == 0
+    assert mt.stats["adapted births refused: not moving"] > 0 and mt.stats["born"] == 0
+    # a confident one is started wherever it is (the usual threshold needs no motion)
+    for _ in range(3):
+        out = mt.update(painted(0, still), scan=(still, torch.ones(4)))
+    assert out.ids.tolist() == [1, 2, 3, 4]
+
+
+def test_jogging1_low_level_video_is_tracked_real_data(data_dir, one_thread):
+    """OTB Jogging1 (a moving camera following two joggers, 352x288): the detector finds the
+    annotated jogger on most frames but never at P >= 0.9999 (median 0.997), so with a fixed
+    birth threshold the multi-target tracker started nobody on the whole video. Adapted to
+    the video's level it follows her on most of the first 100 frames."""
+    from torchtrack.boxes import box_iou_matrix
+    from torchtrack.io.sequences import load_sequence
+
+    seq = load_sequence(data_dir / "tracking" / "otb" / "Jogging1")[0].head(100)
+    gt = seq.boxes.to(torch.float64)
+
+    def covered(**kw):
+        mt = make(**kw)
+        hit = 0
+        with seq.open() as src:
+            for i, f in src.items():
+                out = mt.update(f)
+                hit += bool(len(out)) and bool(
+                    (box_iou_matrix(gt[i : i + 1], out.boxes) >= 0.5).any()
+                )
+        return hit, mt
+
+    hit, mt = covered()
+    assert hit >= 50, hit
+    assert mt.birth_summary() is not None
+    assert covered(birth_floor=0.9999)[0] == 0

@@ -42,7 +42,9 @@ modes:
   The ground plane (object height against foot row) is learnt from the video's confirmed
   targets: once it holds, the scans skip the windows of the wrong size for their place and
   such detections are dropped (multi:ground_gate=0 turns it off; nothing changes in a scene
-  that is not one ground plane).
+  that is not one ground plane). On video where the detector is less sure of everyone (low
+  contrast, noise), the birth threshold adapts down to the video's own level, and a new target
+  below the usual threshold must be moving (multi:birth_floor=0.9999 keeps it fixed).
   Options of the multi-target tracker: --tracker multi:key=value,... or --config
   configs/trackers/multi.toml. With --box x,y,w,h (pixels, top-left corner, 0-based, on the first
   readable frame) one target is followed by --tracker (default: detector); a box sticking out of
@@ -592,7 +594,14 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         )
     t_track += ahead.seconds  # the scans, or the wait for them
     return _summary(
-        source, src, n_frames, t0, t_track, status, identities=len(seen), ground=mt.ground_summary()
+        source,
+        src,
+        n_frames,
+        t0,
+        t_track,
+        status,
+        identities=len(seen),
+        ground="; ".join(x for x in (mt.ground_summary(), mt.birth_summary()) if x) or None,
     )
 
 

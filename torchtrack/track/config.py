@@ -207,6 +207,13 @@ class MultiTrackerConfig:
         birth_threshold: detections at least this confident start targets and take part in the
             first association (the model's own scans: its calibrated probability on crops
             under-states how rare a person-like window is in a whole frame, hence 0.9999).
+        birth_floor: on video where the detector is less sure of everyone (low contrast,
+            noise, a camera or scene unlike its training crops), ``birth_threshold`` adapts down
+            to the video's own level: ``birth_margin`` logits below the median of the last
+            scans' best detections, never below this floor nor above ``birth_threshold``. On
+            video whose people score as the detector's training people do, nothing changes;
+            ``>= birth_threshold``: fixed.
+        birth_margin: see ``birth_floor`` (logits, >= 0).
         external_birth_threshold: the same for detections given from outside (``--detections``:
             another detector's scores, mapped to [0, 1]).
         confirm_hits: a new target is reported once it was matched on this many scans in a row
@@ -291,6 +298,8 @@ class MultiTrackerConfig:
     scan_cascade: float = -3.0
     detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
+    birth_floor: float = 0.995
+    birth_margin: float = 2.0
     external_birth_threshold: float = 0.5
     confirm_hits: int = 2
     max_lost: int = 30
@@ -328,6 +337,7 @@ class MultiTrackerConfig:
             self,
             "detection_threshold",
             "birth_threshold",
+            "birth_floor",
             "external_birth_threshold",
             "visible_threshold",
             "overlap_gate",
@@ -343,6 +353,11 @@ class MultiTrackerConfig:
             raise ConfigError(
                 f"external_birth_threshold ({self.external_birth_threshold}) must be >= "
                 f"detection_threshold ({self.detection_threshold})"
+            )
+        if self.birth_floor < self.detection_threshold:
+            raise ConfigError(
+                f"birth_floor ({self.birth_floor}) must be >= detection_threshold "
+                f"({self.detection_threshold})"
             )
         if self.birth_threshold < self.detection_threshold:
             raise ConfigError(
@@ -375,6 +390,7 @@ class MultiTrackerConfig:
             "lost_noise_growth",
             "exclusion",
             "ground_gate",
+            "birth_margin",
         ):
             v = getattr(self, k)
             if not (math.isfinite(v) and v >= 0):

@@ -28,7 +28,12 @@ predicted and weighted in one call per frame. Per frame:
    below ``reseed_overlap``) is re-seeded around it; with the default gate (``overlap_gate``
    0.3 = ``reseed_overlap``) a pair that overlaps so little is not made in the first place.
 5. **Births and deaths**: a confident detection that matches nothing starts a tentative target,
-   confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row;
+   confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row.
+   "Confident" adapts to the video: where even its people score lower than the detector's
+   training people do (low contrast, noise, another camera), the threshold follows the
+   video's level down to ``birth_floor``, and a birth below ``birth_threshold`` must also be
+   moving (its box changed more than the frame does), so a person-like patch of a still
+   background does not start one;
    a target unmatched for more than ``max_lost`` frames, or whose box has left the frame, ends;
    so does a confirmed target that sits on another one (IoU above ``duplicate_iou``) and was
    matched less recently (ByteTrack's duplicate removal).
@@ -74,6 +79,18 @@ __all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_seq
 #: t - GROUND_LAG (so scans run ahead in other processes, at most this many frames ahead, use
 #: the same line as scans run here)
 GROUND_LAG = 16
+
+#: adaptive births (``birth_floor``): the video's detection level is the median of the best
+#: detection of each of its last LEVEL_SCANS scans, once there are MIN_LEVEL_SCANS of them
+LEVEL_SCANS = 64
+MIN_LEVEL_SCANS = 8
+#: a birth below ``birth_threshold`` (adapted to the video's level) also needs its box to have
+#: changed since MOTION_LAG frames before by MOTION_RATIO times the whole frame's median change,
+#: plus MOTION_MIN (on the sum of the frame's channels): something moves there, more than the
+#: camera's noise does
+MOTION_LAG = 4
+MOTION_RATIO = 2.0
+MOTION_MIN = 3.0
 
 
 @dataclass
@@ -169,6 +186,10 @@ class MultiTargetTracker:
         self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
         self._next_id = 1
         self._scans = 0
+        # the best logit of each recent scan, and the birth threshold they give
+        self._levels: collections.deque = collections.deque(maxlen=LEVEL_SCANS)
+        self._birth_p = self._lowest_birth_p = self.config.birth_threshold
+        self._grays: collections.deque = collections.deque(maxlen=MOTION_LAG + 1)
         self.ground.reset()
         self._lines: collections.deque = collections.deque(maxlen=GROUND_LAG + 1)
         # the detector's noise, squared (estimated from the video: detection_sigma_rate)
@@ -308,6 +329,8 @@ class MultiTargetTracker:
                 f"detections, or not every scan_every = {cfg.scan_every}-th frame)"
             )
         self.frame_index = t
+        if cfg.birth_floor < cfg.birth_threshold and detections is None and not self._external:
+            self._grays.append(frame.to(torch.int16).sum(0))
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
             self._external = True
@@ -327,6 +350,8 @@ class MultiTargetTracker:
                 self.stats["detections off the ground plane"] += int(off.sum())
                 keep &= ~off
             det_boxes, det_p = det_boxes[keep], det_p[keep]
+            if not self._external:
+                self._adapt_birth(det_p)
         bin_map = None
         need = (scan and det_boxes.shape[0] > 0) or (
             self.n_targets > 0 and cfg.appearance_lambda > 0
@@ -433,6 +458,18 @@ class MultiTargetTracker:
         return (
             f"ground plane: {now}; a line on {used} of {self.frame_index + 1} frames, "
             f"{off} detection(s) off it dropped"
+        )
+
+    def birth_summary(self) -> str | None:
+        """One line on adapted births (``birth_floor``) when the video's level took the birth
+        threshold below ``birth_threshold``; None otherwise."""
+        cfg = self.config
+        if self._lowest_birth_p >= cfg.birth_threshold:
+            return None
+        return (
+            f"births adapted to the video's detection level: threshold down to "
+            f"{self._lowest_birth_p:.6g} (from {cfg.birth_threshold:g}), "
+            f"{self.stats['adapted births refused: not moving']} still window(s) refused"
         )
 
     def _ground_on(self) -> bool:
@@ -712,6 +749,14 @@ class MultiTargetTracker:
     ) -> None:
         cfg = self.config
         cand = [j for j in free if float(det_p[j]) >= self._birth_threshold()]
+        low = [j for j in cand if float(det_p[j]) < cfg.birth_threshold and not self._external]
+        if low:
+            # below the model's own birth threshold a window must also be moving: a
+            # person-like patch of a still background does not start a target
+            moving = self._moving(det_boxes[low]).tolist()
+            still = {j for j, m in zip(low, moving, strict=True) if not m}
+            self.stats["adapted births refused: not moving"] += len(still)
+            cand = [j for j in cand if j not in still]
         if not cand:
             return
         boxes = det_boxes[cand]
@@ -771,6 +816,23 @@ class MultiTargetTracker:
             h = torch.zeros((k, self.hist.shape[1]), dtype=torch.float32)
         self.hist = torch.cat([self.hist, h])
 
+    def _moving(self, boxes: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` bool: object boxes ``(M, 4)`` whose pixels changed since ``MOTION_LAG``
+        frames before (or the oldest frame kept) by ``MOTION_RATIO`` times the whole frame's
+        median change: something moves there, more than the camera's noise or its own motion
+        moves the background."""
+        if len(self._grays) < 2:
+            return torch.zeros(boxes.shape[0], dtype=torch.bool)
+        d = (self._grays[-1] - self._grays[0]).abs()
+        level = float(d[::2, ::2].float().median()) * MOTION_RATIO + MOTION_MIN
+        h, w = d.shape
+        out = []
+        for x, y, bw, bh in boxes.tolist():
+            x0, y0 = max(int(x), 0), max(int(y), 0)
+            x1, y1 = min(math.ceil(x + bw), w), min(math.ceil(y + bh), h)
+            out.append(x1 > x0 and y1 > y0 and float(d[y0:y1, x0:x1].float().mean()) >= level)
+        return torch.tensor(out, dtype=torch.bool)
+
     def _estimated_boxes(self) -> torch.Tensor:
         est = self._estimate(self.states, self.log_weights)  # (T, 6)
         return self._with_aspect(
@@ -813,10 +875,31 @@ class MultiTargetTracker:
             self._keep(keep)
 
     def _birth_threshold(self) -> float:
-        """``birth_threshold`` for the model's own scans; ``external_birth_threshold`` once
-        detections come from outside (another detector's scores, on another scale)."""
+        """``birth_threshold`` for the model's own scans, adapted down to the video's level
+        (``birth_floor``); ``external_birth_threshold`` once detections come from outside
+        (another detector's scores, on another scale)."""
+        return self.config.external_birth_threshold if self._external else self._birth_p
+
+    def _adapt_birth(self, det_p: torch.Tensor) -> None:
+        """Note this scan's best detection ``det_p (M,)`` (the detections kept) and set the
+        birth threshold from the video's level: ``birth_margin`` logits below the median of
+        the last scans' best, within ``[birth_floor, birth_threshold]``."""
         cfg = self.config
-        return cfg.external_birth_threshold if self._external else cfg.birth_threshold
+        if cfg.birth_floor >= cfg.birth_threshold:
+            return
+        best = float(det_p.max()) if det_p.numel() else cfg.detection_threshold
+        self._levels.append(_logit(best))
+        if len(self._levels) < MIN_LEVEL_SCANS:
+            return
+        level = float(torch.tensor(list(self._levels)).median())
+        x = level - cfg.birth_margin
+        if x >= _logit(cfg.birth_threshold):
+            self._birth_p = cfg.birth_threshold
+        elif x <= _logit(cfg.birth_floor):
+            self._birth_p = cfg.birth_floor
+        else:
+            self._birth_p = 1.0 / (1.0 + math.exp(-x))
+        self._lowest_birth_p = min(self._lowest_birth_p, self._birth_p)
 
     def _duplicates(self) -> torch.Tensor:
         """``(T,)`` bool: confirmed targets that sit on another confirmed target (estimated
@@ -872,6 +955,13 @@ class MultiTargetTracker:
             f"MultiTargetTracker({self.detector.name!r}, targets={self.n_targets}, "
             f"scan_every={self.config.scan_every})"
         )
+
+
+def _logit(p: float) -> float:
+    """``log(p / (1 - p))`` of a probability, held within about +-27.6 (p in [1e-12,
+    1 - 1e-12])."""
+    p = min(max(p, 1e-12), 1.0 - 1e-12)
+    return math.log(p / (1.0 - p))
 
 
 def _cut(boxes: torch.Tensor, height: int) -> torch.Tensor:
