@@ -19,6 +19,14 @@ Usage::
     python tools/loso_multi.py --grid motion_noise=1,0.5,0.25,0.1 --seeds 0,1,2,3
     python tools/loso_multi.py --grid overlap_gate=0.1,0.3 --settings own:PETS09-S2L1,public:TUD-Stadtmitte
 
+With ``--degrade contrast=0.5,noise=8`` every sequence is replaced by a copy whose contrast is
+lowered about mid-grey and to which sensor noise (a fresh Gaussian draw per frame, seeded by the
+frame's index) is added, written once as a MOTChallenge folder under ``--cache``: video on
+which the detector is less sure of everyone, as on footage unlike its training crops (a check
+of adaptive births, ``birth_floor``).
+
+    python tools/loso_multi.py --grid birth_floor=0.9999,0.995 --degrade contrast=0.5,noise=8
+
 Prints a markdown table: HOTA mean ± sd over seeds (MOTA and IDF1 means beside), then the
 leave-one-sequence-out line. Nothing is timed.
 """
@@ -66,6 +74,49 @@ def load(data: Path, name: str) -> MotSequence:
             gt=data / "mot" / "PETS09-S2L1" / "gt" / "gt.txt",
         )
     return load_mot_sequence(data / "mot" / name)
+
+
+def degrade(frame: np.ndarray, contrast: float, noise: float, index: int) -> np.ndarray:
+    """``(H, W, C)`` uint8 with its contrast scaled by ``contrast`` about 128 and Gaussian
+    noise of sd ``noise`` (grey levels) added, the draw seeded by ``index``."""
+    out = (frame.astype(np.float32) - 128.0) * contrast + 128.0
+    if noise > 0:
+        out += np.random.default_rng(index).normal(0.0, noise, frame.shape).astype(np.float32)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
+    """``seq`` through :func:`degrade` (``spec``: ``contrast=C,noise=S``), written once as a
+    MOTChallenge folder (PNG frames, the ground truth in their pixels) under ``cache``."""
+    import cv2
+
+    try:
+        kv = dict(item.split("=") for item in spec.split(","))
+        contrast, noise = float(kv.pop("contrast", 1.0)), float(kv.pop("noise", 0.0))
+    except ValueError:
+        raise SystemExit(f"--degrade: expected contrast=C,noise=S, got {spec!r}") from None
+    if kv or not (0 < contrast <= 1 and noise >= 0):
+        raise SystemExit(f"--degrade: expected contrast=C (0, 1] and noise=S >= 0, got {spec!r}")
+    name = f"{seq.name}-c{contrast:g}-n{noise:g}"
+    out = cache / "degraded" / name
+    if not (out / "seqinfo.ini").is_file():
+        (out / "img1").mkdir(parents=True, exist_ok=True)
+        (out / "gt").mkdir(exist_ok=True)
+        n = 0
+        with seq.open() as src:
+            for i, frame in src.items():
+                if frame is None or i >= seq.n_frames:
+                    raise SystemExit(f"{seq.name}: frame {i + 1} unreadable")
+                img = degrade(frame.permute(1, 2, 0).numpy(), contrast, noise, i)
+                cv2.imwrite(str(out / "img1" / f"{i + 1:06d}.png"), img[..., ::-1])
+                n += 1
+        h, w = img.shape[:2]
+        write_mot(out / "gt" / "gt.txt", seq.gt)
+        (out / "seqinfo.ini").write_text(
+            f"[Sequence]\nname={name}\nimDir=img1\nframeRate={int(seq.frame_rate or 25)}\n"
+            f"seqLength={n}\nimWidth={w}\nimHeight={h}\nimExt=.png\n"
+        )
+    return load_mot_sequence(out)
 
 
 SCAN_KEYS = (
@@ -146,6 +197,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--cache", type=Path, default=REPO / "runs" / "loso_multi")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--degrade",
+        metavar="contrast=C,noise=S",
+        help="score on copies of the sequences with lowered contrast and added sensor noise",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     key, values = parse_grid(args.grid)
@@ -155,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         if kind not in KINDS or name not in SEQUENCES or (kind, name) == ("public", SEQUENCES[0]):
             raise SystemExit(f"unknown setting {kind}:{name}")
     seqs = {name: load(args.data, name) for name in {n for _, n in settings}}
+    if args.degrade:
+        seqs = {n: degraded(s, args.degrade, args.cache) for n, s in seqs.items()}
     res: dict[tuple, list[dict]] = {}
     t0 = time.perf_counter()
     for kind, name in settings:

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# The GPU checks in one run, for a machine with an NVIDIA GPU and its own CUDA build of torch
+# (no package index needed): the device tests, the whole suite, and tools/bench_gpu.py.
+#   WHEELS=dir   wheels to install first into /tmp/site (what the machine lacks: kornia, ...)
+#   TORCHTRACK_DATA=dir   holds tracking/bobot_pedestrian for the benchmark's SIR frame and eval
+#   OUT=dir      where the logs go (default ./runs/gpu_check)
+# Usage: bash tools/gpu_check.sh [suite|devices|bench ...]   (default: devices suite bench)
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT="${OUT:-runs/gpu_check}"; mkdir -p "$OUT"
+if [ -n "${WHEELS:-}" ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site "$WHEELS"/*.whl || exit 1
+  export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
+fi
+export PYTHONUNBUFFERED=1
+nvidia-smi -L
+python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.is_available(), torch.cuda.get_device_name(0))"
+steps=("${@:-devices suite bench}"); steps=(${steps[@]})
+for s in "${steps[@]}"; do
+  case $s in
+    devices) timeout 300 python3 -m pytest -q -rfEs -p no:cacheprovider tests/test_devices.py \
+               tests/filter/test_sir.py tests/filter/test_resample.py -k "device or cuda" \
+               2>&1 | tee "$OUT/devices.log" | tail -60 ;;
+    suite) TORCHTRACK_DATA=/nonexistent timeout 300 python3 -m pytest -q -p no:cacheprovider \
+             -n 12 -rfE 2>&1 | tee "$OUT/suite.log" | tail -40 ;;
+    bench) timeout 300 python3 tools/bench_gpu.py 2>&1 | tee "$OUT/bench.log" | tail -14 ;;
+  esac
+done
