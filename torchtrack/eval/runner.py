@@ -56,6 +56,7 @@ from pathlib import Path
 
 import torch
 
+from torchtrack.device import check_device
 from torchtrack.errors import ConfigError
 from torchtrack.eval.backends import worker_info
 from torchtrack.eval.metrics import (
@@ -123,10 +124,10 @@ class RunResult:
         )
 
 
-def _make_tracker(spec: str, seed: int):
+def _make_tracker(spec: str, seed: int, device: torch.device | str = "cpu"):
     name, params = parse_tracker_spec(spec)
     if tracker_info(name).accepts_generator and "generator" not in params:
-        params["generator"] = torch.Generator().manual_seed(seed)
+        params["generator"] = torch.Generator(device=device).manual_seed(seed)
     return create_tracker(name, **params)
 
 
@@ -150,6 +151,7 @@ def run_sequence(
     seed: int = 0,
     color: str = "rgb",
     on_frame: Callable[[int], None] | None = None,
+    device: torch.device | str = "cpu",
 ) -> RunResult:
     """Run the tracker ``spec`` (``name[:key=value,...]``) over ``seq``.
 
@@ -161,6 +163,9 @@ def run_sequence(
         seed: seed of the generator passed to trackers that take one.
         color: frame colour mode (:mod:`torchtrack.io.video`).
         on_frame: called with 1 after every frame (progress bars).
+        device: where the tracker runs: frames are moved there before the tracker sees them
+            (its generator is made there too); boxes come back on the CPU. The timing
+            (``update_seconds``) then includes the frame's copy to the device.
 
     Returns:
         A :class:`RunResult`; exceptions raised by the tracker are caught into ``error``.
@@ -168,7 +173,8 @@ def run_sequence(
     Raises:
         ConfigError: the spec does not build a tracker.
     """
-    tracker = _make_tracker(spec, seed)
+    device = check_device(device)
+    tracker = _make_tracker(spec, seed, device)
     t = len(seq)
     gt = seq.boxes
     boxes = torch.full((t, 4), math.nan, dtype=torch.float64)
@@ -195,9 +201,9 @@ def run_sequence(
                 res.init_frames.append(i)
                 if frame is not None and present:
                     t0 = time.perf_counter()
-                    st = tracker.init(frame, gt[i])
+                    st = tracker.init(frame.to(device), gt[i])
                     res.init_seconds += time.perf_counter() - t0
-                    boxes[i], visible[i], conf[i] = st.box[0], bool(st.visible[0]), 1.0
+                    boxes[i], visible[i], conf[i] = st.box[0].cpu(), bool(st.visible[0]), 1.0
                     initialised = True
                 elif frame is None:
                     res.bad_frames.append(i)
@@ -206,10 +212,10 @@ def run_sequence(
                 boxes[i] = boxes[i - 1]
             else:
                 t0 = time.perf_counter()
-                st = tracker.update(frame)
+                st = tracker.update(frame.to(device))
                 res.update_seconds += time.perf_counter() - t0
                 res.n_updates += 1
-                boxes[i] = st.box[0].to(torch.float64)
+                boxes[i] = st.box[0].to("cpu", torch.float64)
                 visible[i] = bool(st.visible[0])
                 conf[i] = float(st.confidence[0])
                 if reinit and present:
@@ -218,7 +224,7 @@ def run_sequence(
                     off = (c_pred - c_gt).abs()
                     if not bool(torch.isfinite(off).all()) or bool((off > break_px).any()):
                         t0 = time.perf_counter()
-                        tracker.init(frame, gt[i])
+                        tracker.init(frame.to(device), gt[i])
                         res.init_seconds += time.perf_counter() - t0
                         res.reinit_frames.append(i)
             if on_frame is not None:
@@ -244,10 +250,18 @@ def run_sequence(
 # ---------------------------------------------------------------------------------------------
 # The whole evaluation
 # ---------------------------------------------------------------------------------------------
-def _task(spec: str, seq: Sequence, reinit: bool, seed: int, invisible: str, color: str) -> dict:
+def _task(
+    spec: str,
+    seq: Sequence,
+    reinit: bool,
+    seed: int,
+    invisible: str,
+    color: str,
+    device: str = "cpu",
+) -> dict:
     """Run and score one (tracker, sequence, seed) task; returns a JSON-ready record."""
     t0 = time.perf_counter()
-    res = run_sequence(spec, seq, reinit=reinit, seed=seed, color=color)
+    res = run_sequence(spec, seq, reinit=reinit, seed=seed, color=color, device=device)
     return _task_record(res, seq, reinit, invisible, wall_seconds=time.perf_counter() - t0)
 
 
@@ -280,6 +294,7 @@ def evaluate(
     progress: bool = True,
     command: str | None = None,
     modules: Sequence_[str] = (),
+    device: str = "cpu",
 ) -> dict:
     """Run every tracker on every sequence and write the results (module doc).
 
@@ -296,7 +311,8 @@ def evaluate(
         max_retries: times Ray reruns a task whose worker died.
         reinit: add the re-initialising pass (Bachoo metrics).
         invisible: ``"box"`` | ``"miss"``, see :mod:`torchtrack.eval.metrics`.
-        seed, color: see :func:`run_sequence`.
+        seed, color, device: see :func:`run_sequence` (with ``jobs`` > 1 or Ray every worker
+            uses that device).
         progress: show a tqdm bar over the frames of the whole corpus.
         command: the command line to record in the outputs.
         modules: Python modules to import first, here and in every worker process (modules
@@ -328,6 +344,7 @@ def evaluate(
             importlib.import_module(mod)
         except ImportError as exc:
             raise ConfigError(f"cannot import tracker module {mod!r}: {exc}") from exc
+    device = str(check_device(device))
     validate_tracker_specs(trackers)
     check_backend(where)
     seqs = _unique_names(sequences)
@@ -353,13 +370,15 @@ def evaluate(
             for spec, s, m in tasks:
                 bar.set_postfix_str(f"{spec} / {s.name}", refresh=False)
                 t0 = time.perf_counter()
-                res = run_sequence(spec, s, reinit=m, seed=seed, color=color, on_frame=bar.update)
+                res = run_sequence(
+                    spec, s, reinit=m, seed=seed, color=color, on_frame=bar.update, device=device
+                )
                 done(_task_record(res, s, m, invisible, wall_seconds=time.perf_counter() - t0))
         else:
             # Longest sequences first: with several workers the last task to start is a short
             # one, so no worker idles long at the end.
             order = sorted(tasks, key=lambda t: -len(t[1]))
-            items = [(spec, s, m, seed, invisible, color) for spec, s, m in order]
+            items = [(spec, s, m, seed, invisible, color, device) for spec, s, m in order]
 
             def finished(i: int, value) -> None:
                 spec, s, m = order[i]

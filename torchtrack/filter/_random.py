@@ -15,7 +15,7 @@ import torch
 
 from torchtrack.errors import ConfigError
 
-__all__ = ["GeneratorLike", "rand", "randn", "subset"]
+__all__ = ["GeneratorLike", "rand", "randint", "randn", "randperm", "subset"]
 
 GeneratorLike = torch.Generator | Sequence[torch.Generator] | None
 
@@ -31,9 +31,10 @@ def _draw(
     lengths=None,
 ) -> torch.Tensor:
     if generator is None or isinstance(generator, torch.Generator):
-        if out is not None:
+        if out is not None and not _elsewhere(generator, device):
             return fn(shape, generator=generator, out=out)
-        return fn(shape, generator=generator, dtype=dtype, device=device)
+        got = _one(fn, shape, generator, dtype, device)
+        return got if out is None else out.copy_(got)
     gens = list(generator)
     if len(gens) != shape[0]:
         raise ConfigError(
@@ -48,14 +49,12 @@ def _draw(
     zeros = torch.zeros(shape[1:], dtype=dtype, device=device)
     if lengths is None:
         rows = [
-            fn(shape[1:], generator=g, dtype=dtype, device=device) if on else zeros
+            _one(fn, shape[1:], g, dtype, device) if on else zeros
             for g, on in zip(gens, flags, strict=True)
         ]
     else:  # row b draws its first lengths[b] entries only (2-D shapes)
         rows = [
-            torch.cat([fn((k,), generator=g, dtype=dtype, device=device), zeros[k:]])
-            if on
-            else zeros
+            torch.cat([_one(fn, (k,), g, dtype, device), zeros[k:]]) if on else zeros
             for g, on, k in zip(gens, flags, lengths, strict=True)
         ]
     return torch.stack(rows) if out is None else torch.stack(rows, out=out)
@@ -92,6 +91,47 @@ def randn(
     """Standard normal draws of ``shape = (B, ...)``; row b from ``generator[b]`` if a list
     (see ``rand`` for ``active``)."""
     return _draw(torch.randn, tuple(shape), generator, dtype, device, active)
+
+
+def _one(fn, shape: tuple[int, ...], generator: torch.Generator | None, dtype, device):
+    """``fn(shape)`` from ``generator`` on ``device``; a generator of another device type
+    draws its own stream where it lives, then the draw is moved to ``device``."""
+    if not _elsewhere(generator, device):
+        return fn(shape, generator=generator, dtype=dtype, device=device)
+    return fn(shape, generator=generator, dtype=dtype, device=generator.device).to(device)
+
+
+def _elsewhere(generator: torch.Generator | None, device) -> bool:
+    """Whether ``generator`` lives on another device type than ``device`` (a CPU generator
+    drawing for CUDA tensors or the reverse: torch refuses to draw there directly)."""
+    if generator is None:
+        return False
+    want = torch.device(device) if device is not None else torch.device("cpu")
+    return generator.device.type != want.type
+
+
+def randperm(
+    n: int, generator: torch.Generator | None, device: torch.device | None = None
+) -> torch.Tensor:
+    """A random permutation of ``0..n-1`` (int64) on ``device``, drawn from ``generator``
+    wherever that generator lives (the same numbers as ``torch.randperm`` there)."""
+    where = generator.device if generator is not None else device
+    return torch.randperm(n, generator=generator, device=where).to(device or "cpu")
+
+
+def randint(
+    low: int,
+    high: int,
+    shape: tuple[int, ...],
+    generator: torch.Generator | None,
+    device: torch.device | None = None,
+) -> torch.Tensor:
+    """Uniform integers in ``[low, high)`` of ``shape`` (int64) on ``device``, drawn from
+    ``generator`` wherever that generator lives."""
+    where = generator.device if generator is not None else device
+    return torch.randint(low, high, tuple(shape), generator=generator, device=where).to(
+        device or "cpu"
+    )
 
 
 def subset(generator: GeneratorLike, rows: list[int]) -> GeneratorLike:

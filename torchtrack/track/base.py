@@ -172,7 +172,8 @@ class Tracker(abc.ABC):
                     f"tracker {self.name!r} needs an initial box: init(frame, box=(x, y, w, h))"
                 )
         else:
-            boxes = torch.as_tensor(box, dtype=torch.float64)
+            # a tracker runs where its frames are: its boxes go there too
+            boxes = torch.as_tensor(box).to(frame.device, torch.float64)
             if boxes.ndim == 1:
                 boxes = boxes.reshape(1, -1)
             if boxes.ndim != 2 or boxes.shape[-1] != 4:

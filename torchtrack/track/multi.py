@@ -63,7 +63,7 @@ from typing import Any
 
 import torch
 
-from torchtrack.errors import ShapeError, TrackerError
+from torchtrack.errors import ConfigError, ShapeError, TrackerError
 from torchtrack.filter.particles import normalize_with_lse
 from torchtrack.filter.resample import resample
 from torchtrack.filter.sir import get_estimator
@@ -149,6 +149,12 @@ class MultiTargetTracker:
                 )
             self.detector = resolve_detector(cfg.model)
         self.config = cfg
+        if generator is not None and generator.device.type != "cpu":
+            raise ConfigError(
+                f"the multi-target tracker's generator must be a CPU generator, got one on "
+                f"{generator.device}: its filter keeps its targets on the CPU (the scan and the "
+                "particles' likelihood run on the frame's device)"
+            )
         self.generator = generator
         self.observation = DetectorObservation(
             self.detector, floor=cfg.likelihood_floor, head=cfg.likelihood == "head"
@@ -263,7 +269,8 @@ class MultiTargetTracker:
             if ground is None or cfg.ground_gate <= 0
             else lambda w: self._on_line(self.detector.window_to_object(w.double()), ground, fh),
         )
-        return self.detector.window_to_object(wins.double()), p.double()
+        # the scan runs on the frame's device; the filter's bookkeeping lives on the CPU
+        return self.detector.window_to_object(wins.double()).cpu(), p.double().cpu()
 
     def _on_line(self, boxes: torch.Tensor, line: GroundLine | None, height: int) -> torch.Tensor:
         """``(M,)`` bool: object boxes ``(M, 4)`` whose height fits ``line`` (``ground_gate``),
@@ -330,7 +337,7 @@ class MultiTargetTracker:
             )
         self.frame_index = t
         if cfg.birth_floor < cfg.birth_threshold and detections is None and not self._external:
-            self._grays.append(frame.to(torch.int16).sum(0))
+            self._grays.append(frame.to(torch.int16).sum(0).cpu())
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
             self._external = True
@@ -359,7 +366,7 @@ class MultiTargetTracker:
         if self._bins is not None and need:
             from torchtrack.observe.histogram import hsv_bin_map
 
-            bin_map = hsv_bin_map(frame[None], self._bins)
+            bin_map = hsv_bin_map(frame[None], self._bins).cpu()
 
         matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
         if self.n_targets:
@@ -429,8 +436,8 @@ class MultiTargetTracker:
             raise ShapeError(
                 "detections must be a pair (boxes (M, 4), probabilities (M,))"
             ) from None
-        boxes = torch.as_tensor(boxes, dtype=torch.float64).reshape(-1, 4)
-        p = torch.as_tensor(p, dtype=torch.float64).reshape(-1)
+        boxes = torch.as_tensor(boxes).to("cpu", torch.float64).reshape(-1, 4)
+        p = torch.as_tensor(p).to("cpu", torch.float64).reshape(-1)
         if p.shape[0] != boxes.shape[0]:
             raise ShapeError(f"{boxes.shape[0]} detection boxes but {p.shape[0]} probabilities")
         ok = torch.isfinite(boxes).all(1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
@@ -531,8 +538,8 @@ class MultiTargetTracker:
     def _probabilities(self, frame: torch.Tensor) -> torch.Tensor:
         wins = self._windows(self.states, self.ref)
         t, n = wins.shape[:2]
-        p = self.observation.probabilities(frame[None], wins.reshape(1, t * n, 4))
-        return p.reshape(t, n).to(torch.float64)
+        p = self.observation.probabilities(frame[None], wins.reshape(1, t * n, 4).to(frame.device))
+        return p.reshape(t, n).to("cpu", torch.float64)
 
     def _histograms(self, bin_map: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
         from torchtrack.observe.histogram import box_histograms
