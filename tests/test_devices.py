@@ -54,7 +54,7 @@ def _gen(device: str, seed: int = 0) -> torch.Generator:
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_integral_channels_follow_the_device(frames, device):
-    from torchtrack.features.channels import channel_integrals
+    from torchtrack.features.channels import channel_integrals, compute_channels
     from torchtrack.features.integral import integral_image, rgb_to_gray
 
     f = frames[0][None]
@@ -64,10 +64,15 @@ def test_integral_channels_follow_the_device(frames, device):
     torch.testing.assert_close(got_ii.cpu(), ref_ii, rtol=1e-5, atol=1e-2)
     ref = channel_integrals(f)
     got = channel_integrals(f.to(device))
+    # channels in float32 (GPU and CPU round transcendental functions differently in the last
+    # bits), summed in float64: the tables agree to float32 rounding of the pixels summed
     for k in range(ref.max_level() + 1):
         a, b = ref.level(k), got.level(k)
         assert b.device.type == device
-        torch.testing.assert_close(b.cpu(), a, rtol=1e-5, atol=1e-2)
+        torch.testing.assert_close(b.cpu(), a, rtol=0, atol=1e-5 * float(a.abs().amax()))
+    ch_ref = compute_channels(f.float())
+    ch = compute_channels(f.to(device).float())
+    torch.testing.assert_close(ch.cpu(), ch_ref, rtol=1e-4, atol=1e-3)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -91,7 +96,9 @@ def test_detector_scores_on_device(frames, pedestrian, person, device):
     ref = pedestrian.score(frames[0][None], shifted)
     got = pedestrian.score(frames[0][None].to(device), shifted.to(device))
     assert got.device.type == device
-    torch.testing.assert_close(got.cpu(), ref, rtol=1e-4, atol=1e-4)
+    # boosted trees: a feature within float32 rounding of a split flips one leaf, which moves a
+    # probability by that leaf's share (about 0.01 seen on an H100), never more than a few
+    torch.testing.assert_close(got.cpu(), ref, rtol=0, atol=0.05)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -171,3 +178,18 @@ def test_eval_runner_on_device(frames, person, device, tmp_path):
     assert res.error is None, res.traceback
     assert res.boxes.device.type == "cpu" and bool(torch.isfinite(res.boxes).all())
     assert res.n_updates == len(frames) - 1
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_cli_track_on_device(person, device, tmp_path, capsys):
+    """``torchtrack track --device``: one target with --box, and every target, write their
+    files from a run on ``device``."""
+    from torchtrack.cli import main
+
+    box = ",".join(f"{v:.1f}" for v in person.tolist())
+    one, every = tmp_path / "one.csv", tmp_path / "every.mot.txt"
+    common = ["track", "demo", "--max-frames", "8", "--device", device, "--no-progress"]
+    assert main([*common, "--box", box, "--tracker", "detector", "--out", str(one)]) == 0
+    assert main([*common, "--mot", str(every), "--scan-workers", "0"]) == 0
+    assert len(one.read_text().splitlines()) == 9  # header + 8 frames
+    assert every.read_text().strip(), capsys.readouterr().out

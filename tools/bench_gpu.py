@@ -139,10 +139,10 @@ def bench_multi(dev: torch.device, targets: int, frames: int) -> dict:
         t0 = time.perf_counter()
         out = mt.update(frame, detections=dets)
         _sync(dev)
-        if mt.n_targets == targets and bool(mt.confirmed.all()):
+        if int(mt.confirmed.sum()) >= targets:
             times.append(time.perf_counter() - t0)
     if len(times) < 3:
-        raise SystemExit(f"multi: only {mt.n_targets} targets confirmed on {dev}")
+        raise SystemExit(f"multi: only {int(mt.confirmed.sum())} targets confirmed on {dev}")
     times = times[1:]  # the first frame with every target confirmed still warms up
     return {"ms": 1e3 * statistics.median(times), "frames": len(times), "reported": len(out)}
 

@@ -294,6 +294,12 @@ HB = "--tracker histogram:n_particles=50 --box 10,14,14,20"
 CASES: list[Case] = [
     # output paths, checked before any work
     E("track-out-is-dir", f"{T} {HB} -o {{o}}", "is an existing folder"),
+    E("track-device-unknown", f"{T} {HB} --device tpu -o {{o}}/t.csv", "expected 'cpu', 'cuda'"),
+    *(
+        []
+        if torch.cuda.is_available()
+        else [E("track-device-no-cuda", f"{T} {HB} --device cuda -o {{o}}/t.csv", "no CUDA")]
+    ),
     E("track-out-parent-missing", f"{T} {HB} -o {{o}}/no/such/out.csv", "does not exist"),
     E("track-out-parent-is-file", f"{T} {HB} -o {{c}}/afile/out.csv", "is not a folder"),
     E("track-out-empty", f"{T} {HB} -o ''", "empty path"),
@@ -820,6 +826,7 @@ for name, msg in {**FORGED_MSG, **MODEL_FILES_BAD}.items():
 EV = "eval --sequences {c}/seqs --trackers camshift --no-progress"
 CASES += [
     E("eval-out-file", f"{EV} -o {{c}}/afile", "is an existing file"),
+    E("eval-device-unknown", f"{EV} --device gpu0 -o {{o}}/e", "expected 'cpu', 'cuda'"),
     E("eval-out-parent", f"{EV} -o {{o}}/a/b", "does not exist"),
     E("eval-no-out", EV, "needs --out"),
     E("eval-no-sequences", "eval --trackers camshift -o {o}/r", "needs --sequences"),

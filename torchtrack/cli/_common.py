@@ -73,6 +73,24 @@ def add_threads(p: argparse.ArgumentParser, default: int = 1) -> None:
     )
 
 
+def add_device(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        default="cpu",
+        metavar="DEV",
+        help="where the trackers run: cpu (default), cuda or cuda:N (an NVIDIA GPU; frames are "
+        "copied there, outputs come back)",
+    )
+
+
+def device_of(args: argparse.Namespace):
+    """The checked ``--device`` as a :class:`torch.device` (:class:`ConfigError` for a device
+    this machine does not have)."""
+    from torchtrack.device import check_device
+
+    return check_device(getattr(args, "device", None))
+
+
 def show_progress(args: argparse.Namespace) -> bool:
     """Whether to draw progress bars (neither ``--no-progress`` nor ``--quiet``)."""
     return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))

@@ -18,7 +18,13 @@ import argparse
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_backend, add_progress, add_trust, seed_value
+    from torchtrack.cli._common import (
+        add_backend,
+        add_device,
+        add_progress,
+        add_trust,
+        seed_value,
+    )
 
     p = subparsers.add_parser(
         "eval",
@@ -128,6 +134,7 @@ def register(subparsers) -> None:
         "--seed", type=seed_value, default=0, help="seed for trackers that take a generator"
     )
     add_backend(p, "(tracker, sequence, seed)")
+    add_device(p)
     add_progress(p)
     add_trust(p)
     p.add_argument("--list-trackers", action="store_true", help="list tracker names and exit")
@@ -178,9 +185,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
-    from torchtrack.cli._common import backend_from_args, check_output_dir
+    from torchtrack.cli._common import backend_from_args, check_output_dir, device_of
     from torchtrack.eval.backends import check_backend
 
+    device = device_of(args)
     check_output_dir(args.out, "--out")
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate
@@ -209,6 +217,7 @@ def run(args: argparse.Namespace) -> int:
         progress=show_progress(args),
         command=command,
         modules=args.modules,
+        device=str(device),
     )
     print(overall_table(summary))
     print(f"results: {args.out}/results.json, {args.out}/results.md")

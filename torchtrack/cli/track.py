@@ -66,7 +66,13 @@ outputs:
 
 
 def register(subparsers) -> None:
-    from torchtrack.cli._common import add_progress, add_threads, add_trust, seed_value
+    from torchtrack.cli._common import (
+        add_device,
+        add_progress,
+        add_threads,
+        add_trust,
+        seed_value,
+    )
     from torchtrack.cli._corpus import add_corpus_options
 
     p = subparsers.add_parser(
@@ -160,6 +166,7 @@ def register(subparsers) -> None:
         "--seed", type=seed_value, default=0, help="seed of trackers that take a generator"
     )
     add_threads(p, default=1)
+    add_device(p)
     add_progress(p)
     add_trust(p)
     add_corpus_options(p)
@@ -201,7 +208,7 @@ def check_args(args: argparse.Namespace) -> None:
     (:class:`ConfigError` naming the option)."""
     import math
 
-    from torchtrack.cli._common import apply_threads
+    from torchtrack.cli._common import apply_threads, device_of
     from torchtrack.errors import ConfigError
 
     if args.max_frames is not None and args.max_frames < 1:
@@ -244,6 +251,7 @@ def check_args(args: argparse.Namespace) -> None:
         raise ConfigError("--det-calibration and --det-min-score apply to --detections FILE")
     if args.adapt is not None and multi:
         raise ConfigError("--adapt is an option of single-target trackers (give --box)")
+    device_of(args)  # a device this machine has, before any output is opened
     check_track_outputs(args, args.source, args.out, args.video, args.mot)
     apply_threads(args)
 
@@ -370,9 +378,11 @@ class _Outputs:
 def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
     import time
 
+    from torchtrack.cli._common import device_of
     from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
     from torchtrack.errors import TrackerError
 
+    device = device_of(args)
     csv = BoxWriter(out) if out else None
     vid = VideoOut(video, src.fps) if video else None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
@@ -391,15 +401,17 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
                     pending_bad.append(i)
                 continue
             t1 = time.perf_counter()
+            on = frame.to(device)
             if last is None:
                 if box is not None:
-                    state = tracker.init(frame, _checked_box(box, frame))
+                    state = tracker.init(on, _checked_box(box, frame))
                 elif getattr(tracker, "auto_init", False):
-                    state = tracker.init(frame, None)
+                    state = tracker.init(on, None)
                 else:
-                    state = tracker.init(frame, detect_box(args.detect, frame))
+                    state = tracker.init(on, detect_box(args.detect, on))
             else:
-                state = tracker.update(frame)
+                state = tracker.update(on)
+            state = _on_cpu(state)
             t_track += time.perf_counter() - t1
             if last is None and csv is not None:
                 for j in pending_bad:  # frames before the first readable one: no box yet
@@ -442,6 +454,22 @@ def _summary(
         identities=identities,
         ground=ground,
     )
+
+
+def _on_cpu(state):
+    """``state`` with its tensors on the CPU (writers and drawing read them there)."""
+    import dataclasses
+
+    import torch
+
+    if state.box.device.type == "cpu":
+        return state
+    moved = {
+        f.name: getattr(state, f.name).cpu()
+        for f in dataclasses.fields(state)
+        if isinstance(getattr(state, f.name), torch.Tensor)
+    }
+    return dataclasses.replace(state, **moved)
 
 
 def _nan_state(state):
@@ -536,6 +564,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     import sys
     import time
 
+    from torchtrack.cli._common import device_of
     from torchtrack.cli._track_io import (
         MotStreamWriter,
         MultiCsvWriter,
@@ -546,8 +575,11 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     from torchtrack.errors import TrackerError
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_workers
 
+    device = device_of(args)
     dets = external_detections(args, len(src) or None) if args.detections else None
-    workers = args.scan_workers if args.scan_workers is not None else default_scan_workers()
+    workers = args.scan_workers
+    if workers is None:  # scans on a GPU run in this process, next to the filter
+        workers = default_scan_workers() if device.type == "cpu" else 0
     csv = MultiCsvWriter(out) if out else None
     motw = MotStreamWriter(mot) if mot else None
     vid = VideoOut(video, src.fps) if video else None
@@ -569,9 +601,9 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 continue
             t1 = time.perf_counter()
             if dets is not None:
-                res = mt.update(frame, dets(i))
+                res = mt.update(frame.to(device), dets(i))
             else:
-                res = mt.update(frame, scan=scan)
+                res = mt.update(frame.to(device), scan=scan)
             t_track += time.perf_counter() - t1
             n_frames += 1
             run.tracked = n_frames
@@ -686,7 +718,9 @@ def build_tracker(args: argparse.Namespace, auto: bool):
     if args.detect is not None and "model" in accepted:
         params.setdefault("model", args.detect)
     if info.accepts_generator and "generator" not in params:
-        params["generator"] = torch.Generator().manual_seed(args.seed)
+        from torchtrack.cli._common import device_of
+
+        params["generator"] = torch.Generator(device=device_of(args)).manual_seed(args.seed)
     tracker = create_tracker(name, **params)
     if not auto and args.detect is not None and "model" not in accepted:
         raise ConfigError(

@@ -197,13 +197,14 @@ class Detector:
         n_trees, calibrator = self.tracking_head
         head = self.classifier.truncated(int(n_trees))
         used = torch.unique(head.feature_)
-        remap = torch.full((self.feature_index.numel(),), -1, dtype=torch.long)
-        remap[used] = torch.arange(used.numel())
+        dev = used.device
+        remap = torch.full((self.feature_index.numel(),), -1, dtype=torch.long, device=dev)
+        remap[used] = torch.arange(used.numel(), device=dev)
         head.feature_ = remap[head.feature_]
         head.n_features_in_ = int(used.numel())
         return replace(
             self,
-            feature_index=self.feature_index[used],
+            feature_index=self.feature_index[used.cpu()],
             classifier=head,
             calibrator=calibrator,
             name=f"{self.name}[:{n_trees}]",
@@ -241,8 +242,10 @@ class Detector:
         import math
 
         fh, fw = int(frames.shape[-2]), int(frames.shape[-1])
+        boxes = boxes.to(frames.device)  # the frame's device wins
         if ok is None:
             ok = torch.ones(boxes.shape[:2], dtype=torch.bool, device=boxes.device)
+        ok = ok.to(boxes.device)
         if not bool(ok.any()):
             return self.integrals(frames), boxes
         x, y, w, h = boxes.unbind(-1)

@@ -612,7 +612,7 @@ def scan_batch(
             pad=pad,
         ).to(frames.device)
         if keep_windows is not None:
-            boxes = boxes[keep_windows(boxes)]
+            boxes = boxes[keep_windows(boxes).to(boxes.device)]
         # windows reach at most pad x their size over an edge; the largest is s_max x window
         s_max = float(boxes[:, 2].max()) / detector.window[1] if boxes.shape[0] else 0.0
         py = math.ceil(pad * detector.window[0] * s_max - 1e-6)

@@ -1267,7 +1267,7 @@ def scale_lattice(
     )
     i0 = j0 = 0
     if keep_windows is not None:
-        keep = keep_windows(boxes)
+        keep = keep_windows(boxes).to(dev)
         if not bool(keep.any()):
             return None
         origins, boxes = origins[keep], boxes[keep]

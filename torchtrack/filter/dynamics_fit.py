@@ -161,24 +161,24 @@ def fit_chateau_dynamics(
     if structure == "constant_velocity":
         from torchtrack.filter.motion import default_chateau_A
 
-        a = default_chateau_A()
+        a = default_chateau_A().to(x.device)
         resid = y - x @ a[_FREE].T
         sigma = resid.T @ resid / m
         if noise == "jitter_corrected":
             sigma = _jitter_corrected_sigma(tracks, window, a)
-        return _fit_result(a, resid, sigma, torch.zeros(6, 6, dtype=x.dtype), used)
+        return _fit_result(a, resid, sigma, torch.zeros(6, 6, dtype=x.dtype, device=x.device), used)
     # Column scaling: positions (hundreds of pixels) and scales (~1) differ by orders of
     # magnitude; scaling the regressors keeps the least-squares problem well conditioned.
     col = x.abs().amax(0).clamp_min(1e-12)
     theta = torch.linalg.lstsq(x / col, y, driver="gelsd").solution / col.unsqueeze(1)  # (6, 3)
     resid = y - x @ theta
     sigma = resid.T @ resid / (m - x.shape[1])
-    a = torch.zeros(6, 6, dtype=torch.float64)
+    a = torch.zeros(6, 6, dtype=torch.float64, device=x.device)
     a[_FREE] = theta.T
     a[2, 0], a[3, 1], a[5, 4] = 1.0, 1.0, 1.0
     xs_ = x / col
     inv_diag = torch.diagonal(torch.linalg.pinv(xs_.T @ xs_)) / col.square()  # (6,)
-    se = torch.zeros(6, 6, dtype=torch.float64)
+    se = torch.zeros(6, 6, dtype=torch.float64, device=x.device)
     se[_FREE] = torch.sqrt(torch.diagonal(sigma).clamp_min(0).unsqueeze(1) * inv_diag.unsqueeze(0))
     return _fit_result(a, resid, sigma, se, used)
 
@@ -205,7 +205,7 @@ def _jitter_corrected_sigma(
             continue
         var = r[pair].square().mean(0)
         c1 = (r[:-1][lag] * r[1:][lag]).mean(0)
-        v = (var + _JITTER_K * c1).clamp_min(0.0)
+        v = (var + _JITTER_K.to(c1.device) * c1).clamp_min(0.0)
         per_track.append(torch.stack([v[:2].mean(), v[:2].mean(), v[2]]))
     if not per_track:
         raise DataError(
@@ -222,7 +222,7 @@ def _fit_result(
 ) -> ChateauFit:
     return ChateauFit(
         A=a,
-        B=default_chateau_B(),
+        B=default_chateau_B().to(a.device),
         Sigma=0.5 * (sigma + sigma.T),
         n_transitions=int(resid.shape[0]),
         n_tracks=used,

@@ -237,7 +237,9 @@ class ChateauAR:
         try:
             # A tiny jitter admits positive semi-definite Sigma (e.g. a noise-free component).
             jitter = (
-                1e-12 * torch.eye(k, dtype=torch.float64) * max(1.0, float(self.Sigma.abs().max()))
+                1e-12
+                * torch.eye(k, dtype=torch.float64, device=self.Sigma.device)
+                * max(1.0, float(self.Sigma.abs().max()))
             )
             self._L = torch.linalg.cholesky(0.5 * (self.Sigma + self.Sigma.T) + jitter)
         except RuntimeError:
@@ -453,7 +455,11 @@ class BachooMotion:
             )
         v = torch.cat([hist.velocities[:, 1:], velocity.unsqueeze(1).to(hist.velocities)], 1)
         count = (hist.count + 1).clamp_max(self.history)
-        occ = hist.occluded if occluded is None else occluded.to(torch.bool)
+        occ = (
+            hist.occluded
+            if occluded is None
+            else occluded.to(device=hist.velocities.device, dtype=torch.bool)
+        )
         return VelocityHistory(v, count, occ)
 
     def noise_std(self, hist: VelocityHistory) -> torch.Tensor:

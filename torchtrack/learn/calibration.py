@@ -86,8 +86,12 @@ def platt_fit(
         ``(A, B, n_iter)``.
     """
     f = scores.to(torch.float64)
-    w = torch.ones_like(f) if sample_weight is None else sample_weight.to(torch.float64)
-    pos = y01.bool()
+    w = (
+        torch.ones_like(f)
+        if sample_weight is None
+        else sample_weight.to(device=f.device, dtype=torch.float64)
+    )
+    pos = y01.to(f.device).bool()
     prior1 = float(w[pos].sum())
     prior0 = float(w[~pos].sum())
     hi, lo = (prior1 + 1.0) / (prior1 + 2.0), 1.0 / (prior0 + 2.0)
@@ -166,6 +170,7 @@ class PlattCalibrator(BaseEstimator):
         sw = None
         if sample_weight is not None:
             sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
+            sw = sw.to(s.device)
             if sw.shape != s.shape:
                 raise errors.ShapeError(
                     f"sample_weight must have shape {tuple(s.shape)}, got {tuple(sw.shape)}"

@@ -55,6 +55,7 @@ from kornia.morphology import opening
 
 from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.features.pixels import region_features
+from torchtrack.filter._random import randint, randperm
 from torchtrack.learn._base import check_fitted
 from torchtrack.learn.online_boost import OnlineRealBoost
 
@@ -138,13 +139,18 @@ def _ellipse_of(
     pts = torch.stack([xs, ys], 1).to(torch.float64)
     mu = pts.mean(0)
     d = pts - mu
-    cov = d.T @ d / max(pts.shape[0], 1) + torch.eye(2, dtype=torch.float64) / 12.0
+    cov = (
+        d.T @ d / max(pts.shape[0], 1)
+        + torch.eye(2, dtype=torch.float64, device=mask.device) / 12.0
+    )
     evals, evecs = torch.linalg.eigh(cov)
     a, b = 2 * evals[1].clamp_min(0).sqrt(), 2 * evals[0].clamp_min(0).sqrt()
     angle = float(torch.atan2(evecs[1, 1], evecs[0, 1]))
     h, w = mask.shape
     yy, xx = torch.meshgrid(
-        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+        torch.arange(h, dtype=torch.float64, device=mask.device),
+        torch.arange(w, dtype=torch.float64, device=mask.device),
+        indexing="ij",
     )
     g = torch.stack([xx - mu[0], yy - mu[1]], -1)  # (h, w, 2)
     m2 = (g @ torch.linalg.inv(cov) * g).sum(-1)
@@ -247,7 +253,7 @@ class CoTrainer:
     def _sample(self, idx: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         if idx.numel() <= self.max_samples:
             return idx
-        perm = torch.randperm(idx.numel(), generator=generator)[: self.max_samples]
+        perm = randperm(idx.numel(), generator, idx.device)[: self.max_samples]
         return idx[perm.to(idx.device)]
 
     def _train(
@@ -287,7 +293,7 @@ class CoTrainer:
         pool = torch.cat(self.pool_[i])
         if pool.shape[0] == 0:
             return pool
-        pick = torch.randint(pool.shape[0], (min(self.replay, pool.shape[0]),), generator=generator)
+        pick = randint(0, pool.shape[0], (min(self.replay, pool.shape[0]),), generator, pool.device)
         return pool[pick.to(pool.device)]
 
     def _remember(self, i: int, new: torch.Tensor, generator) -> None:
@@ -295,7 +301,7 @@ class CoTrainer:
         the first frame's anchor of at most ``pool_size / 2`` rows)."""
         half = self.pool_size // 2
         if new.shape[0] > half:
-            new = new[torch.randperm(new.shape[0], generator=generator)[:half].to(new.device)]
+            new = new[randperm(new.shape[0], generator, new.device)[:half]]
         anchor, recent = self.pool_[i]
         self.pool_[i] = [anchor, torch.cat([recent, new])[-half:]]
 
@@ -340,7 +346,7 @@ class CoTrainer:
         half = self.pool_size // 2
         anchor = pos
         if anchor.numel() > half:
-            anchor = anchor[torch.randperm(anchor.numel(), generator=generator)[:half]]
+            anchor = anchor[randperm(anchor.numel(), generator, anchor.device)[:half]]
         self.pool_ = [[c[anchor], c[:0]] for c in codes]
         maps = self._maps(codes, region)
         blob = self.locate(maps)

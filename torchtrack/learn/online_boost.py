@@ -44,6 +44,7 @@ from typing import Any
 import torch
 
 from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.filter._random import randint
 from torchtrack.learn._base import check_fitted
 
 __all__ = ["OnlineRealBoost"]
@@ -115,7 +116,7 @@ class OnlineRealBoost:
         n, m, k = self.n_selectors, self.n_candidates, self.n_bins
         self.n_features_in_ = f
         # "strong classifier initialized randomly": random candidate features.
-        self.features_ = torch.randint(f, (n, m), generator=generator).to(device)
+        self.features_ = randint(0, f, (n, m), generator, device)
         self.hist_ = torch.zeros((n, m, k, 2), dtype=self.dtype, device=device)
         self.correct_ = torch.ones((n, m), dtype=self.dtype, device=device)
         self.wrong_ = torch.ones((n, m), dtype=self.dtype, device=device)
@@ -175,7 +176,7 @@ class OnlineRealBoost:
         dev = codes.device
         # Replacement features are drawn up front (one per selector), so the random stream does
         # not depend on the data.
-        fresh = torch.randint(self.n_features_in_, (n_sel,), generator=generator).to(dev)
+        fresh = randint(0, self.n_features_in_, (n_sel,), generator, dev)
         # Test, then train: every selector scores the batch with its histograms from before the
         # batch, so all N x M weak outputs come from one gather, independent of lambda.
         flat = torch.arange(n_sel * m, device=dev).view(1, n_sel, m) * k + codes[

@@ -375,12 +375,12 @@ def _sorted_splits(x: torch.Tensor, valid: torch.Tensor):
     # Margin of each split: the gap it sits in, in units of the feature's spread over the
     # valid samples (used to break ties between splits of equal weighted error).
     v = valid.unsqueeze(1).to(x.dtype)  # (M, 1, S)
-    xt = torch.where(v > 0, x.transpose(1, 2), torch.zeros((), dtype=x.dtype))
+    xt = torch.where(v > 0, x.transpose(1, 2), torch.zeros((), dtype=x.dtype, device=x.device))
     cnt = v.sum(2).clamp_min(1)
     mean = xt.sum(2) / cnt
     var = ((xt - mean.unsqueeze(2)) ** 2 * v).sum(2) / cnt
     spread = var.sqrt().clamp_min(1e-6).unsqueeze(2)
-    gap = torch.where(ok, (b - a) / spread, torch.zeros((), dtype=x.dtype))
+    gap = torch.where(ok, (b - a) / spread, torch.zeros((), dtype=x.dtype, device=x.device))
     return order, thr, ok, gap.clamp_(max=_MAX_GAP)
 
 

@@ -177,8 +177,8 @@ class HaarBoxLikelihood:
         features: the feature bank (F features).
         alpha: ``(F,)`` weights; ``bias``: scalar.
         chunk: particles per eager chunk (bounds the workspace to about ``400 * chunk`` bytes).
-        compile: use the fused :func:`torch.compile` path (falls back to eager, with one
-            warning, where compiling fails). Default False: eager.
+        compile: use the fused :func:`torch.compile` path on CPU frames (falls back to eager,
+            with one warning, where compiling fails; other devices use eager). Default False.
 
     Call it with ``states (B, N, D)`` to get ``(B, N)`` log-likelihoods in ``states.dtype``
     (the ``Likelihood`` of :func:`torchtrack.filter.sir_step`).
@@ -296,7 +296,7 @@ class HaarBoxLikelihood:
     def log_likelihood_of_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
         """``boxes (M, 4)`` -> ``(M,)`` float32 log-likelihoods."""
         boxes = boxes.to(self.flat.device, torch.float32)
-        if self.compile and boxes.shape[0]:
+        if self.compile and boxes.shape[0] and boxes.device.type == "cpu":  # C++ backend only
             try:
                 return self._log_lik_compiled(boxes)
             except Exception as e:  # no compiler / unsupported platform: stay eager

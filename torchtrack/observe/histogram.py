@@ -163,7 +163,7 @@ def region_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int) -
     """
     b, n = boxes.shape[:2]
     fh, fw = bin_map.shape[-2:]
-    out = torch.zeros((b, n, n_bins), dtype=torch.float32)
+    out = torch.zeros((b, n, n_bins), dtype=torch.float32, device=bin_map.device)
     for i in range(b):
         for j in range(n):
             x, y, w, h = (round(float(v)) for v in boxes[i, j])

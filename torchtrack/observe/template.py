@@ -275,19 +275,26 @@ def align_ic(
     c = (s - 1) / 2.0
     t = reference.to(torch.float64)
     gx, gy = _gradients(t)
-    idx = torch.arange(s, dtype=torch.float64) - c
+    dev = reference.device
+    idx = torch.arange(s, dtype=torch.float64, device=dev) - c
     yy, xx = torch.meshgrid(idx, idx, indexing="ij")
     # dW/dp at p = 0 for W = [[1+p1, p3, p5], [p2, 1+p4, p6]] in centred coordinates.
     sd = torch.stack([gx * xx, gy * xx, gx * yy, gy * yy, gx, gy], -1).reshape(-1, 6)
     # Centred template coordinates: frame = M @ C @ W(x_c), with C shifting x_c back by +c.
-    shift = torch.tensor([[1.0, 0.0, c], [0.0, 1.0, c], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    shift_inv = torch.tensor([[1.0, 0.0, -c], [0.0, 1.0, -c], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    m3 = torch.cat([matrix.to(torch.float64), torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)])
-    warp = torch.eye(3, dtype=torch.float64)
-    corners = torch.tensor(
-        [[-c, -c, 1.0], [c, -c, 1.0], [-c, c, 1.0], [c, c, 1.0]], dtype=torch.float64
+    shift = torch.tensor(
+        [[1.0, 0.0, c], [0.0, 1.0, c], [0.0, 0.0, 1.0]], dtype=torch.float64, device=dev
     )
-    eye6 = 1e-9 * torch.eye(6, dtype=torch.float64)
+    shift_inv = torch.tensor(
+        [[1.0, 0.0, -c], [0.0, 1.0, -c], [0.0, 0.0, 1.0]], dtype=torch.float64, device=dev
+    )
+    m3 = torch.cat(
+        [matrix.to(torch.float64), torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64, device=dev)]
+    )
+    warp = torch.eye(3, dtype=torch.float64, device=dev)
+    corners = torch.tensor(
+        [[-c, -c, 1.0], [c, -c, 1.0], [-c, c, 1.0], [c, c, 1.0]], dtype=torch.float64, device=dev
+    )
+    eye6 = 1e-9 * torch.eye(6, dtype=torch.float64, device=dev)
     full_hess = sd.T @ sd + eye6  # the Hessian when every template pixel is inside the frame
     n_px = s * s
     for _ in range(max(int(iterations), 0)):

@@ -120,6 +120,7 @@ from torchtrack.features.centre_surround import (
     CentreSurroundPool,
     centre_surround_features,
 )
+from torchtrack.filter._random import rand, randperm
 from torchtrack.filter.motion import KleinAR
 from torchtrack.filter.particles import dominant_mode_mean, normalize_log_weights
 from torchtrack.filter.resample import resample
@@ -402,7 +403,7 @@ def _random_negatives(
     if n_loc > 0:
         b = boxes.shape[0]
         tries = 4 * n_loc
-        u = torch.rand((2, b, tries), generator=generator, dtype=boxes.dtype) * 2 - 1
+        u = rand((2, b, tries), generator, boxes.dtype, boxes.device) * 2 - 1
         h, w = frame_size
         bw, bh = boxes[:, 2:3].expand(b, tries), boxes[:, 3:4].expand(b, tries)
         x = (boxes[:, 0:1] + u[0] * radius * bw).clamp(-outside * bw, w - (1 - outside) * bw)
@@ -420,7 +421,7 @@ def _random_negatives(
     tries = 4 * n
     bw = boxes[:, 2:3].expand(b, tries)
     bh = boxes[:, 3:4].expand(b, tries)
-    u = torch.rand((2, b, tries), generator=generator, dtype=boxes.dtype)
+    u = rand((2, b, tries), generator, boxes.dtype, boxes.device)
     x = u[0] * (w - bw + 2 * outside * bw).clamp_min(0) - outside * bw
     y = u[1] * (h - bh + 2 * outside * bh).clamp_min(0) - outside * bh
     cand = torch.stack([x, y, bw, bh], -1)  # (B, tries, 4)
@@ -518,7 +519,7 @@ class AdaptiveHaarTracker(Tracker):
         if cfg.scale_negatives > 0:
             negs = torch.cat([_scaled_boxes(boxes, cfg.scale_factor), negs[:, 6:]], 1)
         j = cfg.init_positives
-        u = torch.rand((b, j, 4), generator=self.generator, dtype=boxes.dtype) * 2 - 1
+        u = rand((b, j, 4), self.generator, boxes.dtype, boxes.device) * 2 - 1
         size = boxes[:, None, 2:].expand(b, j, 2)
         scale = 1 + cfg.init_jitter * u[..., 2:]
         jit = torch.cat(
@@ -536,21 +537,22 @@ class AdaptiveHaarTracker(Tracker):
         ts.valid[:, 1 : 1 + j] = True
         w = sample_weights(ts, cfg.first_weight)
         self.ensemble, _ = fit_gentle(ts.x, ts.labels, w, ts.valid, cfg.n_weak, self.quarters)
-        self.anchor = self.ensemble.select(torch.arange(b))
+        dev = boxes.device
+        self.anchor = self.ensemble.select(torch.arange(b, device=dev))
         self.training = ts if cfg.adapt != "none" else None
         n = cfg.n_particles
-        self.model = torch.arange(b).unsqueeze(1).expand(b, n).contiguous()
+        self.model = torch.arange(b, device=dev).unsqueeze(1).expand(b, n).contiguous()
         self._states = self.motion.init(boxes, n, self.generator)
-        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64)
-        self.adapted = torch.zeros(b, dtype=torch.bool)
+        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64, device=dev)
+        self.adapted = torch.zeros(b, dtype=torch.bool, device=dev)
         conf = self.ensemble.pool_confidence(x[:, :1])[:, 0].to(torch.float64)
         self._level = conf.to(torch.float32).clone()
         self._est = self.motion.from_boxes(boxes)
-        self._noise = torch.ones(b, dtype=torch.float64)
-        self._best_model = torch.arange(b)
-        self.lost_frames = torch.zeros(b, dtype=torch.long)
-        self._doubt = torch.zeros(b, dtype=torch.long)
-        self.reacquisitions = torch.zeros(b, dtype=torch.long)
+        self._noise = torch.ones(b, dtype=torch.float64, device=dev)
+        self._best_model = torch.arange(b, device=dev)
+        self.lost_frames = torch.zeros(b, dtype=torch.long, device=dev)
+        self._doubt = torch.zeros(b, dtype=torch.long, device=dev)
+        self.reacquisitions = torch.zeros(b, dtype=torch.long, device=dev)
         self.cues = []
         if cfg.cotrain_weight > 0:
             for i in range(b):  # one pixel classifier per target (a handful, not particles)
@@ -560,7 +562,7 @@ class AdaptiveHaarTracker(Tracker):
         return TrackState(
             box=boxes.clone(),
             confidence=conf,
-            visible=torch.ones(b, dtype=torch.bool),
+            visible=torch.ones(b, dtype=torch.bool, device=dev),
             particles=self._states,
             log_weights=self._log_w,
         )
@@ -581,7 +583,7 @@ class AdaptiveHaarTracker(Tracker):
         states = self.motion.confine(
             self.motion.predict(states, self.generator, noise_scale=self._noise), self.frame_size
         )
-        ll = torch.zeros(states.shape[:2], dtype=torch.float64)
+        ll = torch.zeros(states.shape[:2], dtype=torch.float64, device=states.device)
         if cfg.search_fraction > 0:
             states, model, ll = self._search(ints, states, model)
         boxes = self.motion.to_boxes(states)
@@ -605,7 +607,7 @@ class AdaptiveHaarTracker(Tracker):
         if cfg.anchor_doubt > 0:
             a = self.observation.confidence(
                 ints, self.motion.to_boxes(est_state)[:, None], self.anchor,
-                torch.arange(est_state.shape[0])[:, None],
+                torch.arange(est_state.shape[0], device=est_state.device)[:, None],
             )[:, 0]  # fmt: skip
             self._doubt = torch.where(a < cfg.anchor_doubt, self._doubt + 1, 0)
         found = torch.zeros_like(visible)
@@ -675,7 +677,7 @@ class AdaptiveHaarTracker(Tracker):
         c_new, comp = draw_around(cells, log_pi, m, cell_sd, self.generator)
         wh = cells[..., 2:4].gather(1, comp.unsqueeze(2).expand(b, m, 2))
         new = torch.cat([c_new, wh, vel[:, None].expand(b, m, 2)], 2).to(states.dtype)
-        idx = torch.randperm(n, generator=self.generator)[:m]
+        idx = randperm(n, self.generator, states.device)[:m]
         states = states.clone()
         states[:, idx] = new
         model = model.clone()
@@ -699,7 +701,7 @@ class AdaptiveHaarTracker(Tracker):
         b = est.shape[0]
         k = torch.maximum(self.lost_frames, self._doubt) - cfg.lost_after
         rows = (k >= 0) & (k % cfg.redetect_every == 0)
-        found = torch.zeros(b, dtype=torch.bool)
+        found = torch.zeros(b, dtype=torch.bool, device=est.device)
         if not bool(rows.any()):
             return est, best, found
         h, w = self.frame_size
@@ -711,13 +713,16 @@ class AdaptiveHaarTracker(Tracker):
         top_c, top_i = gconf.topk(min(cfg.redetect_top, grid.shape[1]), dim=1)
         cand = grid.gather(1, top_i.unsqueeze(2).expand(-1, -1, 4))
         a_c = self.observation.confidence(
-            ints, cand, self.anchor, torch.arange(b)[:, None].expand(cand.shape[:2])
+            ints,
+            cand,
+            self.anchor,
+            torch.arange(b, device=cand.device)[:, None].expand(cand.shape[:2]),
         )
         score, j = torch.minimum(top_c, a_c).max(1)
         found = rows & (score >= cfg.redetect_threshold)
         if not bool(found.any()):
             return est, best, found
-        box = cand[torch.arange(b), j]  # (B, 4)
+        box = cand[torch.arange(b, device=cand.device), j]  # (B, 4)
         n = self._states.shape[1]
         restart = self.motion.init(box, n, self.generator)
         sel = found[:, None, None]
@@ -756,7 +761,7 @@ class AdaptiveHaarTracker(Tracker):
         top = conf.topk(min(r, nc), dim=1).indices
         strong = cand.gather(1, top.unsqueeze(2).expand(-1, -1, 4))
         if cfg.scale_negatives > 0:
-            pick = torch.randperm(6, generator=self.generator)[: cfg.scale_negatives]
+            pick = randperm(6, self.generator, est_box.device)[: cfg.scale_negatives]
             scaled = _scaled_boxes(est_box, cfg.scale_factor)[target][:, pick]
             strong = torch.cat([strong, scaled], 1)
         return self._pool_features(ints, strong)
@@ -793,7 +798,7 @@ class AdaptiveHaarTracker(Tracker):
             first_weight=cfg.first_weight,
         )
         self._replace(rows, ts, ens)
-        adapted = torch.zeros(b, dtype=torch.bool)
+        adapted = torch.zeros(b, dtype=torch.bool, device=est_box.device)
         adapted[rows] = True
         self.adapted = adapted
 
@@ -839,13 +844,13 @@ class AdaptiveHaarTracker(Tracker):
         self.ensemble = StumpEnsemble.cat([self.ensemble, ens])
         self.training = TrainingSet.cat([self.training, ts])
         model = self.model.clone()
-        model[bi, top[bi, ji]] = m0 + torch.arange(bi.numel())
+        model[bi, top[bi, ji]] = m0 + torch.arange(bi.numel(), device=bi.device)
         # Drop classifiers no particle carries any more (ids renumbered densely).
         alive, inverse = torch.unique(model, return_inverse=True)
         self.ensemble = self.ensemble.select(alive)
         self.training = self.training.select(alive)
         self.model = inverse.view(b, n)
-        adapted = torch.zeros(b, dtype=torch.bool)
+        adapted = torch.zeros(b, dtype=torch.bool, device=conf.device)
         adapted[bi] = True
         self.adapted = adapted
 

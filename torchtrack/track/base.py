@@ -110,8 +110,8 @@ class TrackState:
         b = torch.as_tensor(box, dtype=torch.float64).reshape(1, 4)
         return cls(
             box=b,
-            confidence=torch.tensor([float(confidence)], dtype=torch.float64),
-            visible=torch.tensor([bool(visible)]),
+            confidence=torch.tensor([float(confidence)], dtype=torch.float64, device=b.device),
+            visible=torch.tensor([bool(visible)], device=b.device),
             **kwargs,
         )
 

@@ -248,7 +248,8 @@ class CoTrainTracker(Tracker):
             raise ConfigError(f"init box {tuple(box.tolist())} leaves no region to learn from")
         self.last_maps = self.trainer.init(frame, (x, y, w, h), region, self.generator)
         n = self.config.particles
-        states = torch.tensor(self.centre, dtype=torch.float64).view(1, 1, 2).repeat(1, n, 1)
+        states = torch.tensor(self.centre, dtype=torch.float64, device=frame.device)
+        states = states.view(1, 1, 2).repeat(1, n, 1)
         self.states = states
         self.log_weights = uniform_log_weights(states)
         self.history = []
@@ -275,7 +276,11 @@ class CoTrainTracker(Tracker):
 
         c = self.config
         ii = integral_image(maps.opened.clamp_min(0)[None, None].to(torch.float64))[0, 0]
-        f = torch.tensor([1.0 / (1.0 + c.scale_step), 1.0, 1.0 + c.scale_step], dtype=torch.float64)
+        f = torch.tensor(
+            [1.0 / (1.0 + c.scale_step), 1.0, 1.0 + c.scale_step],
+            dtype=torch.float64,
+            device=ii.device,
+        )
         w, h = self.size
         cx, cy = self.centre
         ws, hs = w * f, h * f
@@ -295,7 +300,7 @@ class CoTrainTracker(Tracker):
         cx, cy = self.centre
         w, h = self.size
         return TrackState.single(
-            [cx - w / 2, cy - h / 2, w, h],
+            self.states.new_tensor([cx - w / 2, cy - h / 2, w, h]),
             confidence,
             visible,
             particles=self.states,

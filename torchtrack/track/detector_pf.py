@@ -220,7 +220,9 @@ class DetectorTracker(Tracker):
         return p.reshape(b, n).to(torch.float64)
 
     def _choose_context(self, frame: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
-        cands = torch.tensor(self.config.context_candidates, dtype=torch.float64)
+        cands = torch.tensor(
+            self.config.context_candidates, dtype=torch.float64, device=boxes.device
+        )
         b, k = boxes.shape[0], cands.numel()
         h = boxes[:, 3:4] * cands  # (B, K) window heights
         w = h * self._aspect
@@ -239,23 +241,23 @@ class DetectorTracker(Tracker):
         boxes = boxes.to(torch.float64)
         b = boxes.shape[0]
         if cfg.context > 0:
-            ctx = torch.full((b,), float(cfg.context), dtype=torch.float64)
+            ctx = torch.full((b,), float(cfg.context), dtype=torch.float64, device=boxes.device)
         else:
             ctx = self._choose_context(frame, boxes)
         self.context = ctx
         self._obj = boxes[:, 2:4].clone()
         self._win = self._window_size(boxes, ctx)
         c = boxes[:, 0:2] + boxes[:, 2:4] / 2
-        one = torch.ones((b, 1), dtype=torch.float64)
+        one = torch.ones((b, 1), dtype=torch.float64, device=boxes.device)
         x0 = torch.cat([c, c, one, one], 1)  # (B, 6): c_t = c_{t-1}, s_t = s_{t-1} = 1
         # Spread by one step of the dynamics around the given state (the prior of Fig. 1).
         self._states = self.dynamics.predict(x0[:, None].repeat(1, n, 1), self.generator)
-        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64)
+        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64, device=boxes.device)
         p = self._probabilities(frame, self._win_boxes_at(boxes, ctx))
         return TrackState(
             box=boxes.clone(),
             confidence=p[:, 0],
-            visible=torch.ones(b, dtype=torch.bool),
+            visible=torch.ones(b, dtype=torch.bool, device=boxes.device),
             particles=self._states,
             log_weights=self._log_w,
         )
@@ -297,9 +299,11 @@ class DetectorTracker(Tracker):
         for i in range(b):  # loop over targets (a handful), not particles
             idx = torch.nonzero(iou[i] >= 0.3).flatten()[: cfg.init_top_n]  # scores sorted
             cand, sc = wins[idx], scores[idx]
-            draw = torch.multinomial(
-                sc.to(torch.float64), n, replacement=True, generator=self.generator
-            )
+            probs = sc.to(torch.float64)
+            if self.generator is not None:  # draw where the generator lives
+                probs = probs.to(self.generator.device)
+            draw = torch.multinomial(probs, n, replacement=True, generator=self.generator)
+            draw = draw.to(cand.device)
             picked = cand[draw]  # (n, 4)
             c = picked[:, 0:2] + picked[:, 2:4] / 2
             s = picked[:, 3] / dets[i, 3]
@@ -309,12 +313,14 @@ class DetectorTracker(Tracker):
             conf.append(sc[0])
         self._win = dets[:, 2:4].clone()
         self._obj = self._win / cfg.scan_context
-        self.context = torch.full((b,), float(cfg.scan_context), dtype=torch.float64)
+        self.context = torch.full(
+            (b,), float(cfg.scan_context), dtype=torch.float64, device=dets.device
+        )
         st = torch.stack(states)
         # Jitter with one step of process noise so that duplicated windows differ.
         self._states = self.dynamics.predict(st, self.generator)
         self._states[..., 2:4] = st[..., 0:2]
-        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64)
+        self._log_w = torch.full((b, n), -math.log(n), dtype=torch.float64, device=dets.device)
         wb = torch.stack(boxes_out)
         c = wb[:, 0:2] + wb[:, 2:4] / 2
         obj = wb[:, 2:4] / cfg.scan_context
@@ -322,7 +328,7 @@ class DetectorTracker(Tracker):
         return TrackState(
             box=box,
             confidence=torch.stack(conf),
-            visible=torch.ones(b, dtype=torch.bool),
+            visible=torch.ones(b, dtype=torch.bool, device=dets.device),
             particles=self._states,
             log_weights=self._log_w,
         )

@@ -159,7 +159,7 @@ def fused_log_weights(
 ) -> torch.Tensor:
     """``a log max(p_det, floor) + b log_cot``: ``(B, N)`` float64. A zero weight drops its term
     entirely (also its -inf entries)."""
-    out = torch.zeros(p_det.shape, dtype=torch.float64)
+    out = torch.zeros(p_det.shape, dtype=torch.float64, device=p_det.device)
     if det_weight > 0:
         out = out + det_weight * p_det.to(torch.float64).clamp_min(det_floor).log()
     if cotrain_weight > 0:
@@ -282,7 +282,7 @@ class FusedTracker(DetectorTracker):
         distance / 2; 0 when this frame has no co-training maps (the region left the frame)."""
         cfg = self.fused_config
         if self.cue.maps is None:
-            return torch.zeros(states.shape[:2], dtype=torch.float64)
+            return torch.zeros(states.shape[:2], dtype=torch.float64, device=states.device)
         size = self._size
         gate = (cfg.gate_scale * size[0], cfg.gate_scale * size[1])
         dx = (states[..., 0].to(torch.float64) - self._centre[0]) / gate[0]
@@ -311,7 +311,7 @@ class FusedTracker(DetectorTracker):
             if cfg.det_weight > 0:
                 p, hold["p"] = self.detector_term(frame, states)
             lc = self.cotrain_term(states) if cfg.cotrain_weight > 0 else None
-            zeros = torch.zeros(states.shape[:2], dtype=torch.float64)
+            zeros = torch.zeros(states.shape[:2], dtype=torch.float64, device=states.device)
             return fused_log_weights(
                 p if p is not None else zeros,
                 lc if lc is not None else zeros,
@@ -335,7 +335,9 @@ class FusedTracker(DetectorTracker):
         hh, ww = self.frame_size
         self._size = (max(w, 1.0), max(h, 1.0))
         self._centre = (min(max(x + w / 2, 0.0), ww - 1.0), min(max(y + h / 2, 0.0), hh - 1.0))
-        evidence = hold["p"].mean(1).to(torch.float64) if "p" in hold else torch.ones(1)
+        evidence = (
+            hold["p"].mean(1).to(torch.float64) if "p" in hold else torch.ones(1, device=box.device)
+        )
         blob, accepted = self.cue.update(self.generator) if cfg.cotrain_weight > 0 else (0, 0)
         visible = True
         if cfg.det_weight > 0:
@@ -348,7 +350,7 @@ class FusedTracker(DetectorTracker):
         return TrackState(
             box=box.to(torch.float64),
             confidence=evidence.to(torch.float64),
-            visible=torch.tensor([visible]),
+            visible=torch.tensor([visible], device=box.device),
             particles=self._states,
             log_weights=self._log_w,
         )

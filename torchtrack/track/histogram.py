@@ -83,11 +83,13 @@ class HistogramTracker(Tracker):
         self.reference = self._histograms(bin_map, boxes[:, None])[:, 0]  # (B, K)
         n = self.config.n_particles
         self._states = self.motion.init(boxes, n, self.generator)
-        self._log_w = torch.full((boxes.shape[0], n), -math.log(n), dtype=torch.float64)
+        self._log_w = torch.full(
+            (boxes.shape[0], n), -math.log(n), dtype=torch.float64, device=boxes.device
+        )
         return TrackState(
             box=boxes.clone(),
-            confidence=torch.ones(boxes.shape[0], dtype=torch.float64),
-            visible=torch.ones(boxes.shape[0], dtype=torch.bool),
+            confidence=torch.ones(boxes.shape[0], dtype=torch.float64, device=boxes.device),
+            visible=torch.ones(boxes.shape[0], dtype=torch.bool, device=boxes.device),
             particles=self._states,
             log_weights=self._log_w,
         )

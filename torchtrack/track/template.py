@@ -311,8 +311,8 @@ class TemplateTracker(Tracker):
         box = self.motion.to_boxes(self._est[None])
         return TrackState(
             box=box.to(torch.float64),
-            confidence=torch.tensor([confidence], dtype=torch.float64),
-            visible=torch.tensor([visible]),
+            confidence=torch.tensor([confidence], dtype=torch.float64, device=box.device),
+            visible=torch.tensor([visible], device=box.device),
             particles=self._states,
             log_weights=self._log_w,
         )
@@ -332,7 +332,7 @@ class TemplateTracker(Tracker):
         h = self._hist
         k = int(h.count[0])
         if k == 0:
-            return torch.zeros(2, dtype=torch.float64)
+            return torch.zeros(2, dtype=torch.float64, device=h.velocities.device)
         return h.velocities[0, -k:].mean(0)
 
     # -- Tracker API ---------------------------------------------------------------------------
@@ -355,7 +355,7 @@ class TemplateTracker(Tracker):
         self._contrast = float(self.model.first.std())
         self._states = self.motion.init(box, cfg.n_particles, self.generator)
         self._log_w = torch.full(
-            (1, cfg.n_particles), -math.log(cfg.n_particles), dtype=torch.float64
+            (1, cfg.n_particles), -math.log(cfg.n_particles), dtype=torch.float64, device=box.device
         )
         self._hist = self.motion.new_history(box)
         self.history = []
@@ -402,7 +402,9 @@ class TemplateTracker(Tracker):
             self._states = states
             self._log_w = torch.full_like(res.log_weights, -math.log(cfg.n_particles))
             self._hist = VelocityHistory(
-                hist.velocities, hist.count, torch.ones(1, dtype=torch.bool)
+                hist.velocities,
+                hist.count,
+                torch.ones(1, dtype=torch.bool, device=hist.velocities.device),
             )
             self._est = est
             info["occluded"] = True
@@ -425,7 +427,7 @@ class TemplateTracker(Tracker):
         self._est = est
         self._states, self._log_w = res.states, res.log_weights
         self._hist = self.motion.update_history(
-            hist, est[None, 4:6], torch.zeros(1, dtype=torch.bool)
+            hist, est[None, 4:6], torch.zeros(1, dtype=torch.bool, device=est.device)
         )
         info["occluded"] = False
         self.history.append(info)
