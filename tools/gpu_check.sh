@@ -22,8 +22,8 @@ for s in "${steps[@]}"; do
     devices) timeout 300 python3 -m pytest -q -rfEs -p no:cacheprovider tests/test_devices.py \
                tests/filter/test_sir.py tests/filter/test_resample.py -k "device or cuda" \
                2>&1 | tee "$OUT/devices.log" | tail -60 ;;
-    suite) TORCHTRACK_DATA=/nonexistent timeout 300 python3 -m pytest -q -p no:cacheprovider \
-             -n 12 -rfE 2>&1 | tee "$OUT/suite.log" | tail -40 ;;
+    suite) OMP_NUM_THREADS=1 TORCHTRACK_DATA=/nonexistent timeout "${SUITE_TIMEOUT:-600}" python3 -m pytest -q -p no:cacheprovider \
+             -n 16 -p no:benchmark -rfE --tb=short 2>&1 | tee "$OUT/suite.log" | tail -40 ;;
     bench) timeout 300 python3 tools/bench_gpu.py 2>&1 | tee "$OUT/bench.log" | tail -14 ;;
   esac
 done
