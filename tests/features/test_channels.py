@@ -336,3 +336,22 @@ def test_a_few_features_read_only_their_lattice_points_with_the_same_values(monk
     whole = channel_features_at(ints, boxes, bank, index, check=False)
     assert torch.equal(few, whole)
     assert torch.equal(whole, channel_features_at(ints, boxes, bank, check=False)[..., index])
+
+
+def test_gpu_arithmetic_of_the_channels_equals_kornias_cpu_path():
+    """On CUDA the channels avoid kornia's cuDNN convolutions (TF32 rounding by default): the
+    central differences and the RGB -> XYZ product they use instead give kornia's CPU values."""
+    from kornia.color import rgb_to_xyz
+    from kornia.filters import spatial_gradient
+
+    from torchtrack.features import channels as C
+
+    g = torch.Generator().manual_seed(0)
+    img = torch.randint(0, 256, (2, 3, 23, 31), generator=g, dtype=torch.uint8)
+    lin = C._linear_rgb(img)
+    k = torch.tensor(C._XYZ, dtype=lin.dtype)
+    assert torch.equal(torch.einsum("oi, ...ihw -> ...ohw", k, lin), rgb_to_xyz(lin))
+    lum = C._luv(img)[:, :1] / 100
+    assert torch.equal(
+        C._central_differences(lum), spatial_gradient(lum, mode="diff", normalized=False)
+    )

@@ -229,7 +229,16 @@ def _luv(rgb: torch.Tensor) -> torch.Tensor:
     8-bit input read from a 256-entry table."""
     from kornia.color import rgb_to_xyz
 
-    xyz = rgb_to_xyz(_linear_rgb(rgb))
+    lin = _linear_rgb(rgb)
+    if lin.device.type == "cpu":
+        xyz = rgb_to_xyz(lin)
+    else:
+        # kornia's GPU branch is a cuDNN convolution, which rounds its inputs to TF32 by
+        # default (10-bit mantissa: U, a difference of near-equal terms, then differs from the
+        # CPU's by ~2e-3 relative, seen on an H100); its CPU branch, a float32 einsum, runs as
+        # a matmul, which torch keeps in full float32 on CUDA
+        k = torch.tensor(_XYZ, dtype=lin.dtype, device=lin.device)
+        xyz = torch.einsum("oi, ...ihw -> ...ohw", k, lin)
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     # kornia.color.luv: CIE 1976 with the D65 white point, eps 1e-12 in the denominators
     thr = 0.008856
@@ -241,6 +250,25 @@ def _luv(rgb: torch.Tensor) -> torch.Tensor:
     u = 13 * lum * (4 * x / den - uw)
     v = 13 * lum * (9 * y / den - vw)
     return torch.stack((lum, u, v), 1)
+
+
+#: kornia.color.rgb_to_xyz's matrix (CIE RGB to XYZ, D65)
+_XYZ = (
+    (0.412453, 0.357580, 0.180423),
+    (0.212671, 0.715160, 0.072169),
+    (0.019334, 0.119193, 0.950227),
+)
+
+
+def _central_differences(x: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` -> ``(B, 1, 2, H, W)``: ``kornia.filters.spatial_gradient(x, "diff",
+    normalized=False)`` (the difference of the two neighbours, borders replicated) in
+    plain float32 arithmetic. On CUDA kornia's convolution rounds through TF32 (cuDNN's default),
+    which the CPU does not."""
+    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    gx = p[..., 1:-1, 2:] - p[..., 1:-1, :-2]
+    gy = p[..., 2:, 1:-1] - p[..., :-2, 1:-1]
+    return torch.stack((gx, gy), 2)
 
 
 def _box(x: torch.Tensor, k: int, dim: int) -> torch.Tensor:
@@ -303,7 +331,10 @@ def compute_channels(frames: torch.Tensor, channels: ChannelSet | None = None) -
         parts["gray"] = (g if g.is_floating_point() else g.float()).float() / 255.0
     if "grad" in cs.names or "orient" in cs.names:
         src = parts["L"] if cs.colour else parts["gray"]
-        d = spatial_gradient(src, mode="diff", normalized=False)  # central differences
+        if src.device.type == "cpu":
+            d = spatial_gradient(src, mode="diff", normalized=False)  # central differences
+        else:
+            d = _central_differences(src)
         gx, gy = d[:, :, 0], d[:, :, 1]  # (B, 1, H, W)
         mag = torch.sqrt(gx * gx + gy * gy)
         if cs.norm_radius > 0:
