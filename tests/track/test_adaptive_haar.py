@@ -194,6 +194,27 @@ def test_search_proposal_follows_a_jump_the_motion_noise_cannot_reach():
     assert ious[0.2] > 0.5 > ious[0.0]
 
 
+def test_search_with_per_particle_adaptation_on_the_demo_clip():
+    # per-particle adaptation renumbers the classifiers; the search must read the best
+    # particle's classifier in the new numbering (it indexed past the end at frame 19 before)
+    import itertools
+
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+
+    src = open_source(demo_clip_path())
+    frames = [f for _, f in itertools.islice(src.items(), 22)]
+    src.close()
+    tr = AdaptiveHaarTracker(
+        adapt="per-particle", search_fraction=0.2, generator=torch.Generator().manual_seed(0)
+    )
+    tr.init(frames[0], torch.tensor([398.1, 193.5, 22.1, 66.4]))
+    for f in frames[1:]:
+        st = tr.update(f)
+        assert int(tr._best_model.max()) < tr.ensemble.n_models
+    assert bool(torch.isfinite(st.box).all())
+
+
 def test_lost_target_is_redetected_by_the_whole_frame_search():
     frames = _block_frames([20, 21, 22, None, None, None, 95, 95, 95])
     tr = AdaptiveHaarTracker(

@@ -850,6 +850,8 @@ class AdaptiveHaarTracker(Tracker):
         self.ensemble = self.ensemble.select(alive)
         self.training = self.training.select(alive)
         self.model = inverse.view(b, n)
+        # the best particle's classifier in the new numbering (the search reads it next frame)
+        self._best_model = self.model.gather(1, conf.argmax(1)[:, None])[:, 0]
         adapted = torch.zeros(b, dtype=torch.bool, device=conf.device)
         adapted[bi] = True
         self.adapted = adapted
