@@ -193,3 +193,17 @@ def test_cli_track_on_device(person, device, tmp_path, capsys):
     assert main([*common, "--mot", str(every), "--scan-workers", "0"]) == 0
     assert len(one.read_text().splitlines()) == 9  # header + 8 frames
     assert every.read_text().strip(), capsys.readouterr().out
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_track_sequence_moves_frames_to_the_device(device):
+    """``track_sequence(..., device=...)`` (``torchtrack eval --mot --trackers multi``)."""
+    from torchtrack.track.multi import MultiTargetTracker, track_sequence
+
+    src = open_source(demo_clip_path())
+    try:
+        mt = MultiTargetTracker("pedestrian", generator=_gen("cpu"))
+        rows = track_sequence(mt, src, max_frames=6, device=device)
+    finally:
+        src.close()
+    assert mt.frame_index == 5 and len(rows) > 0

@@ -827,6 +827,11 @@ EV = "eval --sequences {c}/seqs --trackers camshift --no-progress"
 CASES += [
     E("eval-out-file", f"{EV} -o {{c}}/afile", "is an existing file"),
     E("eval-device-unknown", f"{EV} --device gpu0 -o {{o}}/e", "expected 'cpu', 'cuda'"),
+    *(
+        []
+        if torch.cuda.is_available()
+        else [E("eval-device-no-cuda", f"{EV} --device cuda -o {{o}}/e", "no CUDA")]
+    ),
     E("eval-out-parent", f"{EV} -o {{o}}/a/b", "does not exist"),
     E("eval-no-out", EV, "needs --out"),
     E("eval-no-sequences", "eval --trackers camshift -o {o}/r", "needs --sequences"),
@@ -910,6 +915,11 @@ CASES += [
         "line 2",
     ),
     E("eval-mot-no-results", "eval --mot {c}/mot/TOY-01 -o {o}/r", "needs --mot SEQ"),
+    E(
+        "eval-mot-results-device",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --device cuda:0 -o {o}/r",
+        "--device do",
+    ),
     E(
         "eval-mot-trackers-no-out",
         "eval --mot {c}/mot/TOY-01 --trackers multi",

@@ -309,6 +309,7 @@ def run_mot(args: argparse.Namespace) -> int:
             ("--plots", args.plots),
             ("--reinit", args.reinit),
             ("--max-frames", args.max_frames),
+            ("--device", args.device not in (None, "cpu")),
         )
         if used
     ]
@@ -336,6 +337,7 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
 
     import torch
 
+    from torchtrack.cli._common import device_of
     from torchtrack.errors import ConfigError
     from torchtrack.eval.mot import evaluate_mot, mot_table
     from torchtrack.io.mot import write_mot
@@ -343,6 +345,7 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
     from torchtrack.track.multi import MultiTargetTracker, score_probabilities, track_sequence
     from torchtrack.track.scan_ahead import default_scan_workers
 
+    device = device_of(args)
     if not args.out:
         raise ConfigError("running trackers with --mot needs -o/--out DIR for their results")
     clash = [f for f, used in (("--sequences", args.sequences), ("--plots", args.plots),
@@ -382,7 +385,13 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
             mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
             with seq.open() as src:
                 rows = track_sequence(
-                    mt, src, dets, max_frames=seq.n_frames, scan_workers=default_scan_workers()
+                    mt,
+                    src,
+                    dets,
+                    max_frames=seq.n_frames,
+                    # a GPU scans in this process, next to the filter
+                    scan_workers=default_scan_workers() if device.type == "cpu" else 0,
+                    device=device,
                 )
             write_mot(Path(args.out) / label / f"{seq.name}.txt", rows)
             print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")

@@ -984,6 +984,7 @@ def track_sequence(
     max_frames: int | None = None,
     scan_workers: int = 0,
     as_scans: bool = False,
+    device: torch.device | str | None = None,
 ):
     """Run ``tracker`` over ``frames`` and collect the reported targets.
 
@@ -1003,6 +1004,8 @@ def track_sequence(
         as_scans: ``detections`` are a cache of this tracker's own scans (:meth:`detect`):
             they go in as ``update(frame, scan=...)``, with the scan's thresholds and the
             ground plane, instead of as detections from outside.
+        device: where the frames go before the tracker sees them (its scan and particle
+            likelihood run there); None: where they are.
 
     Returns:
         :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target.
@@ -1037,7 +1040,7 @@ def track_sequence(
                 d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
             if as_scans:
                 d, scan = None, d
-            out = tracker.update(frame, d, scan=scan)
+            out = tracker.update(frame if device is None else frame.to(device), d, scan=scan)
             if len(out):
                 f_.append(torch.full((len(out),), i, dtype=torch.int64))
                 i_.append(out.ids)
