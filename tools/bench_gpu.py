@@ -20,6 +20,7 @@ Usage::
     python tools/bench_gpu.py                       # all three, CPU and CUDA side by side
     python tools/bench_gpu.py --only sir multi      # a subset
     python tools/bench_gpu.py --devices cpu         # the CPU rows alone (no GPU here)
+    python tools/bench_gpu.py --only sir --profile  # + where the time goes (torch.profiler)
 
 Prints a markdown table (medians, CUDA / CPU ratios) and writes nothing else.
 """
@@ -54,6 +55,27 @@ def _data() -> Path:
 def _sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
+
+
+#: set by --profile: wrap the timed work in torch.profiler and print its table
+PROFILE = False
+
+
+def _profiled(label: str, fn, dev: torch.device) -> None:
+    """Run ``fn`` once under :mod:`torch.profiler` and print the ops that took the most time
+    (device time on CUDA) and how often the host waited for the device."""
+    from torch.profiler import ProfilerActivity, profile
+
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    with profile(activities=acts) as prof:
+        fn()
+        _sync(dev)
+    ka = prof.key_averages()
+    key = "self_device_time_total" if dev.type == "cuda" else "self_cpu_time_total"
+    print(f"\n## profile: {label} on {dev}")
+    print(ka.table(sort_by=key, row_limit=20))
+    waits = sum(e.count for e in ka if "Synchronize" in e.key or "Memcpy" in e.key)
+    print(f"host waits / copies (cudaStreamSynchronize, cudaMemcpy*): {waits}")
 
 
 def _timed(fn, dev: torch.device, reps: int) -> list[float]:
@@ -92,6 +114,8 @@ def bench_sir(dev: torch.device, b: int, n: int, reps: int) -> dict:
 
     t = _timed(step, dev, reps)
     assert state[0].states.device.type == dev.type
+    if PROFILE:
+        _profiled("SIR step (100, 1000)", step, dev)
     return {"ms": 1e3 * statistics.median(t), "reps": reps}
 
 
@@ -144,6 +168,11 @@ def bench_multi(dev: torch.device, targets: int, frames: int) -> dict:
     if len(times) < 3:
         raise SystemExit(f"multi: only {int(mt.confirmed.sum())} targets confirmed on {dev}")
     times = times[1:]  # the first frame with every target confirmed still warms up
+    if PROFILE:
+        t = frames
+        boxes = base + torch.tensor([float(t), 0.5 * t, 0.0, 0.0], dtype=torch.float64)
+        dets = (boxes.to(dev), p.to(dev))
+        _profiled(f"multi-target frame, {targets} targets", lambda: mt.update(frame, dets), dev)
     return {"ms": 1e3 * statistics.median(times), "frames": len(times), "reported": len(out)}
 
 
@@ -180,7 +209,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets", type=int, default=100)
     ap.add_argument("--multi-frames", type=int, default=25)
     ap.add_argument("--tracker", default="adaptive-haar")
+    ap.add_argument(
+        "--profile", action="store_true", help="also print a torch.profiler table of each check"
+    )
     args = ap.parse_args(argv)
+    global PROFILE
+    PROFILE = args.profile
     torch.set_num_threads(args.threads)
     devs = [check_device(d) for d in args.devices]
     rows: list[tuple[str, str, dict]] = []

@@ -4,7 +4,10 @@
 #   WHEELS=dir   wheels to install first into /tmp/site (what the machine lacks: kornia, ...)
 #   TORCHTRACK_DATA=dir   holds tracking/bobot_pedestrian for the benchmark's SIR frame and eval
 #   OUT=dir      where the logs go (default ./runs/gpu_check)
-# Usage: bash tools/gpu_check.sh [suite|devices|bench ...]   (default: devices suite bench)
+# Usage: bash tools/gpu_check.sh [devices|bench|suite|profile ...]   (default: devices suite bench)
+#   suite: the whole test suite, every test's result on its own line (-v), so a run cut short
+#   still names its failures; profile: the CUDA kernels and host syncs of the SIR step and of a
+#   multi-target frame (torch.profiler), to see what a GPU step is spent on
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT="${OUT:-runs/gpu_check}"; mkdir -p "$OUT"
@@ -23,7 +26,10 @@ for s in "${steps[@]}"; do
                tests/filter/test_sir.py tests/filter/test_resample.py -k "device or cuda" \
                2>&1 | tee "$OUT/devices.log" | tail -60 ;;
     suite) OMP_NUM_THREADS=1 TORCHTRACK_DATA=/nonexistent timeout "${SUITE_TIMEOUT:-600}" python3 -m pytest -q -p no:cacheprovider \
-             -n 16 -p no:benchmark -rfE --tb=short 2>&1 | tee "$OUT/suite.log" | tail -40 ;;
+             -n 16 -p no:benchmark -v -rfE --tb=short 2>&1 | tee "$OUT/suite.log" \
+             | grep -E "FAILED|ERROR|passed|failed" | tail -40 ;;
     bench) timeout 300 python3 tools/bench_gpu.py 2>&1 | tee "$OUT/bench.log" | tail -14 ;;
+    profile) timeout 300 python3 tools/bench_gpu.py --devices cuda --only sir multi --reps 5 \
+               --multi-frames 8 --profile 2>&1 | tee "$OUT/profile.log" | tail -60 ;;
   esac
 done
