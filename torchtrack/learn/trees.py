@@ -421,6 +421,19 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         return node - feat.numel()
 
     # -- scoring
+    def _tables_on(self, dev: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``feature_``, ``threshold_``, ``leaf_`` on ``dev``: copied to a GPU once per fitted
+        state (a particle filter scores every frame; a copy per call would wait on the host)."""
+        tables = (self.feature_, self.threshold_, self.leaf_)
+        if all(t.device == dev for t in tables):
+            return tables
+        cache = self.__dict__.setdefault("_device_tables", {})
+        hit = cache.get(dev)
+        if hit is None or any(a is not b for a, b in zip(hit[0], tables, strict=True)):
+            hit = (tables, tuple(t.to(dev) for t in tables))
+            cache[dev] = hit
+        return hit[1]
+
     def _tree_outputs(self, X: torch.Tensor) -> torch.Tensor:
         """Output of every tree ``(..., R)`` on raw features ``X (..., T)``.
 
@@ -432,10 +445,9 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         trees, so margins are bit-identical to a node-by-node evaluation.
         """
         dev = X.device
-        feat = self.feature_.to(dev).reshape(-1)
-        thr = self.threshold_.to(dev).reshape(-1, 1)
+        feat, thr, leaf = self._tables_on(dev)
+        feat, thr = feat.reshape(-1), thr.reshape(-1, 1)
         r, n_int = self.feature_.shape
-        leaf = self.leaf_.to(dev)
         leaf_flat = leaf.reshape(-1)
         base = (torch.arange(r, device=dev) * (n_int + 1) - n_int).unsqueeze(1)  # (R, 1)
         x2 = X.reshape(-1, X.shape[-1])
