@@ -475,6 +475,48 @@ def test_an_adapted_birth_must_be_moving():
     assert out.ids.tolist() == [1, 2, 3, 4]
 
 
+def _textured(h=300, w=500):
+    """A still, textured scene (blurred noise) as ``(3, h, w)`` uint8."""
+    import cv2
+    import numpy as np
+
+    img = np.random.default_rng(0).integers(0, 256, (h, w), np.uint8)
+    img = cv2.GaussianBlur(img, (0, 0), 3)
+    img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX)
+    return torch.from_numpy(img)[None].expand(3, -1, -1).contiguous()
+
+
+def test_camera_shift_finds_a_pan_and_a_still_camera():
+    from torchtrack.track.multi import _camera_shift
+
+    scene = _textured()[0].to(torch.int16) * 3
+    old, new = scene[20:260, 30:430], scene[20 + 3 : 260 + 3, 30 + 5 : 430 + 5]
+    assert _camera_shift(old, new) == (-5, -3)  # new[y, x] shows old[y + 3, x + 5]
+    assert _camera_shift(old, old) == (0, 0)
+
+
+def test_a_panning_camera_does_not_make_a_still_patch_move():
+    """A camera sliding 2 px a frame over a still, textured scene: every patch changes, more
+    than twice the frame's median change in the textured places; with the pan compensated a
+    still patch is not moving, while a block that moves across the scene is."""
+    scene = _textured(300, 560)
+
+    def view(t, block=False):
+        f = scene[:, 20:260, 2 * t : 2 * t + 400].clone()
+        if block:  # a bright block moving 6 px a frame over the scene, seen by the camera
+            x = 40 + 6 * t - 2 * t
+            f[:, 100:180, x : x + 30] = 255
+        return f
+
+    for block in (False, True):
+        mt = make()
+        for t in range(5):
+            mt.update(view(t, block), scan=(torch.zeros((0, 4)), torch.zeros(0)))
+        x = 40 + 6 * 4 - 2 * 4
+        boxes = torch.tensor([[x - 2.0, 98.0, 34.0, 84.0], [250.0, 60.0, 40.0, 100.0]])
+        assert mt._moving(boxes).tolist() == [block, False]
+
+
 def test_jogging1_low_level_video_is_tracked_real_data(data_dir, one_thread):
     """OTB Jogging1 (a moving camera following two joggers, 352x288): the detector finds the
     annotated jogger on most frames but never at P >= 0.9999 (median 0.997), so with a fixed

@@ -91,6 +91,11 @@ MIN_LEVEL_SCANS = 8
 MOTION_LAG = 4
 MOTION_RATIO = 2.0
 MOTION_MIN = 3.0
+#: the least phase-correlation peak (0..1) taken as the camera's translation between frames,
+#: and how much of the frame's median change the translation must explain (aligned median
+#: below this share of the unaligned one)
+CAMERA_PEAK = 0.1
+CAMERA_EXPLAINS = 0.5
 
 
 @dataclass
@@ -827,17 +832,37 @@ class MultiTargetTracker:
         """``(M,)`` bool: object boxes ``(M, 4)`` whose pixels changed since ``MOTION_LAG``
         frames before (or the oldest frame kept) by ``MOTION_RATIO`` times the whole frame's
         median change: something moves there, more than the camera's noise or its own motion
-        moves the background."""
+        moves the background. A camera that pans is compensated first: the older frame is
+        shifted by the frame's global translation (:func:`_camera_shift`), so that a still
+        patch of the scene does not count as moving because the whole view slid."""
         if len(self._grays) < 2:
             return torch.zeros(boxes.shape[0], dtype=torch.bool)
-        d = (self._grays[-1] - self._grays[0]).abs()
-        level = float(d[::2, ::2].float().median()) * MOTION_RATIO + MOTION_MIN
-        h, w = d.shape
+        old, new = self._grays[0], self._grays[-1]
+        h, w = new.shape
+        d = (new - old).abs().float()
+        median = float(d[::2, ::2].median())
+        sx, sy = _camera_shift(old, new)
+        if sx or sy:  # new[y, x] shows what old[y - sy, x - sx] showed; none off the overlap
+            aligned = torch.full((h, w), math.nan)
+            xa, xb, ya, yb = max(0, sx), min(w, w + sx), max(0, sy), min(h, h + sy)
+            aligned[ya:yb, xa:xb] = (
+                new[ya:yb, xa:xb] - old[ya - sy : yb - sy, xa - sx : xb - sx]
+            ).abs()
+            m = float(aligned[::2, ::2].nanmedian())
+            # the camera moved only if its shift explains the change: else the correlation
+            # followed something moving over a plain, still background
+            if m < CAMERA_EXPLAINS * median:
+                d, median = aligned, m
+            else:
+                sx = sy = 0
+        level = median * MOTION_RATIO + MOTION_MIN
         out = []
         for x, y, bw, bh in boxes.tolist():
             x0, y0 = max(int(x), 0), max(int(y), 0)
             x1, y1 = min(math.ceil(x + bw), w), min(math.ceil(y + bh), h)
-            out.append(x1 > x0 and y1 > y0 and float(d[y0:y1, x0:x1].float().mean()) >= level)
+            seen = d[y0:y1, x0:x1]
+            mean = seen.mean() if sx == 0 and sy == 0 else seen.nanmean()
+            out.append(x1 > x0 and y1 > y0 and float(mean) >= level)
         return torch.tensor(out, dtype=torch.bool)
 
     def _estimated_boxes(self) -> torch.Tensor:
@@ -969,6 +994,26 @@ def _logit(p: float) -> float:
     1 - 1e-12])."""
     p = min(max(p, 1e-12), 1.0 - 1e-12)
     return math.log(p / (1.0 - p))
+
+
+def _camera_shift(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]:
+    """The camera's translation between two frames ``(H, W)`` in whole pixels, ``(sx, sy)``
+    with ``new[y, x]`` showing what ``old[y - sy, x - sx]`` showed (phase correlation through a
+    Hann window, OpenCV's ``phaseCorrelate``); ``(0, 0)`` for a still camera, a weak
+    correlation peak (no single translation explains the change) or a shift beyond a quarter
+    of the frame."""
+    import cv2
+
+    h, w = new.shape
+    if h < 8 or w < 8:
+        return 0, 0
+    a = old.numpy().astype("float32")
+    b = new.numpy().astype("float32")
+    (sx, sy), peak = cv2.phaseCorrelate(a, b, cv2.createHanningWindow((w, h), cv2.CV_32F))
+    sx, sy = round(sx), round(sy)
+    if peak < CAMERA_PEAK or abs(sx) > w // 4 or abs(sy) > h // 4:
+        return 0, 0
+    return sx, sy
 
 
 def _cut(boxes: torch.Tensor, height: int) -> torch.Tensor:
