@@ -279,3 +279,20 @@ def test_cuda_device_follows_input(scheme):
     w = torch.softmax(torch.randn(3, 50, device="cuda"), 1)
     anc = get_resampler(scheme)(w, torch.Generator(device="cuda").manual_seed(0))
     assert anc.device.type == "cuda" and anc.shape == (3, 50)
+
+
+def test_random_helpers_draw_torchs_numbers_on_the_cpu():
+    """``filter._random``'s randperm / randint / rand give torch's own draws for a generator of
+    the tensors' device (the cross-device path runs in tests/test_devices.py on a GPU)."""
+    from torchtrack.filter import _random
+
+    def gen():
+        return torch.Generator().manual_seed(3)
+
+    assert torch.equal(_random.randperm(17, gen(), "cpu"), torch.randperm(17, generator=gen()))
+    assert torch.equal(
+        _random.randint(2, 9, (4, 5), gen(), "cpu"), torch.randint(2, 9, (4, 5), generator=gen())
+    )
+    got = _random.rand((3, 4), gen(), torch.float64, torch.device("cpu"))
+    assert torch.equal(got, torch.rand((3, 4), generator=gen(), dtype=torch.float64))
+    assert _random.randperm(5, None).device.type == "cpu"
