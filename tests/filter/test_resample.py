@@ -282,7 +282,7 @@ def test_cuda_device_follows_input(scheme):
 
 
 def test_random_helpers_draw_torchs_numbers_on_the_cpu():
-    """``filter._random``'s randperm / randint / rand give torch's own draws for a generator of
+    """``filter._random``'s randperm / randint / rand / multinomial give torch's own draws for a generator of
     the tensors' device (the cross-device path runs in tests/test_devices.py on a GPU)."""
     from torchtrack.filter import _random
 
@@ -295,4 +295,9 @@ def test_random_helpers_draw_torchs_numbers_on_the_cpu():
     )
     got = _random.rand((3, 4), gen(), torch.float64, torch.device("cpu"))
     assert torch.equal(got, torch.rand((3, 4), generator=gen(), dtype=torch.float64))
+    w = torch.rand(40, generator=gen(), dtype=torch.float64)
+    assert torch.equal(
+        _random.multinomial(w, 25, gen(), replacement=True),
+        torch.multinomial(w, 25, replacement=True, generator=gen()),
+    )
     assert _random.randperm(5, None).device.type == "cpu"

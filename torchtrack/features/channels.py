@@ -225,20 +225,15 @@ def _linear_rgb(rgb: torch.Tensor) -> torch.Tensor:
 
 def _luv(rgb: torch.Tensor) -> torch.Tensor:
     """``(B, 3, H, W)`` RGB 0..255 -> CIE LUV ``(B, 3, H, W)`` float32 exactly as
-    ``kornia.color.rgb_to_luv(rgb / 255)`` (L in [0, 100]), with the sRGB linearisation of
-    8-bit input read from a 256-entry table."""
-    from kornia.color import rgb_to_xyz
-
+    ``kornia.color.rgb_to_luv(rgb / 255)`` on the CPU (L in [0, 100]), with the sRGB
+    linearisation of 8-bit input read from a 256-entry table."""
     lin = _linear_rgb(rgb)
-    if lin.device.type == "cpu":
-        xyz = rgb_to_xyz(lin)
-    else:
-        # kornia's GPU branch is a cuDNN convolution, which rounds its inputs to TF32 by
-        # default (10-bit mantissa: U, a difference of near-equal terms, then differs from the
-        # CPU's by ~2e-3 relative, seen on an H100); its CPU branch, a float32 einsum, runs as
-        # a matmul, which torch keeps in full float32 on CUDA
-        k = torch.tensor(_XYZ, dtype=lin.dtype, device=lin.device)
-        xyz = torch.einsum("oi, ...ihw -> ...ohw", k, lin)
+    # kornia.color.rgb_to_xyz's CPU branch, on every device: its GPU branch is a cuDNN
+    # convolution, which rounds its inputs to TF32 by default (10-bit mantissa: U, a difference
+    # of near-equal terms, then differed from the CPU's by ~2e-3 relative on an H100); the
+    # einsum runs as a matmul, which torch keeps in full float32 on CUDA
+    k = torch.tensor(_XYZ, dtype=lin.dtype, device=lin.device)
+    xyz = torch.einsum("oi, ...ihw -> ...ohw", k, lin)
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     # kornia.color.luv: CIE 1976 with the D65 white point, eps 1e-12 in the denominators
     thr = 0.008856

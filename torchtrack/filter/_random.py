@@ -15,7 +15,7 @@ import torch
 
 from torchtrack.errors import ConfigError
 
-__all__ = ["GeneratorLike", "rand", "randint", "randn", "randperm", "subset"]
+__all__ = ["GeneratorLike", "multinomial", "rand", "randint", "randn", "randperm", "subset"]
 
 GeneratorLike = torch.Generator | Sequence[torch.Generator] | None
 
@@ -132,6 +132,16 @@ def randint(
     return torch.randint(low, high, tuple(shape), generator=generator, device=where).to(
         device or "cpu"
     )
+
+
+def multinomial(
+    probs: torch.Tensor, n: int, generator: torch.Generator | None, replacement: bool = False
+) -> torch.Tensor:
+    """``torch.multinomial(probs, n)`` on ``probs``' device, drawn from ``generator`` wherever
+    that generator lives (the same numbers as ``torch.multinomial`` there)."""
+    where = probs if generator is None else probs.to(generator.device)
+    draw = torch.multinomial(where, n, replacement=replacement, generator=generator)
+    return draw.to(probs.device)
 
 
 def subset(generator: GeneratorLike, rows: list[int]) -> GeneratorLike:

@@ -254,7 +254,7 @@ class CoTrainer:
         if idx.numel() <= self.max_samples:
             return idx
         perm = randperm(idx.numel(), generator, idx.device)[: self.max_samples]
-        return idx[perm.to(idx.device)]
+        return idx[perm]
 
     def _train(
         self,
@@ -294,7 +294,7 @@ class CoTrainer:
         if pool.shape[0] == 0:
             return pool
         pick = randint(0, pool.shape[0], (min(self.replay, pool.shape[0]),), generator, pool.device)
-        return pool[pick.to(pool.device)]
+        return pool[pick]
 
     def _remember(self, i: int, new: torch.Tensor, generator) -> None:
         """Add accepted positives to classifier i's pool (a ring of ``pool_size / 2`` rows after

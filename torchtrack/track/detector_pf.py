@@ -49,6 +49,7 @@ import torch
 
 from torchtrack.boxes import box_iou_matrix
 from torchtrack.errors import ConfigError, TrackerError
+from torchtrack.filter._random import multinomial
 from torchtrack.filter.motion import ChateauAR
 from torchtrack.filter.sir import sir_step
 from torchtrack.observe.detector import DetectorObservation
@@ -299,11 +300,7 @@ class DetectorTracker(Tracker):
         for i in range(b):  # loop over targets (a handful), not particles
             idx = torch.nonzero(iou[i] >= 0.3).flatten()[: cfg.init_top_n]  # scores sorted
             cand, sc = wins[idx], scores[idx]
-            probs = sc.to(torch.float64)
-            if self.generator is not None:  # draw where the generator lives
-                probs = probs.to(self.generator.device)
-            draw = torch.multinomial(probs, n, replacement=True, generator=self.generator)
-            draw = draw.to(cand.device)
+            draw = multinomial(sc.to(torch.float64), n, self.generator, replacement=True)
             picked = cand[draw]  # (n, 4)
             c = picked[:, 0:2] + picked[:, 2:4] / 2
             s = picked[:, 3] / dets[i, 3]
