@@ -68,6 +68,12 @@ def trackeval():
 
 
 @pytest.fixture(scope="session")
+def ray():
+    """Ray, for the Ray backend's tests (the ray extra; CI installs it)."""
+    return require_module("ray", "pip install 'torchtrack[ray]'")
+
+
+@pytest.fixture(scope="session")
 def motmetrics():
     """motmetrics, the MOTA / IDF1 cross-check (the test extra)."""
     return require_module("motmetrics", 'pip install -e ".[test]"')

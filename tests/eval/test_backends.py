@@ -71,6 +71,7 @@ def test_bad_settings():
         run_tasks(task, [(1,)], Backend(modules=("no_such_mod",)), lambda i, v: None)
 
 
+@pytest.mark.usefixtures("ray")  # the errors of a Ray that is installed
 def test_unreachable_address_is_a_clear_error():
     addr = f"127.0.0.1:{closed_port()}"
     with pytest.raises(BackendError, match=r"cannot reach the Ray cluster at 127\.0\.0\.1:\d+ "):
@@ -82,6 +83,7 @@ def test_unreachable_address_is_a_clear_error():
             probe_address(bad)
 
 
+@pytest.mark.usefixtures("ray")  # the errors of a Ray that is installed
 def test_ray_address_from_the_environment(monkeypatch):
     monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{closed_port()}")
     with pytest.raises(BackendError, match="cannot reach the Ray cluster"):

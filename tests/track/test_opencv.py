@@ -100,16 +100,48 @@ def _square_frames(n=8, size=(80, 100), gray=False, vanish_at=None):
     return frames, torch.tensor(boxes, dtype=torch.float64)
 
 
-def test_opencv_exception_becomes_a_tracker_error():
-    # OpenCV 5's MIL throws std::bad_alloc on a box reaching above the frame: a TrackerError
-    # that names the box and the frame, not a cv2.error
+def test_box_reaching_outside_the_frame_starts_on_its_visible_part(monkeypatch):
+    # OpenCV builds differ on such boxes (5.0's MIL throws std::bad_alloc, others crash the
+    # process): the wrapper hands OpenCV only the part inside the frame
     frame = torch.randint(
         0, 255, (3, 240, 320), dtype=torch.uint8, generator=torch.Generator().manual_seed(0)
     )
+    seen = []
+
+    class Fake:
+        def init(self, img, rect):
+            seen.append((img.shape, rect))
+            return True
+
+    t = create_tracker("mil")
+    monkeypatch.setattr(t, "_ctor", Fake)
+    for box, rect in [
+        ((25.0, -16.0, 75.0, 186.0), (25, 0, 75, 170)),
+        ((300.5, 200.0, 40.0, 60.0), (300, 200, 20, 40)),
+        ((-10.0, -10.0, 400.0, 300.0), (0, 0, 320, 240)),
+    ]:
+        state = t.init(frame, torch.tensor(box))
+        assert seen[-1] == ((240, 320, 3), rect)
+        assert state.box[0].tolist() == list(box)  # the state is the box the user gave
+    # and the real MIL starts and follows on the visible part
+    mil = create_tracker("mil")
+    mil.init(frame, torch.tensor([25.0, -16.0, 75.0, 186.0]))
+    assert mil.update(frame).box.shape == (1, 4)
+
+
+def test_opencv_exception_becomes_a_tracker_error(monkeypatch):
+    frame = torch.zeros((3, 240, 320), dtype=torch.uint8)
+
+    class Throws:
+        def init(self, img, rect):
+            raise cv2.error("OpenCV(5.0.0) std::bad_alloc")
+
+    t = create_tracker("mil")
+    monkeypatch.setattr(t, "_ctor", Throws)
     with pytest.raises(
-        TrackerError, match=r"mil failed to initialise on box \(25, -16, 75, 186\) in a 320x240"
+        TrackerError, match=r"mil failed to initialise on box \(25, 0, 75, 170\) in a 320x240"
     ):
-        create_tracker("mil").init(frame, torch.tensor([25.0, -16.0, 75.0, 186.0]))
+        t.init(frame, torch.tensor([25.0, -16.0, 75.0, 186.0]))
 
 
 def test_camshift_follows_a_coloured_target():

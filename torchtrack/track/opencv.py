@@ -118,11 +118,15 @@ class OpenCVTracker(Tracker):
         self._cv = self._ctor()
         # Integer cv::Rect for every kind (round the corners, keep >= 1 pixel): the legacy
         # Boosting tracker of OpenCV 5.0 crashes (segfault) on fractional boxes.
-        x1, y1 = round(x), round(y)
-        rect = (x1, y1, max(1, round(x + w) - x1), max(1, round(y + h) - y1))
+        # The part of the box inside the frame: builds of OpenCV differ on boxes that reach
+        # outside it (5.0's MIL throws std::bad_alloc, others crash the process).
+        fh, fw = img.shape[:2]
+        x1, y1 = min(max(round(x), 0), fw - 1), min(max(round(y), 0), fh - 1)
+        x2, y2 = min(max(round(x + w), x1 + 1), fw), min(max(round(y + h), y1 + 1), fh)
+        rect = (x1, y1, x2 - x1, y2 - y1)
         try:
             ok = self._cv.init(img, rect)
-        except cv2.error as exc:  # e.g. MIL's std::bad_alloc on some large boxes
+        except cv2.error as exc:
             raise TrackerError(
                 f"OpenCV {self.kind} failed to initialise on box {rect} in a "
                 f"{img.shape[1]}x{img.shape[0]} frame: {str(exc).strip()}"
