@@ -76,6 +76,37 @@ def _profiled(label: str, fn, dev: torch.device) -> None:
     print(ka.table(sort_by=key, row_limit=20))
     waits = sum(e.count for e in ka if "Synchronize" in e.key or "Memcpy" in e.key)
     print(f"host waits / copies (cudaStreamSynchronize, cudaMemcpy*): {waits}")
+    if dev.type == "cuda":
+        _syncs(label, fn)
+
+
+def _syncs(label: str, fn) -> None:
+    """Run ``fn`` once more with torch's CUDA sync debug mode and print where the host waited
+    for the device (the innermost torchtrack or tools line of each synchronising call)."""
+    import collections
+    import traceback
+    import warnings
+
+    where: collections.Counter = collections.Counter()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        for fr in reversed(traceback.extract_stack()[:-1]):
+            if "/torchtrack/" in fr.filename or "/tools/" in fr.filename:
+                where[f"{Path(fr.filename).name}:{fr.lineno}  {fr.line}"] += 1
+                return
+        where[f"{Path(filename).name}:{lineno}"] += 1
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = show
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            fn()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    print(f"host syncs of one call ({label}): {sum(where.values())}")
+    for k, v in where.most_common(40):
+        print(f"  {v:4d}  {k}")
 
 
 def _timed(fn, dev: torch.device, reps: int) -> list[float]:

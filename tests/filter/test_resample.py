@@ -279,6 +279,19 @@ def test_cuda_device_follows_input(scheme):
     w = torch.softmax(torch.randn(3, 50, device="cuda"), 1)
     anc = get_resampler(scheme)(w, torch.Generator(device="cuda").manual_seed(0))
     assert anc.device.type == "cuda" and anc.shape == (3, 50)
+    # the offspring histogram is a scatter-add off the CPU: ancestors still sorted, in range
+    assert bool((anc[:, 1:] >= anc[:, :-1]).all()) and 0 <= int(anc.min()) <= int(anc.max()) < 50
+    with pytest.raises(FilterError, match="must be non-negative"):
+        get_resampler(scheme)(torch.tensor([[0.5, -0.1, 0.6]], device="cuda"))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
+def test_cuda_histogram_is_bincount():
+    from torchtrack.filter.resample import _histogram
+
+    x = torch.randint(0, 40, (5000,), generator=torch.Generator().manual_seed(0))
+    assert torch.equal(_histogram(x.cuda(), 50).cpu(), _histogram(x, 50))
+    assert torch.equal(_histogram(x, 50), torch.bincount(x, minlength=50))
 
 
 def test_random_helpers_draw_torchs_numbers_on_the_cpu():

@@ -102,8 +102,8 @@ def has_nan_or_posinf(x: torch.Tensor) -> bool:
     NaN or ``+inf`` (NaN propagates; ``+inf`` alone gives ``+inf``, with ``-inf`` NaN). A
     non-finite sum can also come from overflow, so only then are the entries inspected.
     """
-    total = x.sum()
-    if bool(torch.isfinite(total)) or bool(total == -math.inf):
+    total = float(x.sum())  # one read from the device
+    if math.isfinite(total) or total == -math.inf:
         return False
     return bool((torch.isnan(x) | (x == math.inf)).any())
 
@@ -150,7 +150,9 @@ def normalize_with_lse(
         )
     lse = torch.logsumexp(log_weights, dim=1, keepdim=True)
     recovered = torch.isneginf(lse).squeeze(1)
-    if not bool(recovered.any()):
+    # On the CPU the common case (no row to restart) skips the selection passes; elsewhere
+    # they run always, so that the host need not wait for the device to decide.
+    if log_weights.device.type == "cpu" and not bool(recovered.any()):
         return log_weights - lse, recovered, lse.squeeze(1)
     # Rows with zero total mass: subtracting -inf would give NaN; reset them to uniform.
     n = log_weights.shape[1]

@@ -48,12 +48,14 @@ _BAD_WEIGHTS = (
 )
 
 
-def _totals(c: torch.Tensor) -> torch.Tensor:
+def _totals(c: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Row totals ``(B, 1)`` of a cumulative sum (a view: callers divide it before writing to
-    ``c``); FilterError unless positive and finite."""
+    ``c``); FilterError unless positive and finite, or if a weight of ``weights`` (whose sums
+    ``c`` holds) is negative. One read from the device for both checks."""
     last = c[:, -1:]
     lo, hi = torch.aminmax(last)
-    if not (float(lo) > 0 and float(hi) < math.inf):  # also false for NaN
+    lo, hi, least = torch.stack([lo, hi, weights.amin().to(lo.dtype)]).tolist()
+    if not (lo > 0 and hi < math.inf) or least < 0:  # also false for NaN
         raise FilterError(_BAD_WEIGHTS)
     return last
 
@@ -61,7 +63,16 @@ def _totals(c: torch.Tensor) -> torch.Tensor:
 def _cdf(weights: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
     """``(B, N)`` float64 CDF times ``scale`` (the last entry ``scale`` up to rounding)."""
     c = weights.to(torch.float64).cumsum(1)
-    return c.mul_(scale / _totals(c))
+    return c.mul_(scale / _totals(c, weights))
+
+
+def _histogram(x: torch.Tensor, size: int) -> torch.Tensor:
+    """``torch.bincount(x, minlength=size)`` for ``0 <= x < size``; off the CPU a scatter-add,
+    which needs no read of ``x.max()`` back to the host."""
+    if x.device.type == "cpu":
+        return torch.bincount(x, minlength=size)
+    h = torch.zeros(size, dtype=torch.int64, device=x.device)
+    return h.index_add_(0, x, torch.ones_like(x, dtype=torch.int64))
 
 
 def _invert(cdf: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -79,7 +90,7 @@ def _ancestors(pos: torch.Tensor, b: int, m: int) -> torch.Tensor:
     ancestor of new particle j is ``#{i : cum[b, i] <= j}``: one histogram and one cumulative
     sum, O(N) with no search.
     """
-    h = torch.bincount(pos.reshape(-1), minlength=b * (m + 1)).view(b, m + 1)
+    h = _histogram(pos.reshape(-1), b * (m + 1)).view(b, m + 1)
     # In place where the slice stays contiguous (B = 1): a fresh buffer costs page faults.
     return h.cumsum_(1)[:, :m] if b == 1 else h[:, :m].cumsum(1)
 
@@ -188,7 +199,7 @@ def _merge_below(u: torch.Tensor, b: int, cdf: torch.Tensor) -> torch.Tensor:
     it = _index_dtype(b * (row + 2))
     ks = s.to(it)  # bins 0..L; + 1 makes the cumulative sum below exclusive
     ks += 1 if b == 1 else _row_offsets(b, row + 2, u.device, it) + 1
-    hist = torch.bincount(ks.view(-1), minlength=b * (row + 2))
+    hist = _histogram(ks.view(-1), b * (row + 2))
     del ks
     start = hist.cumsum_(0).to(it)  # flat index of the first s in each bin
     del hist
@@ -226,13 +237,11 @@ def _merge_below(u: torch.Tensor, b: int, cdf: torch.Tensor) -> torch.Tensor:
 
 
 def _check_weights(weights: torch.Tensor, n_out: int | None) -> tuple[int, int]:
-    """``(B, M)`` for weights ``(B, N)``; ShapeError for another shape, FilterError for a
-    negative weight (NaN and rows without positive finite mass are caught by ``_totals``)."""
+    """``(B, M)`` for weights ``(B, N)``; ShapeError for another shape (negative weights, NaN
+    and rows without positive finite mass are caught by ``_totals``)."""
     if not isinstance(weights, torch.Tensor) or weights.ndim != 2 or weights.shape[1] == 0:
         shape = tuple(weights.shape) if isinstance(weights, torch.Tensor) else type(weights)
         raise ShapeError(f"weights must be a (B, N) tensor with N >= 1, got {shape}")
-    if weights.numel() and float(weights.amin()) < 0:
-        raise FilterError(_BAD_WEIGHTS)
     return weights.shape[0], weights.shape[1] if n_out is None else int(n_out)
 
 
@@ -297,7 +306,7 @@ def systematic(
     c = weights.to(torch.float64).cumsum(1)
     # c <- M c / c_last - U in one fused pass; 0 <= c / c_last <= 1 exactly (monotone cumsum of
     # non-negative weights), so ceil lies in [0, M] without a clamp.
-    torch.addcmul(-u, c, n / _totals(c), out=c)
+    torch.addcmul(-u, c, n / _totals(c, weights), out=c)
     cum = c.ceil_().long()
     if b > 1:
         cum += _row_offsets(b, n + 1, weights.device)
@@ -317,7 +326,7 @@ def residual(
     if b == 0:
         return _no_rows(n, weights.device)
     nw = weights.to(torch.float64, copy=True)
-    nw.mul_(n / _totals(nw.sum(1, keepdim=True)))
+    nw.mul_(n / _totals(nw.sum(1, keepdim=True), weights))
     floor = nw.to(_index_dtype(b * (n + 1)))  # floor(M w) (M w >= 0)
     # Residuals M w - floor(M w) = frac(M w) exactly, in place, and their unnormalised CDF.
     rest = nw.frac_().cumsum_(1)

@@ -176,7 +176,9 @@ class HaarBoxLikelihood:
         to_boxes: ``states (..., D) -> boxes (..., 4)`` x, y, w, h, e.g. ``KleinAR().to_boxes``.
         features: the feature bank (F features).
         alpha: ``(F,)`` weights; ``bias``: scalar.
-        chunk: particles per eager chunk (bounds the workspace to about ``400 * chunk`` bytes).
+        chunk: particles per eager chunk on the CPU (bounds the workspace to about
+            ``400 * chunk`` bytes); on a GPU all particles go in one pass (a chunk there costs
+            a round of kernel launches and gains no cache).
         compile: use the fused :func:`torch.compile` path on CPU frames (falls back to eager,
             with one warning, where compiling fails; other devices use eager). Default False.
 
@@ -231,11 +233,15 @@ class HaarBoxLikelihood:
     def features_of(self, boxes: torch.Tensor) -> torch.Tensor:
         """``boxes (M, 4)`` x, y, w, h -> ``(M, F)`` float32 area-normalised responses (eager)."""
         boxes = boxes.to(self.flat.device, torch.float32)
-        step = self.chunk
+        step = self._step(boxes)
         out = [self._features_t(boxes[s : s + step]) for s in range(0, boxes.shape[0], step)]
         if not out:
             return torch.zeros((0, len(self.features)), device=self.flat.device)
         return torch.cat(out, 1).T
+
+    def _step(self, boxes: torch.Tensor) -> int:
+        """Particles per eager pass: ``chunk`` on the CPU, all of them elsewhere."""
+        return self.chunk if boxes.device.type == "cpu" else max(1, boxes.shape[0])
 
     def _features_t(self, boxes: torch.Tensor) -> torch.Tensor:
         """``boxes (M, 4)`` float32 -> ``(F, M)`` responses (particle axis innermost)."""
@@ -261,10 +267,13 @@ class HaarBoxLikelihood:
         return torch.cat(parts, 0) / area
 
     def _log_lik_eager(self, boxes: torch.Tensor) -> torch.Tensor:
+        step = self._step(boxes)
+        if step >= boxes.shape[0]:  # one pass (a GPU, or few particles): no output copy
+            return F.logsigmoid(self.alpha @ self._features_t(boxes) + self.bias)
         out = torch.empty(boxes.shape[0], dtype=torch.float32, device=boxes.device)
-        for s in range(0, boxes.shape[0], self.chunk):
-            f = self._features_t(boxes[s : s + self.chunk])  # (F, m)
-            out[s : s + self.chunk] = F.logsigmoid(self.alpha @ f + self.bias)
+        for s in range(0, boxes.shape[0], step):
+            f = self._features_t(boxes[s : s + step])  # (F, m)
+            out[s : s + step] = F.logsigmoid(self.alpha @ f + self.bias)
         return out
 
     def _log_lik_compiled(self, boxes: torch.Tensor) -> torch.Tensor:
