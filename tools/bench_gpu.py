@@ -120,7 +120,7 @@ def _timed(fn, dev: torch.device, reps: int) -> list[float]:
     return out
 
 
-def bench_sir(dev: torch.device, b: int, n: int, reps: int) -> dict:
+def bench_sir(dev: torch.device, b: int, n: int, reps: int, graphed: bool = False) -> dict:
     import cv2
 
     from torchtrack.features.integral import integral_image
@@ -139,14 +139,27 @@ def bench_sir(dev: torch.device, b: int, n: int, reps: int) -> dict:
     for _ in range(3):  # warm-up (CUDA kernels loaded, caches filled)
         state[0] = sir_step(state[0].states, state[0].log_weights, motion, lik, generator=g)
 
-    def step():
+    if graphed:  # the same step recorded once as a CUDA graph (torchtrack.filter.graph)
+        from torchtrack.filter.graph import GraphedSIR
+
         r = state[0]
-        state[0] = sir_step(r.states, r.log_weights, motion, lik, generator=g)
+        runner = GraphedSIR(r.states, r.log_weights, motion, lik, generator=g)
+        for _ in range(3):
+            runner.step()
+
+        def step():
+            state[0] = runner.step()
+
+    else:
+
+        def step():
+            r = state[0]
+            state[0] = sir_step(r.states, r.log_weights, motion, lik, generator=g)
 
     t = _timed(step, dev, reps)
     assert state[0].states.device.type == dev.type
     if PROFILE:
-        _profiled("SIR step (100, 1000)", step, dev)
+        _profiled(f"SIR step (100, 1000){' graphed' if graphed else ''}", step, dev)
     return {"ms": 1e3 * statistics.median(t), "reps": reps}
 
 
@@ -233,7 +246,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--devices", nargs="+", default=["cpu", "cuda"])
     ap.add_argument(
-        "--only", nargs="+", choices=["sir", "multi", "eval"], default=["sir", "multi", "eval"]
+        "--only",
+        nargs="+",
+        choices=["sir", "sir-graph", "multi", "eval"],
+        default=["sir", "sir-graph", "multi", "eval"],
+        help="sir-graph: the SIR step replayed from a CUDA graph (GraphedSIR; CUDA only)",
     )
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     ap.add_argument("--reps", type=int, default=31)
@@ -251,8 +268,10 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[tuple[str, str, dict]] = []
     for what in args.only:
         for dev in devs:
-            if what == "sir":
-                r = bench_sir(dev, 100, 1000, args.reps)
+            if what == "sir-graph" and dev.type != "cuda":
+                continue  # a CUDA graph: nothing to record on the CPU
+            if what in ("sir", "sir-graph"):
+                r = bench_sir(dev, 100, 1000, args.reps, graphed=what == "sir-graph")
             elif what == "multi":
                 r = bench_multi(dev, args.targets, args.multi_frames)
             else:
@@ -267,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     print("| check | device | median | detail | CPU / this |")
     print("|---|---|---|---|---|")
     base = {what: r for what, d, r in rows if d == "cpu"}
+    if "sir" in base:
+        base["sir-graph"] = base["sir"]
     for what, d, r in rows:
         if what == "eval":
             val, key = f"{r['fps']:.1f} fps (tracker only)", "fps"
@@ -276,12 +297,13 @@ def main(argv: list[str] | None = None) -> int:
             val, key = f"{r['ms']:.2f} ms", "ms"
             detail = (
                 f"(B, N) = (100, 1000), {r['reps']} steps"
-                if what == "sir"
+                if what.startswith("sir")
                 else f"{args.targets} targets, {r['frames']} frames, {r['reported']} reported"
             )
             ratio = base[what][key] / r[key] if what in base else float("nan")
         label = {
             "sir": "SIR step, 32 Haar features",
+            "sir-graph": "SIR step, 32 Haar features, CUDA graph",
             "multi": "multi-target frame",
             "eval": f"1,000-frame eval, {args.tracker}",
         }[what]

@@ -95,6 +95,13 @@ def check_particles(states: torch.Tensor, log_weights: torch.Tensor | None = Non
         raise ShapeError(f"log_weights must be floating point, got {log_weights.dtype}")
 
 
+def _capturing(x: torch.Tensor) -> bool:
+    """True while ``x``'s CUDA stream is being captured into a graph (``torch.cuda.graph``),
+    where a read back to the host is an error: the value checks are then left to the caller
+    (:class:`torchtrack.filter.graph.GraphedSIR` checks the step's output after each replay)."""
+    return x.is_cuda and torch.cuda.is_current_stream_capturing()
+
+
 def has_nan_or_posinf(x: torch.Tensor) -> bool:
     """True if ``x`` holds a NaN or ``+inf`` (``-inf`` is allowed: a zero weight).
 
@@ -102,6 +109,8 @@ def has_nan_or_posinf(x: torch.Tensor) -> bool:
     NaN or ``+inf`` (NaN propagates; ``+inf`` alone gives ``+inf``, with ``-inf`` NaN). A
     non-finite sum can also come from overflow, so only then are the entries inspected.
     """
+    if _capturing(x):  # a CUDA graph being recorded cannot read back; it checks after replay
+        return False
     total = float(x.sum())  # one read from the device
     if math.isfinite(total) or total == -math.inf:
         return False

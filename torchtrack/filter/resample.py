@@ -27,7 +27,7 @@ import torch
 
 from torchtrack.errors import ConfigError, FilterError, ShapeError
 from torchtrack.filter._random import GeneratorLike, rand
-from torchtrack.filter.particles import ess, normalize_log_weights
+from torchtrack.filter.particles import _capturing, ess, normalize_log_weights
 
 __all__ = [
     "RESAMPLERS",
@@ -53,6 +53,8 @@ def _totals(c: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     ``c``); FilterError unless positive and finite, or if a weight of ``weights`` (whose sums
     ``c`` holds) is negative. One read from the device for both checks."""
     last = c[:, -1:]
+    if _capturing(c):  # a CUDA graph being recorded: checked after replay (GraphedSIR)
+        return last
     lo, hi = torch.aminmax(last)
     lo, hi, least = torch.stack([lo, hi, weights.amin().to(lo.dtype)]).tolist()
     if not (lo > 0 and hi < math.inf) or least < 0:  # also false for NaN

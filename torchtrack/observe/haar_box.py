@@ -216,13 +216,21 @@ class HaarBoxLikelihood:
         self.set_frame(ii)
 
     def set_frame(self, ii: torch.Tensor) -> None:
-        """Use the integral image ``ii (H + 1, W + 1)`` of a new frame."""
+        """Use the integral image ``ii (H + 1, W + 1)`` of a new frame.
+
+        A frame of the size and device of the last one is copied into the same buffer, so a
+        step captured in a CUDA graph (:class:`torchtrack.filter.graph.GraphedSIR`) reads the
+        new frame on its next replay."""
         if not isinstance(ii, torch.Tensor) or ii.ndim != 2 or min(ii.shape) < 2:
             got = tuple(ii.shape) if isinstance(ii, torch.Tensor) else type(ii).__name__
             raise ShapeError(f"ii must be an (H + 1, W + 1) integral image, got {got}")
         dev = ii.device
+        flat = getattr(self, "flat", None)
+        if flat is not None and flat.device == dev and (self.h1, self.w1) == tuple(ii.shape):
+            flat.copy_(ii.reshape(-1))
+            return
         self.h1, self.w1 = (int(v) for v in ii.shape)
-        self.flat = ii.to(torch.float32).flatten().contiguous()
+        self.flat = ii.to(torch.float32, copy=True).flatten()  # its own buffer, never the caller's
         f = self.features
         self.split = f.split.to(dev)
         self.span = f.span.to(dev)
