@@ -10,6 +10,7 @@ from torchtrack.filter.dynamics_fit import (
     load_chateau_toml,
     save_chateau_toml,
 )
+from torchtrack.filter.graph import GraphedSIR
 from torchtrack.filter.motion import BachooMotion, ChateauAR, KleinAR, VelocityHistory
 from torchtrack.filter.particles import (
     ParticleSet,
@@ -31,6 +32,7 @@ __all__ = [
     "BachooMotion",
     "ChateauAR",
     "ChateauFit",
+    "GraphedSIR",
     "KleinAR",
     "ParticleSet",
     "StepResult",
