@@ -27,6 +27,12 @@ of adaptive births, ``birth_floor``).
 
     python tools/loso_multi.py --grid birth_floor=0.9999,0.995 --degrade contrast=0.5,noise=8
 
+With ``--rescale S`` every sequence is replaced by a copy resized by S (its ground truth and
+public detections scaled with it): the same people at another resolution, a check that a
+setting in pixels does not hold only at the two clips' own size.
+
+    python tools/loso_multi.py --grid noise_height=0,120 --rescale 2
+
 Prints a markdown table: HOTA mean ± sd over seeds (MOTA and IDF1 means beside), then the
 leave-one-sequence-out line. Nothing is timed.
 """
@@ -88,8 +94,6 @@ def degrade(frame: np.ndarray, contrast: float, noise: float, index: int) -> np.
 def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
     """``seq`` through :func:`degrade` (``spec``: ``contrast=C,noise=S``), written once as a
     MOTChallenge folder (PNG frames, the ground truth in their pixels) under ``cache``."""
-    import cv2
-
     try:
         kv = dict(item.split("=") for item in spec.split(","))
         contrast, noise = float(kv.pop("contrast", 1.0)), float(kv.pop("noise", 0.0))
@@ -97,8 +101,35 @@ def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
         raise SystemExit(f"--degrade: expected contrast=C,noise=S, got {spec!r}") from None
     if kv or not (0 < contrast <= 1 and noise >= 0):
         raise SystemExit(f"--degrade: expected contrast=C (0, 1] and noise=S >= 0, got {spec!r}")
-    name = f"{seq.name}-c{contrast:g}-n{noise:g}"
-    out = cache / "degraded" / name
+    return _copy(
+        seq, f"{seq.name}-c{contrast:g}-n{noise:g}", cache / "degraded",
+        lambda img, i: degrade(img, contrast, noise, i),
+    )  # fmt: skip
+
+
+def rescaled(seq: MotSequence, scale: float, cache: Path) -> MotSequence:
+    """``seq`` with every frame resized by ``scale`` (area averaging down, bilinear up) and its
+    ground truth and public detections scaled with it: the same people, nearer or farther in
+    pixels (a check that a default does not hold only at the clips' own resolution)."""
+    import cv2
+
+    if not scale > 0:
+        raise SystemExit(f"--rescale must be > 0, got {scale}")
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return _copy(
+        seq, f"{seq.name}-x{scale:g}", cache / "rescaled",
+        lambda img, i: cv2.resize(img, None, fx=scale, fy=scale, interpolation=interp),
+        box_scale=scale,
+    )  # fmt: skip
+
+
+def _copy(seq: MotSequence, name: str, root: Path, fn, box_scale: float = 1.0) -> MotSequence:
+    """``seq``'s frames through ``fn(frame (H, W, C) uint8 RGB, index)``, written once as the
+    MOTChallenge folder ``root / name`` (PNG frames; ground truth and public detections with
+    their boxes times ``box_scale``)."""
+    import cv2
+
+    out = root / name
     if not (out / "seqinfo.ini").is_file():
         (out / "img1").mkdir(parents=True, exist_ok=True)
         (out / "gt").mkdir(exist_ok=True)
@@ -107,16 +138,23 @@ def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
             for i, frame in src.items():
                 if frame is None or i >= seq.n_frames:
                     raise SystemExit(f"{seq.name}: frame {i + 1} unreadable")
-                img = degrade(frame.permute(1, 2, 0).numpy(), contrast, noise, i)
+                img = fn(frame.permute(1, 2, 0).numpy(), i)
                 cv2.imwrite(str(out / "img1" / f"{i + 1:06d}.png"), img[..., ::-1])
                 n += 1
         h, w = img.shape[:2]
-        write_mot(out / "gt" / "gt.txt", seq.gt)
+        write_mot(out / "gt" / "gt.txt", _scaled_rows(seq.gt, box_scale))
+        if seq.det_path is not None:
+            (out / "det").mkdir(exist_ok=True)
+            write_mot(out / "det" / "det.txt", _scaled_rows(seq.detections(), box_scale))
         (out / "seqinfo.ini").write_text(
             f"[Sequence]\nname={name}\nimDir=img1\nframeRate={int(seq.frame_rate or 25)}\n"
             f"seqLength={n}\nimWidth={w}\nimHeight={h}\nimExt=.png\n"
         )
     return load_mot_sequence(out)
+
+
+def _scaled_rows(rows: MotRows, s: float) -> MotRows:
+    return rows if s == 1.0 else dataclasses.replace(rows, boxes=rows.boxes * s)
 
 
 SCAN_KEYS = (
@@ -198,6 +236,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=REPO / "runs" / "loso_multi")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument(
+        "--rescale",
+        type=float,
+        metavar="S",
+        help="score on copies of the sequences resized by S (ground truth and detections too)",
+    )
+    ap.add_argument(
         "--degrade",
         metavar="contrast=C,noise=S",
         help="score on copies of the sequences with lowered contrast and added sensor noise",
@@ -211,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
         if kind not in KINDS or name not in SEQUENCES or (kind, name) == ("public", SEQUENCES[0]):
             raise SystemExit(f"unknown setting {kind}:{name}")
     seqs = {name: load(args.data, name) for name in {n for _, n in settings}}
+    if args.rescale:
+        seqs = {n: rescaled(s, args.rescale, args.cache) for n, s in seqs.items()}
     if args.degrade:
         seqs = {n: degraded(s, args.degrade, args.cache) for n, s in seqs.items()}
     res: dict[tuple, list[dict]] = {}

@@ -474,11 +474,15 @@ class _Points(NamedTuple):
     ``groups``: per group ``(positions (K_g,), c, i, j (K_g, P_g) int64 lattice points,
     coef (K_g, P_g) float64)``; a feature's raw value is ``sum coef * lattice`` (a sum of
     rectangle *sums* divided by their areas in cells). ``lam (K,)`` float64: each feature's
-    power-law exponent.
+    power-law exponent; ``lam_values`` its distinct values (sorted) and ``lam_index (K,)``
+    which of them each feature has (``torch.unique(lam, return_inverse=True)``, computed once
+    on the CPU: on a GPU each call would wait for the device).
     """
 
     groups: tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], ...]
     lam: torch.Tensor
+    lam_values: torch.Tensor
+    lam_index: torch.Tensor
 
 
 @dataclass(eq=False)
@@ -674,7 +678,8 @@ class ChannelBank:
             gch = chan[sel][:, None].expand(-1, p).contiguous()
             groups.append(tuple(t.to(device) for t in (sel, gch, gi, gj, gc)))
         lam = torch.tensor(self.channels.lambdas, dtype=torch.float64)[chan]
-        out = _Points(tuple(groups), lam.to(device))
+        lam_u, lam_inv = torch.unique(lam, return_inverse=True)
+        out = _Points(tuple(groups), lam.to(device), lam_u.to(device), lam_inv.to(device))
         if len(self._cache) > 32:
             self._cache.pop(next(iter(self._cache)))
         self._cache[key] = out
@@ -1122,8 +1127,7 @@ def _combine_lattice_major(
     out = torch.stack([w @ vals[i] for i in range(b)])  # (B, K, N)
     # r ** lambda per box and feature: lambda takes a few values (one per channel type), so
     # exponentiate each once per box and spread (the same products, the same exp inputs).
-    lam_u, inv = torch.unique(pts.lam, return_inverse=True)
-    power = torch.exp(lam_u[:, None] * logr[:, None, :]).index_select(1, inv)  # (B, K, N)
+    power = torch.exp(pts.lam_values[:, None] * logr[:, None, :]).index_select(1, pts.lam_index)
     return (out * (norm[:, None, :] * power)).transpose(1, 2)
 
 
