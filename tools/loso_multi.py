@@ -33,6 +33,11 @@ setting in pixels does not hold only at the two clips' own size.
 
     python tools/loso_multi.py --grid noise_height=0,120 --rescale 2
 
+``--every K`` keeps every K-th frame (ground truth and public detections with them): the same
+people at a K times lower frame rate, a check of the settings counted in frames.
+
+    python tools/loso_multi.py --grid max_lost=30 --every 3
+
 Prints a markdown table: HOTA mean ± sd over seeds (MOTA and IDF1 means beside), then the
 leave-one-sequence-out line. Nothing is timed.
 """
@@ -123,10 +128,23 @@ def rescaled(seq: MotSequence, scale: float, cache: Path) -> MotSequence:
     )  # fmt: skip
 
 
-def _copy(seq: MotSequence, name: str, root: Path, fn, box_scale: float = 1.0) -> MotSequence:
+def subsampled(seq: MotSequence, every: int, cache: Path) -> MotSequence:
+    """``seq`` keeping every ``every``-th frame (its ground truth and public detections with
+    it): the same people at a lower frame rate, each moving ``every`` times as far between
+    frames (a check that a setting in frames does not hold only at the clips' own rate)."""
+    if every < 1:
+        raise SystemExit(f"--every must be >= 1, got {every}")
+    return _copy(seq, f"{seq.name}-every{every}", cache / "subsampled", lambda img, i: img,
+                 every=every)  # fmt: skip
+
+
+def _copy(
+    seq: MotSequence, name: str, root: Path, fn, box_scale: float = 1.0, every: int = 1
+) -> MotSequence:
     """``seq``'s frames through ``fn(frame (H, W, C) uint8 RGB, index)``, written once as the
     MOTChallenge folder ``root / name`` (PNG frames; ground truth and public detections with
-    their boxes times ``box_scale``)."""
+    their boxes times ``box_scale``); with ``every`` > 1 only frames 0, every, 2 every, ...
+    (renumbered, the frame rate divided)."""
     import cv2
 
     out = root / name
@@ -138,23 +156,30 @@ def _copy(seq: MotSequence, name: str, root: Path, fn, box_scale: float = 1.0) -
             for i, frame in src.items():
                 if frame is None or i >= seq.n_frames:
                     raise SystemExit(f"{seq.name}: frame {i + 1} unreadable")
+                if i % every:
+                    continue
                 img = fn(frame.permute(1, 2, 0).numpy(), i)
-                cv2.imwrite(str(out / "img1" / f"{i + 1:06d}.png"), img[..., ::-1])
                 n += 1
+                cv2.imwrite(str(out / "img1" / f"{n:06d}.png"), img[..., ::-1])
         h, w = img.shape[:2]
-        write_mot(out / "gt" / "gt.txt", _scaled_rows(seq.gt, box_scale))
+        write_mot(out / "gt" / "gt.txt", _copied_rows(seq.gt, box_scale, every))
         if seq.det_path is not None:
             (out / "det").mkdir(exist_ok=True)
-            write_mot(out / "det" / "det.txt", _scaled_rows(seq.detections(), box_scale))
+            write_mot(out / "det" / "det.txt", _copied_rows(seq.detections(), box_scale, every))
+        rate = (seq.frame_rate or 25) / every
         (out / "seqinfo.ini").write_text(
-            f"[Sequence]\nname={name}\nimDir=img1\nframeRate={int(seq.frame_rate or 25)}\n"
+            f"[Sequence]\nname={name}\nimDir=img1\nframeRate={max(1, round(rate))}\n"
             f"seqLength={n}\nimWidth={w}\nimHeight={h}\nimExt=.png\n"
         )
     return load_mot_sequence(out)
 
 
-def _scaled_rows(rows: MotRows, s: float) -> MotRows:
-    return rows if s == 1.0 else dataclasses.replace(rows, boxes=rows.boxes * s)
+def _copied_rows(rows: MotRows, s: float, every: int) -> MotRows:
+    """``rows`` with boxes times ``s`` on the frames kept by ``every`` (renumbered)."""
+    keep = rows.frames % every == 0
+    return MotRows(
+        rows.frames[keep] // every, rows.ids[keep], rows.boxes[keep] * s, rows.conf[keep]
+    )
 
 
 SCAN_KEYS = (
@@ -242,6 +267,12 @@ def main(argv: list[str] | None = None) -> int:
         help="score on copies of the sequences resized by S (ground truth and detections too)",
     )
     ap.add_argument(
+        "--every",
+        type=int,
+        metavar="K",
+        help="score on copies of the sequences keeping every K-th frame (a K times lower rate)",
+    )
+    ap.add_argument(
         "--degrade",
         metavar="contrast=C,noise=S",
         help="score on copies of the sequences with lowered contrast and added sensor noise",
@@ -255,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
         if kind not in KINDS or name not in SEQUENCES or (kind, name) == ("public", SEQUENCES[0]):
             raise SystemExit(f"unknown setting {kind}:{name}")
     seqs = {name: load(args.data, name) for name in {n for _, n in settings}}
+    if args.every and args.every > 1:
+        seqs = {n: subsampled(s, args.every, args.cache) for n, s in seqs.items()}
     if args.rescale:
         seqs = {n: rescaled(s, args.rescale, args.cache) for n, s in seqs.items()}
     if args.degrade:

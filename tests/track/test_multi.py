@@ -179,6 +179,55 @@ def test_motion_noise_default_keeps_the_velocity_of_a_coasting_walker():
     assert default >= 0.65 and default > fitted + 0.08, (default, fitted)
 
 
+def _runners(t, speed):
+    """Two people 100 px tall running right at ``speed`` px per frame, side by side."""
+    return torch.tensor(
+        [[10.0 + speed * t, 20.0, 40.0, 100.0], [10.0 + speed * t, 180.0, 40.0, 100.0]],
+        dtype=torch.float64,
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_detection_proposal_keeps_up_with_people_who_move_far_per_frame(seed):
+    """People moving 12 px a frame (a runner, or a walker at a third of the frame rate): the
+    motion model's noise (under 1 px) cannot catch the velocity, so its targets lag behind
+    their detections until the pairs no longer overlap enough and new targets are born on
+    them. Drawing part of the particles around the matched detections (Okuma et al.) keeps
+    one identity per person, on the person."""
+    out = {}
+    for frac in (0.0, 0.25):
+        mt = MultiTargetTracker(
+            "pedestrian", generator=torch.Generator().manual_seed(seed), detection_proposal=frac
+        )
+        err = []
+        for t in range(22):
+            res = mt.update(blank(320, 480), (_runners(t, 12.0), torch.ones(2)))
+            if t >= 2:
+                err.append(
+                    float((res.boxes - _runners(t, 12.0)).abs().max()) if len(res) == 2 else 1e9
+                )
+        out[frac] = (mt.stats["born"], max(err))
+    assert out[0.25][0] == 2 and out[0.25][1] < 6.0, out  # two people, two births, on them
+    assert out[0.0][0] > 2, out  # without: the lagging targets leave births behind
+
+
+def test_detection_proposal_draws_velocity_from_the_last_estimate():
+    mt = make(detection_proposal=0.5, n_particles=100)
+    for t in range(3):
+        mt.update(blank(), (people(t, 1), torch.ones(1)))
+    before = mt._estimate(mt.states, mt.log_weights)
+    mt._predict()
+    det = people(3, 1) + torch.tensor([[9.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    n = mt.stats["proposed from detections"]
+    mt._propose(det, torch.tensor([0]), before)
+    drawn = mt.states[0, -50:]
+    win = mt.detector.object_to_window(det)
+    centre = win[0, 0:2] + win[0, 2:4] / 2
+    assert torch.allclose(drawn[:, 2:4], before[0, 0:2].expand(50, 2))  # lagged: the estimate
+    assert float((drawn[:, 0:2].mean(0) - centre).abs().max()) < 1.5  # now: the detection
+    assert mt.stats["proposed from detections"] == n + 1
+
+
 def test_noise_height_scales_the_centre_noise_with_the_target_height():
     """With ``noise_height`` the centre noise of a target twice as tall is twice as wide (a
     nearer person moves more pixels); the scale noise is relative already and stays."""
@@ -298,6 +347,8 @@ def test_reset_forgets_outside_detections():
         ({"birth_floor": 1.5}, "birth_floor"),
         ({"birth_margin": -1.0}, "birth_margin"),
         ({"birth_margin": float("nan")}, "birth_margin"),
+        ({"detection_proposal": -0.1}, "detection_proposal"),
+        ({"detection_proposal": 1.5}, "detection_proposal"),
     ],
 )
 def test_bad_config(kw, match):

@@ -273,6 +273,14 @@ class MultiTrackerConfig:
             frame without a match (up to ``max_noise_scale``): the search widens while it is
             lost.
         max_noise_scale: cap of that growth.
+        detection_proposal: the fraction of a matched target's particles drawn afresh around
+            its detection (Okuma et al.'s boosted particle filter, ECCV 2004: a mixture of
+            the detector and the motion model as the proposal), their velocity the step from
+            the target's last estimate to the detection; the detector's likelihood then weighs
+            them with the others. A person who moves farther per frame than the motion noise
+            reaches (a lower frame rate, a turn) is caught up with in one frame instead of
+            being left behind; 0: off (the motion model alone, and a full re-seed below
+            ``reseed_overlap``).
         min_visible_fraction: a target whose object box has less than this fraction inside the
             frame has left it and ends (never reported).
         likelihood_floor: smallest detector probability in the weights (keeps them finite).
@@ -322,6 +330,7 @@ class MultiTrackerConfig:
     duplicate_iou: float = 0.85
     lost_noise_growth: float = 0.1
     max_noise_scale: float = 3.0
+    detection_proposal: float = 0.0
     min_visible_fraction: float = 0.25
     likelihood_floor: float = 1e-6
     likelihood: str = "head"
@@ -348,6 +357,7 @@ class MultiTrackerConfig:
             "min_visible_fraction",
             "scan_stride",
             "birth_overlap",
+            "detection_proposal",
         )
         if self.external_birth_threshold < self.detection_threshold:
             raise ConfigError(

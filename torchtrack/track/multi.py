@@ -375,7 +375,16 @@ class MultiTargetTracker:
 
         matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
         if self.n_targets:
+            before = self._estimate(self.states, self.log_weights)  # (T, 6) at frame t - 1
             self._predict()
+            if scan and det_boxes.shape[0] and cfg.detection_proposal > 0:
+                # associate on the motion model's prediction, then draw part of each matched
+                # target's particles around its detection before the likelihood weighs them
+                det_hist = (
+                    self._histograms(bin_map, det_boxes[None])[0] if bin_map is not None else None
+                )
+                matched_det, overlap = self._associate(det_boxes, det_p, det_hist)
+                self._propose(det_boxes, matched_det, before)
             p = self._probabilities(frame)  # (T, N)
             self.evidence = p.mean(1)
             # Breitenstein et al.'s occlusion term: where another target overlaps this one, the
@@ -390,10 +399,13 @@ class MultiTargetTracker:
                 app = self._particle_appearance(bin_map)  # (T, N) Bhattacharyya coefficients
                 log_l = log_l - cfg.appearance_lambda * (1.0 - app)
             if scan and det_boxes.shape[0]:
-                det_hist = (
-                    self._histograms(bin_map, det_boxes[None])[0] if bin_map is not None else None
-                )
-                matched_det, overlap = self._associate(det_boxes, det_p, det_hist)
+                if cfg.detection_proposal <= 0:
+                    det_hist = (
+                        self._histograms(bin_map, det_boxes[None])[0]
+                        if bin_map is not None
+                        else None
+                    )
+                    matched_det, overlap = self._associate(det_boxes, det_p, det_hist)
                 log_l = log_l + self._detection_term(det_boxes, matched_det)
                 log_l = log_l + self._explained_away(det_boxes, matched_det)
                 self._reseed(det_boxes, matched_det, overlap)
@@ -688,6 +700,28 @@ class MultiTargetTracker:
         vel = old[:, 0:2] - old[:, 2:4]
         x0 = torch.cat([c, c - vel, s[:, None], s[:, None]], 1)
         self.states[rows] = self._spread(x0, self.ref[rows])
+
+    def _propose(
+        self, det_boxes: torch.Tensor, matched: torch.Tensor, before: torch.Tensor
+    ) -> None:
+        """``detection_proposal``: the last ``round(fraction * N)`` particles of each matched
+        target drawn around its detection (one step of process noise, as a birth's), their
+        lagged centre the target's estimate ``before`` (at frame t - 1), so that their
+        velocity is the step to the detection. The predicted particles are in random order
+        (resampled), so which ones are replaced does not matter."""
+        rows = torch.nonzero(matched >= 0).flatten()
+        k = round(self.config.detection_proposal * self.config.n_particles)
+        if rows.numel() == 0 or k == 0:
+            return
+        self.stats["proposed from detections"] += rows.numel()
+        win = self.detector.object_to_window(det_boxes[matched[rows]])
+        c = win[:, 0:2] + win[:, 2:4] / 2
+        s = win[:, 3] / self.ref[rows, 1]
+        x0 = torch.cat([c, before[rows, 0:2], s[:, None], before[rows, 4:5]], 1)
+        drawn = self._spread(x0, self.ref[rows])[:, :k]
+        states = self.states[rows]
+        states[:, -k:] = drawn
+        self.states[rows] = states
 
     def _spread(self, x0: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
         """``(R, 6)`` states of targets with reference windows ``ref (R, 2)`` -> ``(R, N, 6)``
