@@ -375,9 +375,10 @@ class MultiTargetTracker:
 
         matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
         if self.n_targets:
-            before = self._estimate(self.states, self.log_weights)  # (T, 6) at frame t - 1
+            propose = scan and det_boxes.shape[0] and cfg.detection_proposal > 0
+            before = self._estimate(self.states, self.log_weights) if propose else None
             self._predict()
-            if scan and det_boxes.shape[0] and cfg.detection_proposal > 0:
+            if propose:
                 # associate on the motion model's prediction, then draw part of each matched
                 # target's particles around its detection before the likelihood weighs them
                 det_hist = (
