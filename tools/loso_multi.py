@@ -87,28 +87,37 @@ def load(data: Path, name: str) -> MotSequence:
     return load_mot_sequence(data / "mot" / name)
 
 
-def degrade(frame: np.ndarray, contrast: float, noise: float, index: int) -> np.ndarray:
+def degrade(
+    frame: np.ndarray, contrast: float, noise: float, index: int, gray: bool = False
+) -> np.ndarray:
     """``(H, W, C)`` uint8 with its contrast scaled by ``contrast`` about 128 and Gaussian
-    noise of sd ``noise`` (grey levels) added, the draw seeded by ``index``."""
-    out = (frame.astype(np.float32) - 128.0) * contrast + 128.0
+    noise of sd ``noise`` (grey levels) added, the draw seeded by ``index``; with ``gray``
+    first made grey (ITU-R 601 luma in all three channels: a monochrome camera)."""
+    out = frame.astype(np.float32)
+    if gray:
+        luma = out @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+        out = np.repeat(luma[..., None], frame.shape[-1], -1)
+    out = (out - 128.0) * contrast + 128.0
     if noise > 0:
         out += np.random.default_rng(index).normal(0.0, noise, frame.shape).astype(np.float32)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
-    """``seq`` through :func:`degrade` (``spec``: ``contrast=C,noise=S``), written once as a
-    MOTChallenge folder (PNG frames, the ground truth in their pixels) under ``cache``."""
+    """``seq`` through :func:`degrade` (``spec``: ``contrast=C,noise=S[,gray=1]``), written
+    once as a MOTChallenge folder (PNG frames, the ground truth in their pixels) under
+    ``cache``."""
     try:
         kv = dict(item.split("=") for item in spec.split(","))
         contrast, noise = float(kv.pop("contrast", 1.0)), float(kv.pop("noise", 0.0))
+        gray = bool(int(kv.pop("gray", 0)))
     except ValueError:
-        raise SystemExit(f"--degrade: expected contrast=C,noise=S, got {spec!r}") from None
+        raise SystemExit(f"--degrade: expected contrast=C,noise=S[,gray=1], got {spec!r}") from None
     if kv or not (0 < contrast <= 1 and noise >= 0):
         raise SystemExit(f"--degrade: expected contrast=C (0, 1] and noise=S >= 0, got {spec!r}")
     return _copy(
-        seq, f"{seq.name}-c{contrast:g}-n{noise:g}", cache / "degraded",
-        lambda img, i: degrade(img, contrast, noise, i),
+        seq, f"{seq.name}-c{contrast:g}-n{noise:g}{'-gray' if gray else ''}", cache / "degraded",
+        lambda img, i: degrade(img, contrast, noise, i, gray),
     )  # fmt: skip
 
 
@@ -274,8 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--degrade",
-        metavar="contrast=C,noise=S",
-        help="score on copies of the sequences with lowered contrast and added sensor noise",
+        metavar="contrast=C,noise=S[,gray=1]",
+        help="score on copies of the sequences with lowered contrast and added sensor noise "
+        "(gray=1: made grey first)",
     )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -708,8 +708,11 @@ class MultiTargetTracker:
         """``detection_proposal``: the last ``round(fraction * N)`` particles of each matched
         target drawn around its detection (one step of process noise, as a birth's), their
         lagged centre the target's estimate ``before`` (at frame t - 1), so that their
-        velocity is the step to the detection. The predicted particles are in random order
-        (resampled), so which ones are replaced does not matter."""
+        velocity is the step to the detection. Which ones are replaced: the last k. With the
+        default (systematic) resampling the predicted set is in ancestor order, so the last k
+        descend mostly from the end of the previous set, where the previous frame's drawn
+        particles were: each frame's draw replaces mostly the descendants of the last one,
+        and the motion model's particles that the weights kept are left alone."""
         rows = torch.nonzero(matched >= 0).flatten()
         k = round(self.config.detection_proposal * self.config.n_particles)
         if rows.numel() == 0 or k == 0:
