@@ -23,7 +23,8 @@ With ``--degrade contrast=0.5,noise=8`` every sequence is replaced by a copy who
 lowered about mid-grey and to which sensor noise (a fresh Gaussian draw per frame, seeded by the
 frame's index) is added, written once as a MOTChallenge folder under ``--cache``: video on
 which the detector is less sure of everyone, as on footage unlike its training crops (a check
-of adaptive births, ``birth_floor``).
+of adaptive births, ``birth_floor``). ``gray=1`` makes the frames grey first (a
+monochrome camera).
 
     python tools/loso_multi.py --grid birth_floor=0.9999,0.995 --degrade contrast=0.5,noise=8
 
