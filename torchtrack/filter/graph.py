@@ -93,7 +93,6 @@ class GraphedSIR:
         self.check = bool(check)
         self._states = states.detach().clone()
         self._log_weights = log_weights.detach().clone()
-        self._generator = generator
 
         def body() -> StepResult:
             return sir_step(

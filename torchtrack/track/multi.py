@@ -375,16 +375,16 @@ class MultiTargetTracker:
 
         matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
         if self.n_targets:
-            propose = scan and det_boxes.shape[0] and cfg.detection_proposal > 0
+            has_dets = scan and det_boxes.shape[0] > 0
+            propose = has_dets and cfg.detection_proposal > 0
             before = self._estimate(self.states, self.log_weights) if propose else None
             self._predict()
-            if propose:
-                # associate on the motion model's prediction, then draw part of each matched
-                # target's particles around its detection before the likelihood weighs them
+            if has_dets:  # on the motion model's prediction
                 det_hist = (
                     self._histograms(bin_map, det_boxes[None])[0] if bin_map is not None else None
                 )
                 matched_det, overlap = self._associate(det_boxes, det_p, det_hist)
+            if propose:  # part of each matched target's particles drawn at its detection
                 self._propose(det_boxes, matched_det, before)
             p = self._probabilities(frame)  # (T, N)
             self.evidence = p.mean(1)
@@ -399,14 +399,7 @@ class MultiTargetTracker:
             if bin_map is not None and cfg.appearance_lambda > 0:
                 app = self._particle_appearance(bin_map)  # (T, N) Bhattacharyya coefficients
                 log_l = log_l - cfg.appearance_lambda * (1.0 - app)
-            if scan and det_boxes.shape[0]:
-                if cfg.detection_proposal <= 0:
-                    det_hist = (
-                        self._histograms(bin_map, det_boxes[None])[0]
-                        if bin_map is not None
-                        else None
-                    )
-                    matched_det, overlap = self._associate(det_boxes, det_p, det_hist)
+            if has_dets:
                 log_l = log_l + self._detection_term(det_boxes, matched_det)
                 log_l = log_l + self._explained_away(det_boxes, matched_det)
                 self._reseed(det_boxes, matched_det, overlap)
