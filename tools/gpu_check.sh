@@ -25,7 +25,7 @@ for s in "${steps[@]}"; do
     devices) timeout 300 python3 -m pytest -q -rfEs -p no:cacheprovider tests/test_devices.py \
                tests/filter/test_sir.py tests/filter/test_resample.py -k "device or cuda" \
                2>&1 | tee "$OUT/devices.log" | tail -60 ;;
-    suite) OMP_NUM_THREADS=1 TORCHTRACK_DATA=/nonexistent timeout "${SUITE_TIMEOUT:-600}" python3 -m pytest -q -p no:cacheprovider \
+    suite) OMP_NUM_THREADS=1 TORCHTRACK_DATA=/nonexistent timeout "${SUITE_TIMEOUT:-600}" python3 -m pytest -p no:cacheprovider \
              -n 16 -p no:benchmark -v -rfE --tb=short 2>&1 | tee "$OUT/suite.log" \
              | grep -E "FAILED|ERROR|passed|failed" | tail -40 ;;
     bench) timeout 300 python3 tools/bench_gpu.py 2>&1 | tee "$OUT/bench.log" | tail -14 ;;
