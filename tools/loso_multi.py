@@ -297,9 +297,9 @@ def main(argv: list[str] | None = None) -> int:
         if kind not in KINDS or name not in SEQUENCES or (kind, name) == ("public", SEQUENCES[0]):
             raise SystemExit(f"unknown setting {kind}:{name}")
     seqs = {name: load(args.data, name) for name in {n for _, n in settings}}
-    if args.every and args.every > 1:
+    if args.every is not None and args.every != 1:  # subsampled() refuses K < 1
         seqs = {n: subsampled(s, args.every, args.cache) for n, s in seqs.items()}
-    if args.rescale:
+    if args.rescale is not None and args.rescale != 1:  # rescaled() refuses S <= 0
         seqs = {n: rescaled(s, args.rescale, args.cache) for n, s in seqs.items()}
     if args.degrade:
         seqs = {n: degraded(s, args.degrade, args.cache) for n, s in seqs.items()}
