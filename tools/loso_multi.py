@@ -258,9 +258,29 @@ def parse_grid(spec: str) -> tuple[str, list]:
     return key, out
 
 
+def parse_fixed(spec: str, grid_key: str) -> dict:
+    """``--set key=v,key2=v2`` -> the overrides, checked like a config."""
+    if not spec:
+        return {}
+    out = parse_tracker_spec(f"multi:{spec}")[1]
+    if grid_key in out:
+        raise SystemExit(f"--set names the grid's key {grid_key!r}")
+    try:
+        apply_overrides(MultiTrackerConfig(), out)
+    except ConfigError as exc:
+        raise SystemExit(f"--set {spec!r}: {exc}") from None
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--grid", required=True, help="KEY=v1,v2,... (one MultiTrackerConfig key)")
+    ap.add_argument(
+        "--set",
+        default="",
+        metavar="KEY=V,...",
+        help="other keys held at these values for every candidate (not the defaults)",
+    )
     ap.add_argument("--seeds", default="0,1,2,3")
     ap.add_argument(
         "--settings",
@@ -291,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     key, values = parse_grid(args.grid)
+    fixed = parse_fixed(args.set, key)
     seeds = [int(s) for s in args.seeds.split(",")]
     settings = [tuple(s.split(":", 1)) for s in args.settings.split(",")]
     for kind, name in settings:
@@ -309,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
         seq = seqs[name]
         base = None
         if kind == "own":
-            base = own_detections(seq, args.cache)
+            base = own_detections(seq, args.cache, fixed)
         elif kind == "public":
             d = seq.detections()
             base = dataclasses.replace(
@@ -317,10 +338,10 @@ def main(argv: list[str] | None = None) -> int:
             )
         for v in values:
             if kind == "own" and key in SCAN_KEYS:  # the scan itself changes with the value
-                base = own_detections(seq, args.cache, {key: v})
+                base = own_detections(seq, args.cache, {**fixed, key: v})
             for seed in seeds:
                 dets = gt_as_detections(seq.gt, seed) if kind == "gt" else base
-                r = run_one(seq, dets, {key: v}, seed, own=kind == "own")
+                r = run_one(seq, dets, {**fixed, key: v}, seed, own=kind == "own")
                 res.setdefault((kind, name, v), []).append(r)
                 print(f"{kind}:{name} {key}={v} seed {seed}: HOTA {r['hota']:.1f} "
                       f"MOTA {r['mota']:.1f} IDF1 {r['idf1']:.1f}", file=sys.stderr, flush=True)  # fmt: skip
@@ -331,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     default = getattr(MultiTrackerConfig(), key)
     head = " | ".join(f"{k}: {n}" for k, n in settings)
     lines = [
-        f"HOTA mean ± sd over seeds {args.seeds} (MOTA / IDF1 means); default {key} = {default}",
+        f"HOTA mean ± sd over seeds {args.seeds} (MOTA / IDF1 means); default {key} = {default}"
+        + (f"; held: {args.set}" if args.set else ""),
         "",
         f"| {key} | {head} |",
         "|---" * (len(settings) + 1) + "|",
