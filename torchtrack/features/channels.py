@@ -926,8 +926,11 @@ def channel_features_at(
     lj = torch.arange(lw, dtype=torch.float64, device=dev) * cell
     out = torch.empty((b, n, k), dtype=torch.float32, device=dev)
     compact = _compact_lattice(pts, k, lw, lh * lw, len(bank.channels.channels), dev)
-    if compact is not None:  # the lattice columns and rows of the points each channel reads
-        pj_, pi_ = (compact[0] % lw).reshape(-1), (compact[0] // lw).reshape(-1)
+    if compact is not None:  # the lattice points each channel reads, channel by channel
+        pos, rows, _ = compact
+        nch, npos = pos.shape
+        used = pos.reshape(-1).index_select(0, rows)  # (R,) lattice positions, channel-major
+        counts = torch.bincount(rows // npos, minlength=nch).tolist()
     present = torch.unique(levels).tolist()
     for lev in present:
         if len(present) == 1:
@@ -956,49 +959,51 @@ def channel_features_at(
             # lattice point (i, j) of a box: (x + j cell sx, y + i cell sy) frame pixels, / 2^k
             gx = ((xs[..., None] + sxs[..., None] * lj) / f) * (2.0 / max(wk, 1)) - 1.0
             gy = ((ys[..., None] + sys_[..., None] * li) / f) * (2.0 / max(hk, 1)) - 1.0
+            # Grid coordinates of every lattice point of every box, ordered (i, j, box), the
+            # box axis innermost.
+            full = torch.stack(
+                (
+                    gx.transpose(1, 2)[:, None, :, :].expand(bb, lh, lw, nn),
+                    gy.transpose(1, 2)[:, :, None, :].expand(bb, lh, lw, nn),
+                ),
+                -1,
+            ).view(bb, lh * lw, nn, 2)
             if compact is None:
-                # Sample points ordered (i, j, box), the box axis innermost: grid_sample's
-                # output (bb, C, Lh Lw nn) is then the lattice-major (bb, C Lh Lw, nn) with no
-                # copy, and every corner read of _combine_lattice_major is a contiguous row of
-                # nn values.
-                grid = torch.stack(
-                    (
-                        gx.transpose(1, 2)[:, None, :, :].expand(bb, lh, lw, nn),
-                        gy.transpose(1, 2)[:, :, None, :].expand(bb, lh, lw, nn),
-                    ),
-                    -1,
-                ).reshape(bb, lh * lw * nn, 1, 2)
+                # grid_sample's output (bb, C, Lh Lw nn) is then the lattice-major (bb, C Lh Lw,
+                # nn) with no copy, and every corner read of _combine_lattice_major is a
+                # contiguous row of nn values.
                 vals = F.grid_sample(
-                    tab, grid, mode="bilinear", padding_mode="border", align_corners=True
+                    tab,
+                    full.view(bb, lh * lw * nn, 1, 2),
+                    mode="bilinear",
+                    padding_mode="border",
+                    align_corners=True,
                 )
                 vals = vals.view(bb, -1, nn)  # (bb, C Lh Lw, nn)
             else:
-                # Only the lattice values the features read: each channel is sampled as an
-                # image of its own (the channels-last table's channel planes, no copy) at its
-                # own positions, the box axis innermost; the same coordinates give the same
-                # bilinear values as the whole lattice's read.
-                pos, rows, _ = compact
-                nch, npos = pos.shape
-                vals = torch.stack(
-                    [
-                        F.grid_sample(
-                            tab[i].unsqueeze(1),
-                            torch.stack(  # (C P, nn, 2): channel, position, then box
-                                (
-                                    gx[i].t().index_select(0, pj_),
-                                    gy[i].t().index_select(0, pi_),
-                                ),
-                                -1,
-                            ).view(nch, npos * nn, 1, 2),
-                            mode="bilinear",
-                            padding_mode="border",
-                            align_corners=True,
-                        )
-                        .view(nch * npos, nn)
-                        .index_select(0, rows)
-                        for i in range(bb)
-                    ]
-                )  # (bb, R, nn)
+                # Only the lattice values the features read: each channel's plane (of the
+                # channels-last table, no copy) is sampled at that channel's own positions, in
+                # the order of the used values (channel-major, then position), so no value is
+                # sampled twice or thrown away; the same coordinates give the same bilinear
+                # values as the whole lattice's read.
+                vals = []
+                for i in range(bb):
+                    g = full[i].index_select(0, used)  # (R, nn, 2)
+                    parts, r0 = [], 0
+                    for c, cnt in enumerate(counts):
+                        if cnt:
+                            parts.append(
+                                F.grid_sample(
+                                    tab[i, c][None, None],
+                                    g[r0 : r0 + cnt].view(1, cnt * nn, 1, 2),
+                                    mode="bilinear",
+                                    padding_mode="border",
+                                    align_corners=True,
+                                ).view(cnt, nn)
+                            )
+                            r0 += cnt
+                    vals.append(torch.cat(parts))
+                vals = vals[0].unsqueeze(0) if bb == 1 else torch.stack(vals)  # (bb, R, nn)
             rx, ry = sxs / f, sys_ / f
             norm = 1.0 / (cell * cell * rx * ry)
             logr = 0.5 * torch.log(rx * ry)
