@@ -148,13 +148,42 @@ def subsampled(seq: MotSequence, every: int, cache: Path) -> MotSequence:
                  every=every)  # fmt: skip
 
 
+def panned(seq: MotSequence, speed: float, cache: Path) -> MotSequence:
+    """``seq`` seen by a camera that pans: every frame cropped to a window 3/4 of its width
+    that slides right and back (a triangle wave over the frame's last quarter) at ``speed``
+    pixels a frame, so the whole scene moves ``speed`` pixels a frame the other way; ground
+    truth and public detections shifted with it, those less than half inside dropped."""
+    if not speed > 0:
+        raise SystemExit(f"--pan must be > 0, got {speed}")
+    span = seq.width // 4
+    crop_w = seq.width - span
+
+    def offset(i: int) -> int:
+        p = (speed * i) % (2 * span)
+        return round(p if p <= span else 2 * span - p)
+
+    return _copy(
+        seq, f"{seq.name}-pan{speed:g}", cache / "panned",
+        lambda img, i: np.ascontiguousarray(img[:, offset(i) : offset(i) + crop_w]),
+        box_shift=(offset, crop_w),
+    )  # fmt: skip
+
+
 def _copy(
-    seq: MotSequence, name: str, root: Path, fn, box_scale: float = 1.0, every: int = 1
+    seq: MotSequence,
+    name: str,
+    root: Path,
+    fn,
+    box_scale: float = 1.0,
+    every: int = 1,
+    box_shift: tuple | None = None,
 ) -> MotSequence:
     """``seq``'s frames through ``fn(frame (H, W, C) uint8 RGB, index)``, written once as the
     MOTChallenge folder ``root / name`` (PNG frames; ground truth and public detections with
     their boxes times ``box_scale``); with ``every`` > 1 only frames 0, every, 2 every, ...
-    (renumbered, the frame rate divided)."""
+    (renumbered, the frame rate divided); with ``box_shift = (offset(i), width)`` the boxes of
+    frame i moved left by ``offset(i)`` pixels and those less than half inside ``width``
+    dropped (a crop)."""
     import cv2
 
     out = root / name
@@ -172,10 +201,13 @@ def _copy(
                 n += 1
                 cv2.imwrite(str(out / "img1" / f"{n:06d}.png"), img[..., ::-1])
         h, w = img.shape[:2]
-        write_mot(out / "gt" / "gt.txt", _copied_rows(seq.gt, box_scale, every))
+        write_mot(out / "gt" / "gt.txt", _copied_rows(seq.gt, box_scale, every, box_shift))
         if seq.det_path is not None:
             (out / "det").mkdir(exist_ok=True)
-            write_mot(out / "det" / "det.txt", _copied_rows(seq.detections(), box_scale, every))
+            write_mot(
+                out / "det" / "det.txt",
+                _copied_rows(seq.detections(), box_scale, every, box_shift),
+            )
         rate = (seq.frame_rate or 25) / every
         (out / "seqinfo.ini").write_text(
             f"[Sequence]\nname={name}\nimDir=img1\nframeRate={max(1, round(rate))}\n"
@@ -184,12 +216,21 @@ def _copy(
     return load_mot_sequence(out)
 
 
-def _copied_rows(rows: MotRows, s: float, every: int) -> MotRows:
-    """``rows`` with boxes times ``s`` on the frames kept by ``every`` (renumbered)."""
+def _copied_rows(
+    rows: MotRows, s: float, every: int, shift: tuple | None = None
+) -> MotRows:
+    """``rows`` with boxes times ``s`` on the frames kept by ``every`` (renumbered); with
+    ``shift = (offset(i), width)`` moved left by the frame's offset, those less than half
+    inside ``width`` dropped."""
     keep = rows.frames % every == 0
-    return MotRows(
-        rows.frames[keep] // every, rows.ids[keep], rows.boxes[keep] * s, rows.conf[keep]
-    )
+    boxes = rows.boxes * s
+    if shift is not None:
+        offset, width = shift
+        boxes = boxes.copy()
+        boxes[:, 0] -= np.array([offset(int(f)) for f in rows.frames], dtype=np.float64)
+        inside = np.clip(boxes[:, 0] + boxes[:, 2], 0, width) - np.clip(boxes[:, 0], 0, width)
+        keep &= inside >= 0.5 * boxes[:, 2]
+    return MotRows(rows.frames[keep] // every, rows.ids[keep], boxes[keep], rows.conf[keep])
 
 
 SCAN_KEYS = (
@@ -303,6 +344,13 @@ def main(argv: list[str] | None = None) -> int:
         help="score on copies of the sequences keeping every K-th frame (a K times lower rate)",
     )
     ap.add_argument(
+        "--pan",
+        type=float,
+        metavar="V",
+        help="score on copies of the sequences seen by a camera panning V px a frame (a "
+        "cropped window sliding right and back)",
+    )
+    ap.add_argument(
         "--degrade",
         metavar="contrast=C,noise=S[,gray=1]",
         help="score on copies of the sequences with lowered contrast and added sensor noise "
@@ -322,6 +370,8 @@ def main(argv: list[str] | None = None) -> int:
         seqs = {n: subsampled(s, args.every, args.cache) for n, s in seqs.items()}
     if args.rescale is not None and args.rescale != 1:  # rescaled() refuses S <= 0
         seqs = {n: rescaled(s, args.rescale, args.cache) for n, s in seqs.items()}
+    if args.pan is not None:
+        seqs = {n: panned(s, args.pan, args.cache) for n, s in seqs.items()}
     if args.degrade:
         seqs = {n: degraded(s, args.degrade, args.cache) for n, s in seqs.items()}
     res: dict[tuple, list[dict]] = {}

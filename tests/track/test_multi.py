@@ -228,6 +228,38 @@ def test_detection_proposal_draws_velocity_from_the_last_estimate():
     assert mt.stats["proposed from detections"] == n + 1
 
 
+def _view(off: int, width: int = 320, height: int = 240) -> torch.Tensor:
+    """The window at horizontal offset ``off`` of a still, textured scene."""
+    g = torch.Generator().manual_seed(7)
+    scene = torch.randint(0, 256, (3, height, width + 120), generator=g, dtype=torch.uint8)
+    return scene[:, :, off : off + width].contiguous()
+
+
+@pytest.mark.parametrize("shift", [6, -9])
+def test_camera_motion_moves_every_particle_by_the_pan(shift):
+    """``camera_motion``: when the view slides by ``shift`` px (a camera panning over a still,
+    textured scene), the phase correlation measures it and every particle's current and
+    previous centre move with the view (the people's own velocity kept); scales and the
+    vertical stay."""
+    mt = make(camera_motion=True, n_particles=50)
+    box = torch.tensor([[150.0, 60.0, 30.0, 90.0]], dtype=torch.float64)
+    mt.update(_view(20), (box, torch.ones(1)))
+    before = mt.states.clone()
+    mt._follow_camera(_view(20 - shift).to(torch.int16).sum(0))
+    assert mt.stats["frames with a camera shift"] == 1
+    moved = mt.states - before
+    assert torch.allclose(moved[..., 0:4:2], torch.full_like(moved[..., 0:4:2], float(shift)))
+    assert torch.equal(moved[..., 1:4:2], torch.zeros_like(moved[..., 1:4:2]))
+    assert torch.equal(moved[..., 4:], torch.zeros_like(moved[..., 4:]))
+
+
+def test_camera_motion_leaves_a_still_camera_alone():
+    mt = make(camera_motion=True)
+    for t in range(6):
+        mt.update(blank(), (people(t, 2), torch.ones(2)))
+    assert mt.stats["frames with a camera shift"] == 0
+
+
 def test_noise_height_scales_the_centre_noise_with_the_target_height():
     """With ``noise_height`` the centre noise of a target twice as tall is twice as wide (a
     nearer person moves more pixels); the scale noise is relative already and stays."""

@@ -281,6 +281,11 @@ class MultiTrackerConfig:
             reaches (a lower frame rate, a turn) is caught up with in one frame instead of
             being left behind; 0: off (the motion model alone, and a full re-seed below
             ``reseed_overlap``).
+        camera_motion: follow a camera that pans or tilts: the frame's global translation
+            since the last frame (phase correlation, used only where it explains the change
+            between the frames) moves every target's particles, their current and previous
+            centres both (the people's own velocity is kept), before the motion model predicts.
+            On a still camera no shift is found and nothing moves; False: off.
         min_visible_fraction: a target whose object box has less than this fraction inside the
             frame has left it and ends (never reported).
         likelihood_floor: smallest detector probability in the weights (keeps them finite).
@@ -331,6 +336,7 @@ class MultiTrackerConfig:
     lost_noise_growth: float = 0.1
     max_noise_scale: float = 3.0
     detection_proposal: float = 0.0
+    camera_motion: bool = True
     min_visible_fraction: float = 0.25
     likelihood_floor: float = 1e-6
     likelihood: str = "head"

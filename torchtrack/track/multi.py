@@ -201,6 +201,7 @@ class MultiTargetTracker:
         self._levels: collections.deque = collections.deque(maxlen=LEVEL_SCANS)
         self._birth_p = self._lowest_birth_p = self.config.birth_threshold
         self._grays: collections.deque = collections.deque(maxlen=MOTION_LAG + 1)
+        self._last_gray: torch.Tensor | None = None  # camera_motion: the previous frame
         self.ground.reset()
         self._lines: collections.deque = collections.deque(maxlen=GROUND_LAG + 1)
         # the detector's noise, squared (estimated from the video: detection_sigma_rate)
@@ -341,8 +342,10 @@ class MultiTargetTracker:
                 f"detections, or not every scan_every = {cfg.scan_every}-th frame)"
             )
         self.frame_index = t
+        gray = None  # the frame's channel sum, for the birth motion test and the camera
         if cfg.birth_floor < cfg.birth_threshold and detections is None and not self._external:
-            self._grays.append(frame.to(torch.int16).sum(0).cpu())
+            gray = frame.to(torch.int16).sum(0).cpu()
+            self._grays.append(gray)
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
             self._external = True
@@ -373,6 +376,8 @@ class MultiTargetTracker:
 
             bin_map = hsv_bin_map(frame[None], self._bins).cpu()
 
+        if cfg.camera_motion:
+            self._follow_camera(frame.to(torch.int16).sum(0).cpu() if gray is None else gray)
         matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
         if self.n_targets:
             has_dets = scan and det_boxes.shape[0] > 0
@@ -859,33 +864,30 @@ class MultiTargetTracker:
             h = torch.zeros((k, self.hist.shape[1]), dtype=torch.float32)
         self.hist = torch.cat([self.hist, h])
 
+    def _follow_camera(self, gray: torch.Tensor) -> None:
+        """``camera_motion``: move every target's particles (current and previous centres) by
+        the camera's translation since the last frame (``gray (H, W)``, the frame's channel
+        sum), where it explains the change."""
+        old, self._last_gray = self._last_gray, gray
+        if old is None or old.shape != gray.shape or not self.n_targets:
+            return
+        _, _, sx, sy = _aligned_change(old, gray)
+        if sx or sy:
+            self.stats["frames with a camera shift"] += 1
+            self.states[..., 0:4:2] += sx
+            self.states[..., 1:4:2] += sy
+
     def _moving(self, boxes: torch.Tensor) -> torch.Tensor:
         """``(M,)`` bool: object boxes ``(M, 4)`` whose pixels changed since ``MOTION_LAG``
         frames before (or the oldest frame kept) by ``MOTION_RATIO`` times the whole frame's
         median change: something moves there, more than the camera's noise or its own motion
         moves the background. A camera that pans is compensated first: the older frame is
-        shifted by the frame's global translation (:func:`_camera_shift`), so that a still
+        shifted by the frame's global translation (:func:`_aligned_change`), so that a still
         patch of the scene does not count as moving because the whole view slid."""
         if len(self._grays) < 2:
             return torch.zeros(boxes.shape[0], dtype=torch.bool)
-        old, new = self._grays[0], self._grays[-1]
-        h, w = new.shape
-        d = (new - old).abs().float()
-        median = float(d[::2, ::2].median())
-        sx, sy = _camera_shift(old, new)
-        if sx or sy:  # new[y, x] shows what old[y - sy, x - sx] showed; none off the overlap
-            aligned = torch.full((h, w), math.nan)
-            xa, xb, ya, yb = max(0, sx), min(w, w + sx), max(0, sy), min(h, h + sy)
-            aligned[ya:yb, xa:xb] = (
-                new[ya:yb, xa:xb] - old[ya - sy : yb - sy, xa - sx : xb - sx]
-            ).abs()
-            m = float(aligned[::2, ::2].nanmedian())
-            # the camera moved only if its shift explains the change: else the correlation
-            # followed something moving over a plain, still background
-            if m < CAMERA_EXPLAINS * median:
-                d, median = aligned, m
-            else:
-                sx = sy = 0
+        d, median, sx, sy = _aligned_change(self._grays[0], self._grays[-1])
+        h, w = d.shape
         level = median * MOTION_RATIO + MOTION_MIN
         out = []
         for x, y, bw, bh in boxes.tolist():
@@ -1025,6 +1027,29 @@ def _logit(p: float) -> float:
     1 - 1e-12])."""
     p = min(max(p, 1e-12), 1.0 - 1e-12)
     return math.log(p / (1.0 - p))
+
+
+def _aligned_change(old: torch.Tensor, new: torch.Tensor) -> tuple[torch.Tensor, float, int, int]:
+    """``(d, median, sx, sy)``: the absolute change ``d (H, W)`` between two gray frames and
+    its median (over every other pixel), after the camera's translation ``(sx, sy)``
+    (:func:`_camera_shift`; NaN off the frames' overlap) when that shift explains the change
+    better (its median below ``CAMERA_EXPLAINS`` times the raw one), else the raw change and
+    ``(0, 0)``: the correlation then followed something moving over a plain, still
+    background."""
+    h, w = new.shape
+    d = (new - old).abs().float()
+    median = float(d[::2, ::2].median())
+    sx, sy = _camera_shift(old, new)
+    if sx or sy:  # new[y, x] shows what old[y - sy, x - sx] showed; none off the overlap
+        aligned = torch.full((h, w), math.nan)
+        xa, xb, ya, yb = max(0, sx), min(w, w + sx), max(0, sy), min(h, h + sy)
+        aligned[ya:yb, xa:xb] = (
+            new[ya:yb, xa:xb] - old[ya - sy : yb - sy, xa - sx : xb - sx]
+        ).abs()
+        m = float(aligned[::2, ::2].nanmedian())
+        if m < CAMERA_EXPLAINS * median:
+            return aligned, m, sx, sy
+    return d, median, 0, 0
 
 
 def _camera_shift(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]:
