@@ -39,6 +39,15 @@ people at a K times lower frame rate, a check of the settings counted in frames.
 
     python tools/loso_multi.py --grid max_lost=30 --every 3
 
+``--pan V`` crops every frame to a window 3/4 of its width that slides right and back at V px
+a frame (ground truth and public detections shifted with it): the same people seen by a
+panning camera, a check of the motion model and of ``camera_motion``.
+
+    python tools/loso_multi.py --grid camera_motion=false,true --pan 3
+
+``--set key=v,...`` holds other keys at those values for every candidate (a grid on top of a
+non-default setting).
+
 Prints a markdown table: HOTA mean ± sd over seeds (MOTA and IDF1 means beside), then the
 leave-one-sequence-out line. Nothing is timed.
 """
@@ -216,9 +225,7 @@ def _copy(
     return load_mot_sequence(out)
 
 
-def _copied_rows(
-    rows: MotRows, s: float, every: int, shift: tuple | None = None
-) -> MotRows:
+def _copied_rows(rows: MotRows, s: float, every: int, shift: tuple | None = None) -> MotRows:
     """``rows`` with boxes times ``s`` on the frames kept by ``every`` (renumbered); with
     ``shift = (offset(i), width)`` moved left by the frame's offset, those less than half
     inside ``width`` dropped."""

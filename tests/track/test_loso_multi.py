@@ -28,3 +28,27 @@ def test_set_holds_other_keys_typed_like_the_config():
 def test_set_refuses_the_grid_key_unknown_keys_and_bad_values(spec, grid_key, message):
     with pytest.raises(SystemExit, match=message):
         loso.parse_fixed(spec, grid_key)
+
+
+def test_pan_copies_move_the_boxes_with_the_view_and_drop_those_left_outside():
+    import numpy as np
+
+    from torchtrack.io.mot import MotRows
+
+    rows = MotRows(
+        np.array([0, 1, 1, 2]),
+        np.array([1, 1, 2, 1]),
+        np.array([[50.0, 5, 20, 40], [50, 5, 20, 40], [95, 5, 20, 40], [2, 5, 20, 40]]),
+        np.ones(4),
+    )
+    out = loso._copied_rows(rows, 1.0, 1, (lambda i: 3 * i, 100))  # the view slides 3 px a frame
+    np.testing.assert_array_equal(out.frames, [0, 1, 2])  # 95 - 3 = 92: 8 of 20 px inside, dropped
+    np.testing.assert_allclose(out.boxes[:, 0], [50, 47, -4])  # -4: 16 of 20 px inside, kept
+    out = loso._copied_rows(rows, 1.0, 1, (lambda i: 15 * i, 100))
+    np.testing.assert_array_equal(out.frames, [0, 1, 1])  # 2 - 30 = -28: outside, dropped
+    np.testing.assert_allclose(out.boxes[:, 0], [50, 35, 80])
+
+
+def test_pan_must_move():
+    with pytest.raises(SystemExit, match="--pan"):
+        loso.panned(None, 0.0, None)
