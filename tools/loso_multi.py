@@ -45,6 +45,11 @@ panning camera, a check of the motion model and of ``camera_motion``.
 
     python tools/loso_multi.py --grid camera_motion=false,true --pan 3
 
+``--shake A`` crops every frame to a window 2A px narrower and shorter at a random offset
+(up to 2A px on both axes, drawn afresh each frame): a shaking hand-held camera.
+
+    python tools/loso_multi.py --grid camera_motion=false,true --shake 4
+
 ``--set key=v,...`` holds other keys at those values for every candidate (a grid on top of a
 non-default setting).
 
@@ -165,17 +170,42 @@ def panned(seq: MotSequence, speed: float, cache: Path) -> MotSequence:
     if not speed > 0:
         raise SystemExit(f"--pan must be > 0, got {speed}")
     span = seq.width // 4
-    crop_w = seq.width - span
 
-    def offset(i: int) -> int:
+    def offset(i: int) -> tuple[int, int]:
         p = (speed * i) % (2 * span)
-        return round(p if p <= span else 2 * span - p)
+        return round(p if p <= span else 2 * span - p), 0
 
-    return _copy(
-        seq, f"{seq.name}-pan{speed:g}", cache / "panned",
-        lambda img, i: np.ascontiguousarray(img[:, offset(i) : offset(i) + crop_w]),
-        box_shift=(offset, crop_w),
+    return _crop_copy(seq, f"{seq.name}-pan{speed:g}", cache / "panned", offset, span, 0)
+
+
+def shaken(seq: MotSequence, amplitude: int, cache: Path) -> MotSequence:
+    """``seq`` seen by a shaking hand-held camera: every frame cropped to a window
+    ``2 * amplitude`` pixels narrower and shorter, at an offset drawn afresh each frame
+    (uniform in [0, 2 amplitude] on both axes, seeded by the frame's index); ground truth and
+    public detections shifted with it, those less than half inside dropped."""
+    if not amplitude >= 1:
+        raise SystemExit(f"--shake must be >= 1 pixel, got {amplitude}")
+
+    def offset(i: int) -> tuple[int, int]:
+        dx, dy = np.random.default_rng(i).integers(0, 2 * amplitude + 1, 2)
+        return int(dx), int(dy)
+
+    return _crop_copy(
+        seq, f"{seq.name}-shake{amplitude}", cache / "shaken", offset, 2 * amplitude,
+        2 * amplitude,
     )  # fmt: skip
+
+
+def _crop_copy(seq: MotSequence, name: str, root: Path, offset, less_w: int, less_h: int):
+    """``seq``'s frames cropped to windows ``less_w`` / ``less_h`` pixels narrower / shorter
+    at ``offset(i) = (dx, dy)`` (see :func:`_copy`'s ``box_shift``)."""
+    w, h = seq.width - less_w, seq.height - less_h
+
+    def crop(img, i):
+        dx, dy = offset(i)
+        return np.ascontiguousarray(img[dy : dy + h, dx : dx + w])
+
+    return _copy(seq, name, root, crop, box_shift=(offset, w, h))
 
 
 def _copy(
@@ -190,9 +220,9 @@ def _copy(
     """``seq``'s frames through ``fn(frame (H, W, C) uint8 RGB, index)``, written once as the
     MOTChallenge folder ``root / name`` (PNG frames; ground truth and public detections with
     their boxes times ``box_scale``); with ``every`` > 1 only frames 0, every, 2 every, ...
-    (renumbered, the frame rate divided); with ``box_shift = (offset(i), width)`` the boxes of
-    frame i moved left by ``offset(i)`` pixels and those less than half inside ``width``
-    dropped (a crop)."""
+    (renumbered, the frame rate divided); with ``box_shift = (offset(i), width, height)`` the
+    boxes of frame i moved by ``-offset(i) = -(dx, dy)`` pixels and those less than half
+    inside ``width`` x ``height`` (along either axis) dropped (a crop)."""
     import cv2
 
     out = root / name
@@ -227,16 +257,19 @@ def _copy(
 
 def _copied_rows(rows: MotRows, s: float, every: int, shift: tuple | None = None) -> MotRows:
     """``rows`` with boxes times ``s`` on the frames kept by ``every`` (renumbered); with
-    ``shift = (offset(i), width)`` moved left by the frame's offset, those less than half
-    inside ``width`` dropped."""
+    ``shift = (offset(i), width, height)`` moved by minus the frame's offset ``(dx, dy)``,
+    those less than half inside the ``width`` x ``height`` crop (along either axis) dropped."""
     keep = rows.frames % every == 0
     boxes = rows.boxes * s
     if shift is not None:
-        offset, width = shift
+        offset, width, height = shift
         boxes = boxes.copy()
-        boxes[:, 0] -= np.array([offset(int(f)) for f in rows.frames], dtype=np.float64)
-        inside = np.clip(boxes[:, 0] + boxes[:, 2], 0, width) - np.clip(boxes[:, 0], 0, width)
-        keep &= inside >= 0.5 * boxes[:, 2]
+        d = np.array([offset(int(f)) for f in rows.frames], dtype=np.float64).reshape(-1, 2)
+        boxes[:, :2] -= d
+        for axis, size in ((0, width), (1, height)):
+            lo, ext = boxes[:, axis], boxes[:, axis + 2]
+            inside = np.clip(lo + ext, 0, size) - np.clip(lo, 0, size)
+            keep &= inside >= 0.5 * ext
     return MotRows(rows.frames[keep] // every, rows.ids[keep], boxes[keep], rows.conf[keep])
 
 
@@ -358,6 +391,13 @@ def main(argv: list[str] | None = None) -> int:
         "cropped window sliding right and back)",
     )
     ap.add_argument(
+        "--shake",
+        type=int,
+        metavar="A",
+        help="score on copies of the sequences seen by a shaking camera (a cropped window at a "
+        "random offset of up to 2 A px on both axes each frame)",
+    )
+    ap.add_argument(
         "--degrade",
         metavar="contrast=C,noise=S[,gray=1]",
         help="score on copies of the sequences with lowered contrast and added sensor noise "
@@ -379,6 +419,8 @@ def main(argv: list[str] | None = None) -> int:
         seqs = {n: rescaled(s, args.rescale, args.cache) for n, s in seqs.items()}
     if args.pan is not None:
         seqs = {n: panned(s, args.pan, args.cache) for n, s in seqs.items()}
+    if args.shake is not None:
+        seqs = {n: shaken(s, args.shake, args.cache) for n, s in seqs.items()}
     if args.degrade:
         seqs = {n: degraded(s, args.degrade, args.cache) for n, s in seqs.items()}
     res: dict[tuple, list[dict]] = {}

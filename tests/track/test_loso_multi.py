@@ -41,14 +41,33 @@ def test_pan_copies_move_the_boxes_with_the_view_and_drop_those_left_outside():
         np.array([[50.0, 5, 20, 40], [50, 5, 20, 40], [95, 5, 20, 40], [2, 5, 20, 40]]),
         np.ones(4),
     )
-    out = loso._copied_rows(rows, 1.0, 1, (lambda i: 3 * i, 100))  # the view slides 3 px a frame
+    out = loso._copied_rows(
+        rows, 1.0, 1, (lambda i: (3 * i, 0), 100, 100)
+    )  # the view slides 3 px a frame
     np.testing.assert_array_equal(out.frames, [0, 1, 2])  # 95 - 3 = 92: 8 of 20 px inside, dropped
     np.testing.assert_allclose(out.boxes[:, 0], [50, 47, -4])  # -4: 16 of 20 px inside, kept
-    out = loso._copied_rows(rows, 1.0, 1, (lambda i: 15 * i, 100))
+    out = loso._copied_rows(rows, 1.0, 1, (lambda i: (15 * i, 0), 100, 100))
     np.testing.assert_array_equal(out.frames, [0, 1, 1])  # 2 - 30 = -28: outside, dropped
     np.testing.assert_allclose(out.boxes[:, 0], [50, 35, 80])
+
+
+def test_shake_copies_move_the_boxes_on_both_axes():
+    import numpy as np
+
+    from torchtrack.io.mot import MotRows
+
+    rows = MotRows(
+        np.array([0, 0]), np.array([1, 2]), np.array([[50.0, 50, 20, 40], [50, 85, 20, 40]]),
+        np.ones(2),
+    )  # fmt: skip
+    out = loso._copied_rows(rows, 1.0, 1, (lambda i: (4, 3), 100, 100))
+    np.testing.assert_allclose(out.boxes, [[46, 47, 20, 40]])  # 82..122: 18 of 40 px inside
+    out = loso._copied_rows(rows, 1.0, 1, (lambda i: (4, 9), 100, 100))
+    np.testing.assert_allclose(out.boxes, [[46, 41, 20, 40], [46, 76, 20, 40]])  # 24 of 40
 
 
 def test_pan_must_move():
     with pytest.raises(SystemExit, match="--pan"):
         loso.panned(None, 0.0, None)
+    with pytest.raises(SystemExit, match="--shake"):
+        loso.shaken(None, 0, None)
