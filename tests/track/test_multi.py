@@ -247,6 +247,7 @@ def test_camera_motion_moves_every_particle_by_the_pan(shift):
     before = mt.states.clone()
     mt._follow_camera(_view(20 - shift).to(torch.int16).sum(0))
     assert mt.stats["frames with a camera shift"] == 1
+    assert mt.camera_summary() == "camera motion followed on 1 of 1 frame(s)"  # the CLI's line
     moved = mt.states - before
     assert torch.allclose(moved[..., 0:4:2], torch.full_like(moved[..., 0:4:2], float(shift)))
     assert torch.equal(moved[..., 1:4:2], torch.zeros_like(moved[..., 1:4:2]))
@@ -258,6 +259,7 @@ def test_camera_motion_leaves_a_still_camera_alone():
     for t in range(6):
         mt.update(blank(), (people(t, 2), torch.ones(2)))
     assert mt.stats["frames with a camera shift"] == 0
+    assert mt.camera_summary() is None
 
 
 def test_noise_height_scales_the_centre_noise_with_the_target_height():

@@ -633,7 +633,10 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         t_track,
         status,
         identities=len(seen),
-        ground="; ".join(x for x in (mt.ground_summary(), mt.birth_summary()) if x) or None,
+        ground="; ".join(
+            x for x in (mt.ground_summary(), mt.birth_summary(), mt.camera_summary()) if x
+        )
+        or None,
     )
 
 

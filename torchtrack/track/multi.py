@@ -495,6 +495,14 @@ class MultiTargetTracker:
             f"{self.stats['adapted births refused: not moving']} still window(s) refused"
         )
 
+    def camera_summary(self) -> str | None:
+        """One line on the camera's motion (``camera_motion``) when it moved the targets on
+        some frame; None otherwise (a still camera, or off)."""
+        n = self.stats["frames with a camera shift"]
+        if not n:
+            return None
+        return f"camera motion followed on {n} of {self.frame_index + 1} frame(s)"
+
     def _ground_on(self) -> bool:
         """The ground plane is learnt and used on this tracker's own scans (``ground_gate``);
         detections given from outside are taken as they come."""
