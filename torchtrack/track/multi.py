@@ -879,7 +879,7 @@ class MultiTargetTracker:
         old, self._last_gray = self._last_gray, gray
         if old is None or old.shape != gray.shape or not self.n_targets:
             return
-        _, _, sx, sy = _aligned_change(old, gray)
+        sx, sy = _camera_translation(old, gray)
         if sx or sy:
             self.stats["frames with a camera shift"] += 1
             self.states[..., 0:4:2] += sx
@@ -890,12 +890,20 @@ class MultiTargetTracker:
         frames before (or the oldest frame kept) by ``MOTION_RATIO`` times the whole frame's
         median change: something moves there, more than the camera's noise or its own motion
         moves the background. A camera that pans is compensated first: the older frame is
-        shifted by the frame's global translation (:func:`_aligned_change`), so that a still
+        shifted by the frame's global translation (:func:`_camera_translation`), so that a still
         patch of the scene does not count as moving because the whole view slid."""
         if len(self._grays) < 2:
             return torch.zeros(boxes.shape[0], dtype=torch.bool)
-        d, median, sx, sy = _aligned_change(self._grays[0], self._grays[-1])
-        h, w = d.shape
+        old, new = self._grays[0], self._grays[-1]
+        h, w = new.shape
+        sx, sy = _camera_translation(old, new)
+        if sx or sy:  # new[y, x] shows what old[y - sy, x - sx] showed; none off the overlap
+            d = torch.full((h, w), math.nan)
+            xa, xb, ya, yb = max(0, sx), min(w, w + sx), max(0, sy), min(h, h + sy)
+            d[ya:yb, xa:xb] = (new[ya:yb, xa:xb] - old[ya - sy : yb - sy, xa - sx : xb - sx]).abs()
+        else:
+            d = (new - old).abs().float()
+        median = float(d[::2, ::2].nanmedian())
         level = median * MOTION_RATIO + MOTION_MIN
         out = []
         for x, y, bw, bh in boxes.tolist():
@@ -1037,27 +1045,23 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
-def _aligned_change(old: torch.Tensor, new: torch.Tensor) -> tuple[torch.Tensor, float, int, int]:
-    """``(d, median, sx, sy)``: the absolute change ``d (H, W)`` between two gray frames and
-    its median (over every other pixel), after the camera's translation ``(sx, sy)``
-    (:func:`_camera_shift`; NaN off the frames' overlap) when that shift explains the change
-    better (its median below ``CAMERA_EXPLAINS`` times the raw one), else the raw change and
-    ``(0, 0)``: the correlation then followed something moving over a plain, still
-    background."""
-    h, w = new.shape
-    d = (new - old).abs().float()
-    median = float(d[::2, ::2].median())
+def _camera_translation(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]:
+    """The camera's translation ``(sx, sy)`` between two gray frames (:func:`_camera_shift`),
+    kept only where it explains the change: the median absolute change after the shift (over
+    every other pixel of the frames' overlap) below ``CAMERA_EXPLAINS`` times the median
+    change without it; else ``(0, 0)``: the correlation followed something moving over a
+    plain, still background."""
     sx, sy = _camera_shift(old, new)
-    if sx or sy:  # new[y, x] shows what old[y - sy, x - sx] showed; none off the overlap
-        aligned = torch.full((h, w), math.nan)
-        xa, xb, ya, yb = max(0, sx), min(w, w + sx), max(0, sy), min(h, h + sy)
-        aligned[ya:yb, xa:xb] = (
-            new[ya:yb, xa:xb] - old[ya - sy : yb - sy, xa - sx : xb - sx]
-        ).abs()
-        m = float(aligned[::2, ::2].nanmedian())
-        if m < CAMERA_EXPLAINS * median:
-            return aligned, m, sx, sy
-    return d, median, 0, 0
+    if not (sx or sy):
+        return 0, 0
+    h, w = new.shape
+    raw = float((new[::2, ::2] - old[::2, ::2]).abs().median())
+    # the even rows and columns of the overlap: new[y, x] against old[y - sy, x - sx]
+    ya, xa = max(0, sy), max(0, sx)
+    ya, xa = ya + ya % 2, xa + xa % 2
+    yb, xb = min(h, h + sy), min(w, w + sx)
+    shifted = (new[ya:yb:2, xa:xb:2] - old[ya - sy : yb - sy : 2, xa - sx : xb - sx : 2]).abs()
+    return (sx, sy) if float(shifted.median()) < CAMERA_EXPLAINS * raw else (0, 0)
 
 
 def _camera_shift(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]:
