@@ -580,6 +580,32 @@ def test_camera_shift_finds_a_pan_and_a_still_camera():
     assert _camera_shift(old, old) == (0, 0)
 
 
+@pytest.mark.parametrize("dx, dy", [(-5, -3), (4, 7), (0, -6)])
+def test_camera_translation_keeps_a_pan_that_explains_the_change(dx, dy):
+    """``_camera_translation`` (``camera_motion``, the birth motion test): a textured view
+    that slid is a camera shift (odd and even offsets: the overlap's even pixels are read)."""
+    from torchtrack.track.multi import _camera_translation
+
+    scene = _textured()[0].to(torch.int16) * 3
+    old = scene[20:260, 30:430]
+    new = scene[20 - dy : 260 - dy, 30 - dx : 430 - dx]  # new[y, x] shows old[y - dy, x - dx]
+    assert _camera_translation(old, new) == (dx, dy)
+    assert _camera_translation(old, old) == (0, 0)
+
+
+def test_camera_translation_refuses_a_shift_that_only_an_object_made():
+    """One block moving over a plain, still background: the phase correlation follows the
+    block, but shifting the frame by it explains nothing (the background's change was 0)."""
+    from torchtrack.track.multi import _camera_shift, _camera_translation
+
+    old = torch.full((120, 160), 300, dtype=torch.int16)
+    new = old.clone()
+    old[40:70, 50:70] = 700
+    new[40:70, 57:77] = 700
+    assert _camera_shift(old, new) == (7, 0)
+    assert _camera_translation(old, new) == (0, 0)
+
+
 def test_a_panning_camera_does_not_make_a_still_patch_move():
     """A camera sliding 2 px a frame over a still, textured scene: every patch changes, more
     than twice the frame's median change in the textured places; with the pan compensated a
