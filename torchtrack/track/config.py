@@ -267,8 +267,10 @@ class MultiTrackerConfig:
         reseed_overlap: a matched target whose particles overlap its detection less than this
             (expected IoU) is re-seeded around the detection.
         duplicate_iou: two confirmed targets whose estimated boxes overlap more than this
-            (IoU) are one person: the one matched less recently ends (ByteTrack's duplicate
-            removal, IoU 0.85); 1: off.
+            (IoU) are one person when one has missed its detection on the last 2 scans while
+            the other was matched, or when they take turns at the detections (never both
+            matched on one frame): the one matched less recently ends (ByteTrack's duplicate
+            removal, which ends the lost one at IoU 0.85 at once); 1: off.
         lost_noise_growth: the motion noise of an unmatched target grows by this factor per
             frame without a match (up to ``max_noise_scale``): the search widens while it is
             lost.
@@ -332,7 +334,7 @@ class MultiTrackerConfig:
     detection_sigma_rate: float = 0.0
     exclusion: float = 0.0
     reseed_overlap: float = 0.3
-    duplicate_iou: float = 0.85
+    duplicate_iou: float = 0.6
     lost_noise_growth: float = 0.1
     max_noise_scale: float = 3.0
     detection_proposal: float = 0.0

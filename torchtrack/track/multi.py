@@ -35,8 +35,9 @@ predicted and weighted in one call per frame. Per frame:
    moving (its box changed more than the frame does), so a person-like patch of a still
    background does not start one;
    a target unmatched for more than ``max_lost`` frames, or whose box has left the frame, ends;
-   so does a confirmed target that sits on another one (IoU above ``duplicate_iou``) and was
-   matched less recently (ByteTrack's duplicate removal).
+   so does a confirmed target that sits on another one (IoU above ``duplicate_iou``) and
+   either missed its detection on the last scans while the other was matched, or took turns
+   with it at one detection (ByteTrack's duplicate removal, safe for two people who overlap).
    At most ``max_targets`` live at once; memory is flat however long the video.
 
 A confirmed target is reported while it is matched, and for up to ``max_coast`` frames after
@@ -96,6 +97,9 @@ MOTION_MIN = 3.0
 #: below this share of the unaligned one)
 CAMERA_PEAK = 0.1
 CAMERA_EXPLAINS = 0.5
+#: a target sitting on another one (``duplicate_iou``) that has missed its detection on this
+#: many scans in a row while the other was matched more recently is a duplicate of it
+DUPLICATE_MISSES = 2
 
 
 @dataclass
@@ -196,6 +200,8 @@ class MultiTargetTracker:
         self.detected = torch.zeros(0, dtype=torch.bool)  # matched on this frame
         self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
         self._next_id = 1
+        # overlapping pairs of confirmed targets (ids) -> (each one matched since they began)
+        self._turns: dict[tuple[int, int], tuple[bool, bool]] = {}
         self._scans = 0
         # the best logit of each recent scan, and the birth threshold they give
         self._levels: collections.deque = collections.deque(maxlen=LEVEL_SCANS)
@@ -984,12 +990,23 @@ class MultiTargetTracker:
 
     def _duplicates(self) -> torch.Tensor:
         """``(T,)`` bool: confirmed targets that sit on another confirmed target (estimated
-        boxes' IoU above ``duplicate_iou``) and were matched less recently than it (ties: the
-        younger one); ByteTrack's duplicate removal between tracked and lost tracks. Such a
-        target has drifted onto a neighbour whose detection it lost in the assignment."""
+        boxes' IoU above ``duplicate_iou``) and are one person with it (ByteTrack's duplicate
+        removal between tracked and lost tracks, made safe for people who overlap):
+
+        * it has missed its detection on at least the last ``DUPLICATE_MISSES`` scans while
+          the other was matched more recently: one detection where two targets sit (one
+          missed scan is not enough: a person behind another one whose detection the scan
+          dropped once is still there); or
+        * the two have taken turns at the detections since they began to overlap: each was
+          matched on some frame of that run, never both on one (two people overlapping are
+          matched together whenever the scan sees both); the one matched less recently ends.
+
+        A target that drifted onto a neighbour whose detection it lost in the assignment is
+        such a target; two people side by side, both detected, are never one."""
         t = self.n_targets
         out = torch.zeros(t, dtype=torch.bool)
         if t < 2 or self.config.duplicate_iou >= 1.0:
+            self._turns = {}
             return out
         from torchtrack.boxes import box_iou_matrix
 
@@ -998,14 +1015,24 @@ class MultiTargetTracker:
         iou.fill_diagonal_(0.0)
         both = self.confirmed[:, None] & self.confirmed[None, :]
         pair = both & (iou > self.config.duplicate_iou)
-        if not bool(pair.any()):
-            return out
         sm = self.since_match
-        # i loses to j: matched less recently, or as recently and younger (larger id)
-        worse = (sm[:, None] > sm[None, :]) | (
-            (sm[:, None] == sm[None, :]) & (self.ids[:, None] > self.ids[None, :])
-        )
-        return (pair & worse).any(1)
+        worse = sm[:, None] > sm[None, :]  # i matched less recently than j
+        missed = sm >= DUPLICATE_MISSES * self.config.scan_every
+        out = (pair & worse & missed[:, None]).any(1)
+        turns: dict[tuple[int, int], tuple[bool, bool]] = {}
+        ids, det = self.ids.tolist(), self.detected.tolist()
+        for i, j in torch.nonzero(torch.triu(pair, 1)).tolist():
+            seen_i, seen_j = self._turns.get((ids[i], ids[j]), (False, False))
+            if det[i] and det[j]:  # both detected: two people
+                seen_i = seen_j = False
+            else:
+                seen_i, seen_j = seen_i or det[i], seen_j or det[j]
+            turns[(ids[i], ids[j])] = (seen_i, seen_j)
+            if seen_i and seen_j:
+                out[i] |= bool(worse[i, j])
+                out[j] |= bool(worse[j, i])
+        self._turns = turns  # pairs that stopped overlapping start afresh
+        return out
 
     def _report(self) -> MultiState:
         cfg = self.config
