@@ -283,6 +283,12 @@ class MultiTrackerConfig:
             reaches (a lower frame rate, a turn) is caught up with in one frame instead of
             being left behind; 0: off (the motion model alone, and a full re-seed below
             ``reseed_overlap``).
+        birth_velocity: sd of a new target's velocity, as a fraction of its window height per
+            frame: its particles start with velocities drawn from a normal of that sd instead
+            of at rest, and its next detections choose among them. A person who moves several
+            pixels a frame (a low frame rate) is followed from the first scans instead of
+            being left behind while the motion noise (about 1 px a frame) builds the velocity
+            up; 0: at rest.
         camera_motion: follow a camera that pans or tilts: the frame's global translation
             since the last frame (phase correlation, used only where it explains the change
             between the frames) moves every target's particles, their current and previous
@@ -338,6 +344,7 @@ class MultiTrackerConfig:
     lost_noise_growth: float = 0.1
     max_noise_scale: float = 3.0
     detection_proposal: float = 0.0
+    birth_velocity: float = 0.03
     camera_motion: bool = True
     min_visible_fraction: float = 0.25
     likelihood_floor: float = 1e-6
@@ -409,6 +416,7 @@ class MultiTrackerConfig:
             "exclusion",
             "ground_gate",
             "birth_margin",
+            "birth_velocity",
         ):
             v = getattr(self, k)
             if not (math.isfinite(v) and v >= 0):

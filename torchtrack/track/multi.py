@@ -853,7 +853,12 @@ class MultiTargetTracker:
         one = torch.ones((k, 1), dtype=torch.float64)
         x0 = torch.cat([c, c, one, one], 1)
         n = cfg.n_particles
-        self.states = torch.cat([self.states, self._spread(x0, win[:, 2:4])])
+        born = self._spread(x0, win[:, 2:4])
+        if cfg.birth_velocity > 0:  # unknown velocity: a spread the weights choose from
+            sd = cfg.birth_velocity * win[:, 3, None, None]
+            v = torch.randn((*born.shape[:2], 2), dtype=born.dtype, generator=self.generator)
+            born[..., 2:4] = born[..., 0:2] - sd * v
+        self.states = torch.cat([self.states, born])
         self.log_weights = torch.cat(
             [self.log_weights, torch.full((k, n), -math.log(n), dtype=torch.float64)]
         )
