@@ -354,7 +354,8 @@ def test_noise_height_scales_the_centre_noise_with_the_target_height():
     nearer person moves more pixels); the scale noise is relative already and stays."""
     spreads = {}
     for nh in (0.0, 60.0):
-        mt = make(noise_height=nh, n_particles=4000)
+        # born at rest: the newborn velocity spread (birth_velocity) follows the height too
+        mt = make(noise_height=nh, n_particles=4000, birth_velocity=0.0)
         small = torch.tensor([[40.0, 40.0, 20.0, 60.0]], dtype=torch.float64)
         tall = torch.tensor([[200.0, 20.0, 40.0, 120.0]], dtype=torch.float64)
         mt.update(blank(), (torch.cat([small, tall]), torch.ones(2)))
