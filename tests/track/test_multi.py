@@ -231,6 +231,23 @@ def _runners(t, speed):
     )
 
 
+DEFAULT = MultiTrackerConfig()
+
+
+def _follow_runners(seed, speed=12.0, **kw):
+    """Track :func:`_runners` for 22 frames: ``(births, largest box error from frame 2 on)``,
+    the error 1e9 on a frame that does not report exactly two targets."""
+    mt = MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(seed), **kw)
+    err = []
+    for t in range(22):
+        res = mt.update(blank(320, 480), (_runners(t, speed), torch.ones(2)))
+        if t >= 2:
+            err.append(
+                float((res.boxes - _runners(t, speed)).abs().max()) if len(res) == 2 else 1e9
+            )
+    return mt.stats["born"], max(err)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_detection_proposal_keeps_up_with_people_who_move_far_per_frame(seed):
     """People moving 12 px a frame (a runner, or a walker at a third of the frame rate): the
@@ -238,22 +255,8 @@ def test_detection_proposal_keeps_up_with_people_who_move_far_per_frame(seed):
     their detections until the pairs no longer overlap enough and new targets are born on
     them. Drawing part of the particles around the matched detections (Okuma et al.) keeps
     one identity per person, on the person."""
-    out = {}
-    for frac in (0.0, 0.25):
-        mt = MultiTargetTracker(
-            "pedestrian",
-            generator=torch.Generator().manual_seed(seed),
-            detection_proposal=frac,
-            birth_velocity=0.0,  # new targets at rest, as before birth_velocity
-        )
-        err = []
-        for t in range(22):
-            res = mt.update(blank(320, 480), (_runners(t, 12.0), torch.ones(2)))
-            if t >= 2:
-                err.append(
-                    float((res.boxes - _runners(t, 12.0)).abs().max()) if len(res) == 2 else 1e9
-                )
-        out[frac] = (mt.stats["born"], max(err))
+    # new targets at rest (birth_velocity = 0), as before birth_velocity, to see the proposal
+    out = {f: _follow_runners(seed, detection_proposal=f, birth_velocity=0.0) for f in (0, 0.25)}
     assert out[0.25][0] == 2 and out[0.25][1] < 6.0, out  # two people, two births, on them
     assert out[0.0][0] > 2, out  # without: the lagging targets leave births behind
 
@@ -265,20 +268,8 @@ def test_birth_velocity_keeps_up_with_people_who_move_far_per_frame(seed):
     leaves behind start new targets (21 births for 2 people). Born with a spread of velocities
     (the default ``birth_velocity``, 0.03 of the window height a frame: 3.9 px here), the next
     detections choose the right one: two births, the boxes on the people."""
-    out = {}
-    for bv in (0.0, MultiTrackerConfig().birth_velocity):
-        mt = MultiTargetTracker(
-            "pedestrian", generator=torch.Generator().manual_seed(seed), birth_velocity=bv
-        )
-        err = []
-        for t in range(22):
-            res = mt.update(blank(320, 480), (_runners(t, 12.0), torch.ones(2)))
-            if t >= 2:
-                err.append(
-                    float((res.boxes - _runners(t, 12.0)).abs().max()) if len(res) == 2 else 1e9
-                )
-        out[bv] = (mt.stats["born"], max(err))
-    born, err = out[MultiTrackerConfig().birth_velocity]
+    out = {bv: _follow_runners(seed, birth_velocity=bv) for bv in (0.0, DEFAULT.birth_velocity)}
+    born, err = out[DEFAULT.birth_velocity]
     assert born == 2 and err < 13.0, out
     assert out[0.0][0] > 5, out
 
