@@ -27,8 +27,9 @@ predicted and weighted in one call per frame. Per frame:
    filter", ICCV 2009). A matched target whose particles do not reach its detection (overlap
    below ``reseed_overlap``) is re-seeded around it; with the default gate (``overlap_gate``
    0.3 = ``reseed_overlap``) a pair that overlaps so little is not made in the first place.
-5. **Births and deaths**: a confident detection that matches nothing starts a tentative target,
-   confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row.
+5. **Births and deaths**: a confident detection that matches nothing starts a tentative target
+   (its particles' velocities drawn with an sd of ``birth_velocity`` x its window height a
+   frame: the next detections choose among them), confirmed (and given its public identity) after ``confirm_hits`` matched scans in a row.
    "Confident" adapts to the video: where even its people score lower than the detector's
    training people do (low contrast, noise, another camera), the threshold follows the
    video's level down to ``birth_floor``, and a birth below ``birth_threshold`` must also be
