@@ -107,7 +107,8 @@ def test_csv_single_class_and_identical_scores(tmp_path, capsys):
         )
         == 1
     )
-    assert "exactly two classes" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "exactly two classes" in err and "one.csv" in err  # the file is named
     (tmp_path / "same.csv").write_text("".join(f"0.7,{i % 2}\n" for i in range(20)))
     assert (
         main(
@@ -294,3 +295,35 @@ def test_model_region_crops(tiny_model, tmp_path):
     a = calibrator_from_dict(json.loads(plain.read_text())).a_
     assert calibrator_from_dict(json.loads(padded.read_text())).a_ == pytest.approx(a, abs=1e-9)
     assert main([*base, *pad, "--region", "2", "2", "16", "16", "--json", str(padded)]) == 1
+
+
+def test_bundled_model_by_name_needs_an_output(data_dir, tmp_path, capsys):
+    """``calibrate pedestrian`` takes the bundled name like the other subcommands, writes the
+    calibrated copy to -o, and never rewrites the installed model file."""
+    import hashlib
+
+    from torchtrack.detect import load_detector
+    from torchtrack.detect.bundled import resolve_model
+
+    crops = data_dir / "detection_crops"
+    pos, neg = tmp_path / "pos", tmp_path / "neg"
+    for folder, src, n in (
+        (pos, crops / "inria_person_96x160" / "pos", 15),
+        (neg, crops / "inria_negatives" / "test", 12),
+    ):
+        folder.mkdir()
+        for f in sorted(src.iterdir())[:n]:
+            (folder / f.name).symlink_to(f)
+    installed = resolve_model("pedestrian")
+    digest = hashlib.sha256(installed.read_bytes()).hexdigest()
+    args = ["calibrate", "pedestrian", "--pos", str(pos), "--neg", str(neg), "--quiet"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "'pedestrian' is a bundled model" in err and "-o OUT" in err
+    out = tmp_path / "ped.safetensors"
+    assert main([*args, "-o", str(out)]) == 0
+    det = load_detector(out)
+    assert det.summary["recalibration"]["n_pos"] == 15
+    assert det.summary["recalibration"]["n_neg"] == 12
+    assert det.calibrator.a_ < 0
+    assert hashlib.sha256(installed.read_bytes()).hexdigest() == digest

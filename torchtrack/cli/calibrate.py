@@ -60,7 +60,12 @@ def register(subparsers) -> None:
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("model", nargs="?", metavar="MODEL", help="detector model file to calibrate")
+    p.add_argument(
+        "model",
+        nargs="?",
+        metavar="MODEL",
+        help="detector model file to calibrate, or a bundled name (pedestrian, vehicle) with -o OUT",
+    )
     p.add_argument("--pos", nargs="+", metavar="DIR", help="folders of positive calibration crops")
     p.add_argument("--neg", nargs="+", metavar="DIR", help="folders of negative calibration crops")
     p.add_argument(
@@ -297,7 +302,9 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             raise ConfigError("--scores needs --json OUT to write the calibration to")
         s, labels = read_scores_csv(args.scores)
-        y01, _ = as_binary_labels(labels, s.shape[0], name="labels")
+        y01, _ = as_binary_labels(
+            labels, s.shape[0], name=f"the labels of score file {str(args.scores)!r}"
+        )
         source: dict[str, Any] = {"scores": str(args.scores)}
         if bool(((s >= 0) & (s <= 1)).all()):
             before_name, p_before = "before (scores as P)", s
@@ -307,8 +314,19 @@ def run(args: argparse.Namespace) -> int:
         if not args.pos or not args.neg:
             raise ConfigError("a MODEL needs labelled calibration crops: --pos DIR and --neg DIR")
         from torchtrack.detect import load_detector, save_detector
+        from torchtrack.detect.bundled import bundled_models, resolve_model
 
-        det = load_detector(args.model)
+        model_file = args.model
+        if not Path(args.model).exists() and str(args.model) in bundled_models():
+            # a bundled name, as the other subcommands take it; the package's file stays as
+            # shipped: the calibrated model goes to -o OUT (or only the calibration to --json)
+            if args.out is None and args.json is None:
+                raise ConfigError(
+                    f"MODEL {args.model!r} is a bundled model: give -o OUT for the calibrated "
+                    "copy (the installed model file is not rewritten) or --json OUT"
+                )
+            model_file = resolve_model(args.model)
+        det = load_detector(model_file)
         if (args.region is None) != (args.crop_size is None):
             raise ConfigError("--region and --crop-size go together")
         opts = {
