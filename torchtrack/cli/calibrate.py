@@ -314,18 +314,15 @@ def run(args: argparse.Namespace) -> int:
         if not args.pos or not args.neg:
             raise ConfigError("a MODEL needs labelled calibration crops: --pos DIR and --neg DIR")
         from torchtrack.detect import load_detector, save_detector
-        from torchtrack.detect.bundled import bundled_models, resolve_model
+        from torchtrack.detect.bundled import resolve_model
 
-        model_file = args.model
-        if not Path(args.model).exists() and str(args.model) in bundled_models():
-            # a bundled name, as the other subcommands take it; the package's file stays as
-            # shipped: the calibrated model goes to -o OUT (or only the calibration to --json)
-            if args.out is None and args.json is None:
-                raise ConfigError(
-                    f"MODEL {args.model!r} is a bundled model: give -o OUT for the calibrated "
-                    "copy (the installed model file is not rewritten) or --json OUT"
-                )
-            model_file = resolve_model(args.model)
+        model_file = resolve_model(args.model)  # a file, or a bundled name as elsewhere
+        if model_file != Path(args.model) and args.out is None and args.json is None:
+            # the package's file stays as shipped: the calibrated copy goes to -o OUT
+            raise ConfigError(
+                f"MODEL {args.model!r} is a bundled model: give -o OUT for the calibrated "
+                "copy (the installed model file is not rewritten) or --json OUT"
+            )
         det = load_detector(model_file)
         if (args.region is None) != (args.crop_size is None):
             raise ConfigError("--region and --crop-size go together")
