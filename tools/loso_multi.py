@@ -24,7 +24,8 @@ lowered about mid-grey and to which sensor noise (a fresh Gaussian draw per fram
 frame's index) is added, written once as a MOTChallenge folder under ``--cache``: video on
 which the detector is less sure of everyone, as on footage unlike its training crops (a check
 of adaptive births, ``birth_floor``). ``gray=1`` makes the frames grey first (a
-monochrome camera).
+monochrome camera); ``gain=A`` then multiplies the brightness of frame t by
+``1 + A sin(2 pi t / P)`` (``period=P``, default 100 frames): light that changes over the video.
 
     python tools/loso_multi.py --grid birth_floor=0.9999,0.995 --degrade contrast=0.5,noise=8
 
@@ -61,6 +62,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import statistics
 import sys
 import time
@@ -103,36 +105,54 @@ def load(data: Path, name: str) -> MotSequence:
 
 
 def degrade(
-    frame: np.ndarray, contrast: float, noise: float, index: int, gray: bool = False
+    frame: np.ndarray,
+    contrast: float,
+    noise: float,
+    index: int,
+    gray: bool = False,
+    gain: float = 0.0,
+    period: float = 100.0,
 ) -> np.ndarray:
     """``(H, W, C)`` uint8 with its contrast scaled by ``contrast`` about 128 and Gaussian
     noise of sd ``noise`` (grey levels) added, the draw seeded by ``index``; with ``gray``
-    first made grey (ITU-R 601 luma in all three channels: a monochrome camera)."""
+    first made grey (ITU-R 601 luma in all three channels: a monochrome camera); with ``gain``
+    its brightness then multiplied by ``1 + gain sin(2 pi index / period)`` (light that changes
+    over the video, as ``tools/make_copies.py --gain`` does to single-target sequences)."""
     out = frame.astype(np.float32)
     if gray:
         luma = out @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
         out = np.repeat(luma[..., None], frame.shape[-1], -1)
     out = (out - 128.0) * contrast + 128.0
+    if gain:
+        out *= 1.0 + gain * math.sin(2.0 * math.pi * index / period)
     if noise > 0:
         out += np.random.default_rng(index).normal(0.0, noise, frame.shape).astype(np.float32)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
-    """``seq`` through :func:`degrade` (``spec``: ``contrast=C,noise=S[,gray=1]``), written
-    once as a MOTChallenge folder (PNG frames, the ground truth in their pixels) under
-    ``cache``."""
+    """``seq`` through :func:`degrade` (``spec``:
+    ``contrast=C,noise=S[,gray=1][,gain=A[,period=P]]``), written once as a MOTChallenge folder
+    (PNG frames, the ground truth in their pixels) under ``cache``."""
+    usage = "contrast=C,noise=S[,gray=1][,gain=A[,period=P]]"
     try:
         kv = dict(item.split("=") for item in spec.split(","))
         contrast, noise = float(kv.pop("contrast", 1.0)), float(kv.pop("noise", 0.0))
         gray = bool(int(kv.pop("gray", 0)))
+        gain, period = float(kv.pop("gain", 0.0)), float(kv.pop("period", 100.0))
     except ValueError:
-        raise SystemExit(f"--degrade: expected contrast=C,noise=S[,gray=1], got {spec!r}") from None
-    if kv or not (0 < contrast <= 1 and noise >= 0):
-        raise SystemExit(f"--degrade: expected contrast=C (0, 1] and noise=S >= 0, got {spec!r}")
+        raise SystemExit(f"--degrade: expected {usage}, got {spec!r}") from None
+    if kv or not (0 < contrast <= 1 and noise >= 0 and 0 <= gain < 1 and period > 0):
+        raise SystemExit(
+            f"--degrade: expected contrast in (0, 1], noise >= 0, gain in [0, 1) and "
+            f"period > 0 ({usage}), got {spec!r}"
+        )
+    name = f"{seq.name}-c{contrast:g}-n{noise:g}{'-gray' if gray else ''}"
+    if gain:
+        name += f"-gain{gain:g}-p{period:g}"
     return _copy(
-        seq, f"{seq.name}-c{contrast:g}-n{noise:g}{'-gray' if gray else ''}", cache / "degraded",
-        lambda img, i: degrade(img, contrast, noise, i, gray),
+        seq, name, cache / "degraded",
+        lambda img, i: degrade(img, contrast, noise, i, gray, gain, period),
     )  # fmt: skip
 
 

@@ -71,3 +71,23 @@ def test_pan_must_move():
         loso.panned(None, 0.0, None)
     with pytest.raises(SystemExit, match="--shake"):
         loso.shaken(None, 0, None)
+
+
+def test_degrade_gain_follows_the_sine_and_leaves_the_default_unchanged():
+    import numpy as np
+
+    frame = np.full((4, 6, 3), 100, dtype=np.uint8)
+    frame[0, 0] = (250, 10, 0)
+    same = loso.degrade(frame, 1.0, 0.0, 7)
+    assert np.array_equal(same, frame)  # no change asked for, none made
+    peak = loso.degrade(frame, 1.0, 0.0, 25, gain=0.5, period=100)  # sin = 1: x1.5
+    trough = loso.degrade(frame, 1.0, 0.0, 75, gain=0.5, period=100)  # sin = -1: x0.5
+    assert peak[1, 1, 0] == 150 and trough[1, 1, 0] == 50
+    assert tuple(peak[0, 0]) == (255, 15, 0)  # clipped at white
+    assert np.array_equal(loso.degrade(frame, 1.0, 0.0, 0, gain=0.5), frame)  # sin 0 = 0
+
+
+@pytest.mark.parametrize("spec", ["gain=1", "gain=-0.1", "gain=0.5,period=0", "gain=x"])
+def test_degrade_refuses_a_bad_gain(spec, tmp_path):
+    with pytest.raises(SystemExit, match="--degrade: expected"):
+        loso.degraded(None, spec, tmp_path)
