@@ -120,6 +120,39 @@ def test_gray_frames():
     assert bool(torch.isfinite(st.box).all())
 
 
+def test_grey_pool_keeps_one_colour_subset_on_grey_frames(data_dir):
+    from torchtrack.features.centre_surround import CHANNEL_SUBSETS
+
+    frames, boxes = _bobot(data_dir, 0, 6)
+    grey = [
+        f.float().mul(torch.tensor([0.299, 0.587, 0.114])[:, None, None]).sum(0) for f in frames
+    ]
+    grey = [g.round().to(torch.uint8).expand(3, -1, -1).contiguous() for g in grey]
+    for pool_on in (False, True):
+        for name, fr in (("colour", frames), ("grey", grey)):
+            tr = AdaptiveHaarTracker(
+                n_particles=200, grey_pool=pool_on, generator=torch.Generator().manual_seed(0)
+            )
+            tr.init(fr[0], boxes[0])
+            for f in fr[1:]:
+                tr.update(f)
+            chan = tr.pool.table[:, 0]
+            used = chan[tr.ensemble.feature[tr.ensemble.valid]]
+            dup = used < len(CHANNEL_SUBSETS) - 1  # R, G, B, RG, RB, GB
+            if pool_on and name == "grey":
+                # only R+G+B and the gradient channels are candidates on grey frames
+                assert not bool(dup.any())
+                assert not bool(tr.quarters[chan < 6].any())
+                assert bool(tr.quarters[chan >= 6].any(1).all())
+            else:
+                assert bool(tr.quarters.any(1).all())  # every feature a candidate
+                if name == "colour":
+                    assert bool(dup.any())  # colour subsets are used on colour frames
+    # a colour first frame after a grey one: the whole pool again
+    tr.init(frames[0], boxes[0])
+    assert bool(tr.quarters.any(1).all())
+
+
 def test_bobot_first_frames_global(data_dir):
     """Real data: 30 frames of BoBoT (Klein et al.'s sequence I): mean IoU above 0.7."""
     frames, gt = _bobot(data_dir, 0, 30)

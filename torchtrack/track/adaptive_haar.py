@@ -117,6 +117,7 @@ import torch
 from torchtrack.boxes import box_iou
 from torchtrack.errors import ConfigError
 from torchtrack.features.centre_surround import (
+    CHANNEL_SUBSETS,
     CentreSurroundPool,
     centre_surround_features,
 )
@@ -235,6 +236,10 @@ class AdaptiveHaarConfig:
             orientation bins), 77 more features each: edges and shape tell apart two
             people dressed alike (:func:`channel_integrals`; default 7, the magnitude and six
             orientations of Dollar et al.'s channel features; see the module doc).
+        grey_pool: on a grey first frame (its three channels within 1 grey level of each
+            other on average), only one of the seven colour subsets is a candidate for new
+            stumps: on grey frames the subsets (R, G, B, RG, ...) all read the same grey, and
+            the other six would be the same feature again (not in the paper).
         resample: resampling scheme (``torchtrack.filter.RESAMPLERS``).
     """
 
@@ -295,6 +300,7 @@ class AdaptiveHaarConfig:
     sizes: list[float] | None = None
     surround: float = 2.0
     gradients: int = 7
+    grey_pool: bool = False
     resample: str = "systematic"
 
     def validate(self) -> None:
@@ -382,6 +388,15 @@ class AdaptiveHaarConfig:
             self.sigma_rel, self.sigma_scale, relative=True, aspect=self.aspect,
             damping=self.damping, min_sigma=self.min_sigma,
         )  # fmt: skip
+
+
+def _is_grey(frame: torch.Tensor) -> bool:
+    """``frame (C, H, W)``: one channel, or three within 1 grey level of each other on
+    average (a grey video decoded to RGB; JPEG leaves a little chroma noise)."""
+    if frame.shape[0] == 1:
+        return True
+    f = frame.to(torch.float32)
+    return float((f[0] - f[1]).abs().mean()) <= 1.0 and float((f[1] - f[2]).abs().mean()) <= 1.0
 
 
 def _random_negatives(
@@ -514,6 +529,11 @@ class AdaptiveHaarTracker(Tracker):
         cfg = self.config
         boxes = boxes.to(torch.float64)
         b = boxes.shape[0]
+        self.quarters = self.pool.quarters()
+        if cfg.grey_pool and _is_grey(frame):
+            # one colour subset (R+G+B) stays; the gradient channels are not colour subsets
+            dup = self.pool.table[:, 0] < len(CHANNEL_SUBSETS) - 1
+            self.quarters[dup] = False
         ints = self.pool.integrals(frame[None])
         negs = _random_negatives(boxes, cfg.neg_max, self.frame_size, cfg.neg_iou, self.generator)
         if cfg.scale_negatives > 0:

@@ -80,6 +80,7 @@ from torchtrack.observe.template import (
     antialias_sigma,
     gamma,
     gaussian_blur,
+    match_brightness,
     matrix_to_pose,
     pose_matrices,
     to_luma,
@@ -122,6 +123,10 @@ class TemplateTrackerConfig:
         resample: resampling scheme.
         antialias: Gaussian prefilter before resampling to S x S (not in the paper; module
             doc).
+        brightness: compare every patch with the template at the template's mean brightness
+            (:func:`~torchtrack.observe.template.match_brightness`; not in the paper): light
+            that changes over the video scales the target's grey levels, and eq. (5) in
+            absolute grey levels then matches nothing.
         d_mode: ``fixed`` (the paper: ``d`` throughout) or ``adaptive`` (module doc).
         d_quantile: the adaptive d follows this quantile of the best match's absolute
             residuals.
@@ -153,6 +158,7 @@ class TemplateTrackerConfig:
     min_inside: float = 0.5
     resample: str = "systematic"
     antialias: bool = True
+    brightness: bool = False
     d_mode: str = "adaptive"
     d_quantile: float = 0.95
     d_rate: float = 0.1
@@ -261,7 +267,9 @@ class TemplateTracker(Tracker):
             sigma_scale=cfg.sigma_scale,
             sigma_rot=cfg.sigma_rot,
         )
-        self.model = TemplateModel(cfg.template_size, cfg.d, cfg.t, cfg.min_inside)
+        self.model = TemplateModel(
+            cfg.template_size, cfg.d, cfg.t, cfg.min_inside, brightness=cfg.brightness
+        )
         self.history: list[dict[str, Any]] = []
         self._states: torch.Tensor | None = None
         self._log_w: torch.Tensor | None = None
@@ -275,7 +283,7 @@ class TemplateTracker(Tracker):
         b, n, _ = states.shape
         m = self.model
         p, inside = m.patches(luma, states[..., _POSE].reshape(b * n, 5))
-        g = gamma(p, m.current, inside, m.d, m.t, m.min_inside).reshape(b, n)
+        g = gamma(p, m.current, inside, m.d, m.t, m.min_inside, m.brightness).reshape(b, n)
         k = int(g.reshape(-1).argmax())
         out["gamma"] = g
         out["best_patch"], out["best_inside"] = p[k], inside[k]
@@ -295,6 +303,8 @@ class TemplateTracker(Tracker):
         """The ``d_quantile`` quantile of the best match's absolute residuals -> running mean
         (rate ``d_rate``; a plain mean over the first frames) -> ``d`` (clamped)."""
         cfg = self.config
+        if self.model.brightness:
+            patch = match_brightness(patch[None], self.model.current, inside[None])[0]
         r = (patch - self.model.current).abs()[inside]
         if r.numel() == 0:
             return
@@ -413,7 +423,12 @@ class TemplateTracker(Tracker):
         est = res.estimate[0].to(torch.float64).clone()
         if cfg.lk_iterations > 0:
             m0 = pose_matrices(est[_POSE], cfg.template_size)
-            m = align_ic(luma, self.model.first, m0, iterations=cfg.lk_iterations, tol=cfg.lk_tol)
+            first = self.model.first
+            if cfg.brightness:  # the first template at the light of this frame's best match
+                first = match_brightness(
+                    first[None], hold["best_patch"], hold["best_inside"][None]
+                )[0]
+            m = align_ic(luma, first, m0, iterations=cfg.lk_iterations, tol=cfg.lk_tol)
             ref = self.model.first if cfg.update_against == "first" else self.model.current
             g_upd, patch = self.model.gamma_of_matrix(luma, m, ref)
             info["update_gamma"] = g_upd
