@@ -187,25 +187,6 @@ def sample_patches(
     return out, inside
 
 
-def match_brightness(
-    candidates: torch.Tensor, template: torch.Tensor, inside: torch.Tensor | None = None
-) -> torch.Tensor:
-    """``candidates (N, S, S)`` each scaled by the ratio of the ``template``'s mean brightness
-    to its own (means over the pixels ``inside`` the frame; the ratio is clamped to
-    ``[1/4, 4]``): a patch that differs from the template by a gain (light that changed, a
-    camera's exposure) matches it again, a patch of another pattern does not."""
-    if inside is None:
-        mc = candidates.flatten(1).mean(1)
-        mt = template.mean().expand_as(mc)
-    else:
-        m = inside.flatten(1).to(candidates.dtype)
-        cnt = m.sum(1).clamp_min(1.0)
-        mc = (candidates.flatten(1) * m).sum(1) / cnt
-        mt = (template.flatten()[None] * m).sum(1) / cnt
-    ratio = (mt / mc.clamp_min(1e-3)).clamp(0.25, 4.0)
-    return candidates * ratio[:, None, None]
-
-
 def rho(candidates: torch.Tensor, template: torch.Tensor, d: float = 0.05, t: float = 1.0):
     """Eq. (5): ``(..., S, S)`` candidates and ``(S, S)`` template -> ``(..., S, S)`` float
     1.0 where ``|x - y| / d < T``, else 0.0."""
@@ -219,16 +200,12 @@ def gamma(
     d: float = 0.05,
     t: float = 1.0,
     min_inside: float = 0.5,
-    brightness: bool = False,
 ) -> torch.Tensor:
     """Eq. (6): ``gamma`` of ``candidates (N, S, S)`` against ``template (S, S)`` -> ``(N,)``.
 
     With ``inside (N, S, S)``, the mean is over the pixels inside the frame, and a patch with
-    fewer than ``min_inside`` of its pixels inside gets 0. With ``brightness`` each candidate
-    is first brought to the template's mean brightness (:func:`match_brightness`).
+    fewer than ``min_inside`` of its pixels inside gets 0.
     """
-    if brightness:
-        candidates = match_brightness(candidates, template, inside)
     r = rho(candidates, template, d, t)
     if inside is None:
         return r.flatten(1).mean(1)
@@ -357,8 +334,6 @@ class TemplateModel:
         d: normalising factor of eq. (5) (paper: 0.05, for intensities in [0, 1]).
         t: threshold T of eq. (5) (paper: 1.0).
         min_inside: smallest fraction of a patch inside the frame for it to be scored.
-        brightness: compare each patch at the template's mean brightness
-            (:func:`match_brightness`; not in the paper, which compares grey levels as they are).
 
     Example::
 
@@ -367,14 +342,7 @@ class TemplateModel:
         g = model.gammas(luma, poses)        # poses (N, 5) -> (N,)
     """
 
-    def __init__(
-        self,
-        size: int = 31,
-        d: float = 0.05,
-        t: float = 1.0,
-        min_inside: float = 0.5,
-        brightness: bool = False,
-    ):
+    def __init__(self, size: int = 31, d: float = 0.05, t: float = 1.0, min_inside: float = 0.5):
         if int(size) < 3:
             raise ConfigError(f"template size must be >= 3 pixels, got {size}")
         if not d > 0 or not t > 0:
@@ -385,7 +353,6 @@ class TemplateModel:
         self.d = float(d)
         self.t = float(t)
         self.min_inside = float(min_inside)
-        self.brightness = bool(brightness)
         self.first: torch.Tensor | None = None
         self.current: torch.Tensor | None = None
 
@@ -406,14 +373,14 @@ class TemplateModel:
         """Eq. (6) for every pose ``(N, 5)`` against ``template`` (default: the current one)."""
         tpl = self.current if template is None else template
         p, inside = self.patches(luma, poses)
-        return gamma(p, tpl, inside, self.d, self.t, self.min_inside, self.brightness)
+        return gamma(p, tpl, inside, self.d, self.t, self.min_inside)
 
     def gamma_of_matrix(
         self, luma: torch.Tensor, matrix: torch.Tensor, template: torch.Tensor
     ) -> tuple[float, torch.Tensor]:
         """``gamma`` of the patch under ``matrix (2, 3)`` and the patch ``(S, S)`` itself."""
         p, inside = sample_patches(luma, matrix[None], self.size)
-        g = gamma(p, template, inside, self.d, self.t, self.min_inside, self.brightness)
+        g = gamma(p, template, inside, self.d, self.t, self.min_inside)
         return float(g[0]), p[0]
 
 

@@ -47,6 +47,13 @@ antialias=False``):
   looks like the first frame, i.e. almost never once a non-rigid OTB target changes; the
   candidate is still aligned to the first template (the drift correction), but accepted when
   it matches the current template. ``"first"`` keeps the literal reading.
+* ``brightness`` (default off). Eq. (5) compares grey levels as they are, so light that changes
+  over the video (a cloud, a camera's exposure) moves a matching patch beyond ``d``. With it
+  on, every frame's luma is scaled by one factor, the first template's mean over the mean of
+  the last estimate's patch in this frame, so templates and candidates stay at the first
+  frame's light. Light changes slowly and an occluder arrives at once: the factor moves at
+  most ``LIGHT_STEP`` (5 %) a frame, and stays as it was while the target is hidden. One factor for all particles: a candidate cannot choose its own gain
+  (scaling each patch to the template's mean let an occluder match: FaceOcc1 0.34 -> 0.05).
 * ``antialias`` (default on). "This template is normalized to a size of 31 x 31 pixels": the
   frame is Gaussian-prefiltered before bilinear resampling (std ``(f - 1) / 2`` per axis for a
   downsampling factor ``f`` of the current estimate's box, the rule of
@@ -80,7 +87,6 @@ from torchtrack.observe.template import (
     antialias_sigma,
     gamma,
     gaussian_blur,
-    match_brightness,
     matrix_to_pose,
     pose_matrices,
     to_luma,
@@ -89,6 +95,9 @@ from torchtrack.track.base import Tracker, TrackState, register_tracker
 from torchtrack.track.config import resolve_tracker_config
 
 __all__ = ["TemplateTracker", "TemplateTrackerConfig"]
+
+#: ``brightness``: the largest relative change of the light factor from one frame to the next
+LIGHT_STEP = 0.05
 
 
 @dataclass
@@ -123,10 +132,10 @@ class TemplateTrackerConfig:
         resample: resampling scheme.
         antialias: Gaussian prefilter before resampling to S x S (not in the paper; module
             doc).
-        brightness: compare every patch with the template at the template's mean brightness
-            (:func:`~torchtrack.observe.template.match_brightness`; not in the paper): light
-            that changes over the video scales the target's grey levels, and eq. (5) in
-            absolute grey levels then matches nothing.
+        brightness: follow the light (not in the paper; module doc): every frame's luma is
+            scaled by one factor, the first template's mean over the mean of the last
+            estimate's patch in this frame (at most 5 % from the last factor; kept while the
+            target is hidden).
         d_mode: ``fixed`` (the paper: ``d`` throughout) or ``adaptive`` (module doc).
         d_quantile: the adaptive d follows this quantile of the best match's absolute
             residuals.
@@ -267,9 +276,7 @@ class TemplateTracker(Tracker):
             sigma_scale=cfg.sigma_scale,
             sigma_rot=cfg.sigma_rot,
         )
-        self.model = TemplateModel(
-            cfg.template_size, cfg.d, cfg.t, cfg.min_inside, brightness=cfg.brightness
-        )
+        self.model = TemplateModel(cfg.template_size, cfg.d, cfg.t, cfg.min_inside)
         self.history: list[dict[str, Any]] = []
         self._states: torch.Tensor | None = None
         self._log_w: torch.Tensor | None = None
@@ -277,13 +284,15 @@ class TemplateTracker(Tracker):
         self._est: torch.Tensor | None = None  # (7,) current estimate
         self._scale = cfg.d  # running robust residual scale (d_mode = "adaptive")
         self._n_adapt = 0
+        self._gain = 1.0  # brightness: this frame's factor (1: the first frame's light)
+        self._seen = True  # the last frame's target was visible
 
     # -- helpers -------------------------------------------------------------------------------
     def _log_likelihood(self, luma: torch.Tensor, states: torch.Tensor, out: dict) -> torch.Tensor:
         b, n, _ = states.shape
         m = self.model
         p, inside = m.patches(luma, states[..., _POSE].reshape(b * n, 5))
-        g = gamma(p, m.current, inside, m.d, m.t, m.min_inside, m.brightness).reshape(b, n)
+        g = gamma(p, m.current, inside, m.d, m.t, m.min_inside).reshape(b, n)
         k = int(g.reshape(-1).argmax())
         out["gamma"] = g
         out["best_patch"], out["best_inside"] = p[k], inside[k]
@@ -299,12 +308,25 @@ class TemplateTracker(Tracker):
         sx, sy = antialias_sigma(float(wh[0]), float(wh[1]), self.config.template_size)
         return gaussian_blur(luma, sx, sy)
 
+    def _follow_light(self, raw: torch.Tensor) -> torch.Tensor:
+        """``brightness``: ``raw`` (this frame's luma) at the first frame's light. The factor
+        is the first template's mean over the mean of the last estimate's patch in this frame,
+        moved at most ``LIGHT_STEP`` (relative) from the last frame's factor, and clamped to
+        [1/4, 4]; it is measured only when the last frame's target was visible (a hidden
+        target's patch is the occluder's)."""
+        if self._seen:
+            p, inside = self.model.patches(raw, self._est[_POSE][None])
+            level = float(p[inside].mean()) if bool(inside.any()) else 0.0
+            if level > 1e-3:
+                g = float(self.model.first.mean()) / level
+                lo, hi = self._gain / (1 + LIGHT_STEP), self._gain * (1 + LIGHT_STEP)
+                self._gain = min(max(g, lo, 0.25), hi, 4.0)
+        return raw * self._gain
+
     def _adapt_d(self, patch: torch.Tensor, inside: torch.Tensor) -> None:
         """The ``d_quantile`` quantile of the best match's absolute residuals -> running mean
         (rate ``d_rate``; a plain mean over the first frames) -> ``d`` (clamped)."""
         cfg = self.config
-        if self.model.brightness:
-            patch = match_brightness(patch[None], self.model.current, inside[None])[0]
         r = (patch - self.model.current).abs()[inside]
         if r.numel() == 0:
             return
@@ -369,11 +391,14 @@ class TemplateTracker(Tracker):
         )
         self._hist = self.motion.new_history(box)
         self.history = []
+        self._gain, self._seen = 1.0, True
         return self._state(True, 1.0)
 
     def _update(self, frame: torch.Tensor) -> TrackState:
         cfg = self.config
         luma = self._prepare(frame, self._est[2:4])
+        if cfg.brightness:
+            luma = self._follow_light(luma)
         hold: dict[str, torch.Tensor] = {}
         hist = self._hist
         res = sir_step(
@@ -418,17 +443,14 @@ class TemplateTracker(Tracker):
             )
             self._est = est
             info["occluded"] = True
+            info["gain"] = self._gain
             self.history.append(info)
+            self._seen = False
             return self._state(False, g_best)
         est = res.estimate[0].to(torch.float64).clone()
         if cfg.lk_iterations > 0:
             m0 = pose_matrices(est[_POSE], cfg.template_size)
-            first = self.model.first
-            if cfg.brightness:  # the first template at the light of this frame's best match
-                first = match_brightness(
-                    first[None], hold["best_patch"], hold["best_inside"][None]
-                )[0]
-            m = align_ic(luma, first, m0, iterations=cfg.lk_iterations, tol=cfg.lk_tol)
+            m = align_ic(luma, self.model.first, m0, iterations=cfg.lk_iterations, tol=cfg.lk_tol)
             ref = self.model.first if cfg.update_against == "first" else self.model.current
             g_upd, patch = self.model.gamma_of_matrix(luma, m, ref)
             info["update_gamma"] = g_upd
@@ -445,5 +467,7 @@ class TemplateTracker(Tracker):
             hist, est[None, 4:6], torch.zeros(1, dtype=torch.bool, device=est.device)
         )
         info["occluded"] = False
+        info["gain"] = self._gain
         self.history.append(info)
+        self._seen = True
         return self._state(True, g_best)
