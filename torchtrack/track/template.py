@@ -54,8 +54,8 @@ antialias=False``):
   frame's light. Light changes slowly and an occluder arrives at once: the factor moves at
   most ``LIGHT_STEP`` (5 %) a frame, and stays as it was while the target is hidden. One
   factor for all particles: a candidate cannot choose its own gain (scaling each patch to
-  the template's mean let an occluder match: FaceOcc1 0.34 -> 0.05). Off by default: on
-  video whose light is steady it loses (docs/benchmarks/sot.md).
+  the template's mean on its own lost FaceOcc1, a face that a book hides: 0.34 -> 0.05).
+  Off by default: on video whose light is steady it loses (docs/benchmarks/sot.md).
 * ``antialias`` (default on). "This template is normalized to a size of 31 x 31 pixels": the
   frame is Gaussian-prefiltered before bilinear resampling (std ``(f - 1) / 2`` per axis for a
   downsampling factor ``f`` of the current estimate's box, the rule of
