@@ -44,6 +44,7 @@ sys.path.insert(0, str(REPO))
 
 from torchtrack.errors import SequenceError, TorchTrackError  # noqa: E402
 from torchtrack.io.sequences import Sequence, find_sequences  # noqa: E402
+from torchtrack.io.video import FrameSource  # noqa: E402
 
 
 def copy_name(name: str, every: int = 1, grey: bool = False, gain: float = 0.0) -> str:
@@ -113,15 +114,20 @@ def _write_frames(
 ) -> None:
     import cv2
 
-    wanted = {i: j for j, i in enumerate(keep)}
+    if seq.frames:  # only the kept files are read
+        src = FrameSource([seq.frames[i] for i in keep], color="rgb")
+        wanted = {j: j for j in range(len(keep))}
+    else:  # a video is decoded in order; the frames between are skipped
+        src = seq.open("rgb")
+        wanted = {i: j for j, i in enumerate(keep)}
     written = 0
-    with seq.open("rgb") as src:
+    with src:
         for i, frame in src.items():
             j = wanted.get(i)
             if j is None:
                 continue
             if frame is None:
-                raise SequenceError(f"sequence {seq.name}: frame {i + 1} could not be read")
+                raise SequenceError(f"sequence {seq.name}: frame {keep[j] + 1} could not be read")
             img = frame.permute(1, 2, 0).numpy()  # (H, W, 3) uint8 RGB
             if grey:
                 img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
