@@ -287,7 +287,6 @@ class TemplateTracker(Tracker):
         self._scale = cfg.d  # running robust residual scale (d_mode = "adaptive")
         self._n_adapt = 0
         self._gain = 1.0  # brightness: this frame's factor (1: the first frame's light)
-        self._seen = True  # the last frame's target was visible
 
     # -- helpers -------------------------------------------------------------------------------
     def _log_likelihood(self, luma: torch.Tensor, states: torch.Tensor, out: dict) -> torch.Tensor:
@@ -316,7 +315,7 @@ class TemplateTracker(Tracker):
         moved at most ``LIGHT_STEP`` (relative) from the last frame's factor, and clamped to
         [1/4, 4]; it is measured only when the last frame's target was visible (a hidden
         target's patch is the occluder's)."""
-        if self._seen:
+        if not (self.history and self.history[-1]["occluded"]):  # the last target was seen
             p, inside = self.model.patches(raw, self._est[_POSE][None])
             level = float(p[inside].mean()) if bool(inside.any()) else 0.0
             if level > 1e-3:
@@ -393,7 +392,7 @@ class TemplateTracker(Tracker):
         )
         self._hist = self.motion.new_history(box)
         self.history = []
-        self._gain, self._seen = 1.0, True
+        self._gain = 1.0
         return self._state(True, 1.0)
 
     def _update(self, frame: torch.Tensor) -> TrackState:
@@ -447,7 +446,6 @@ class TemplateTracker(Tracker):
             info["occluded"] = True
             info["gain"] = self._gain
             self.history.append(info)
-            self._seen = False
             return self._state(False, g_best)
         est = res.estimate[0].to(torch.float64).clone()
         if cfg.lk_iterations > 0:
@@ -471,5 +469,4 @@ class TemplateTracker(Tracker):
         info["occluded"] = False
         info["gain"] = self._gain
         self.history.append(info)
-        self._seen = True
         return self._state(True, g_best)
