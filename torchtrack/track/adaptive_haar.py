@@ -503,7 +503,7 @@ class AdaptiveHaarTracker(Tracker):
         self.config = cfg
         self.generator = generator
         self.pool = cfg.pool()
-        self.quarters = self.pool.quarters()
+        self.quarters: torch.Tensor | None = None  # candidates' quarters, set by init
         self.motion = cfg.motion_model()
         self.observation = AdaptiveHaarObservation(self.pool, cfg.lam)
         self.ensemble: StumpEnsemble | None = None
