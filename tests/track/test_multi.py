@@ -126,6 +126,47 @@ def test_two_overlapping_people_both_detected_keep_their_identities():
     assert out.ids.tolist() == [1, 2]
 
 
+def _crossers(t):
+    """A walks right and B left on one row, 4 px a frame; A is hidden behind B (not
+    detected) while their boxes are less than 30 px apart."""
+    boxes = torch.tensor(
+        [[60.0 + 4 * t, 80.0, 20.0, 60.0], [240.0 - 4 * t, 82.0, 20.0, 60.0]],
+        dtype=torch.float64,
+    )
+    keep = [1] if abs(float(boxes[0, 0] - boxes[1, 0])) < 30 else [0, 1]
+    return boxes[keep], torch.ones(len(keep))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_duplicate_heading_keeps_a_person_hidden_while_two_people_cross(seed):
+    """The hidden walker's target sits on the other one's and misses its detections: by
+    position alone a duplicate, ended (and A comes back as a new identity). Their headings
+    point apart, so with ``duplicate_heading`` both live and A keeps its identity."""
+    for heading in (False, True):
+        mt = MultiTargetTracker(
+            "pedestrian", generator=torch.Generator().manual_seed(seed),
+            duplicate_heading=heading,
+        )  # fmt: skip
+        for t in range(28):
+            out = mt.update(blank(), _crossers(t))
+            if t == 12:
+                assert mt.heading.tolist() == [[1.0, 0.0], [-1.0, 0.0]]
+        seen = {int(i): float(b[0]) for i, b in zip(out.ids, out.boxes, strict=True)}
+        if heading:
+            assert mt.stats["ended: duplicate"] == 0
+            assert 1 in seen and seen[1] > 160.0, seen  # A, past B, on its side
+        else:
+            assert mt.stats["ended: duplicate"] == 1 and 1 not in seen
+
+
+def test_a_target_standing_still_has_no_heading():
+    mt = make()
+    box = torch.tensor([[100.0, 60.0, 20.0, 60.0]], dtype=torch.float64)
+    for t in range(6):  # jitter of 1 px: below detection_sigma (3 px) of its 60 px height
+        mt.update(blank(), (box + (t % 2), torch.ones(1)))
+    assert mt.heading.tolist() == [[0.0, 0.0]]
+
+
 def test_target_walking_out_of_the_frame_is_ended_not_reported_outside():
     mt = make()
     box = torch.tensor([[250.0, 100.0, 20.0, 60.0]], dtype=torch.float64)

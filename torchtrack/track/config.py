@@ -271,6 +271,12 @@ class MultiTrackerConfig:
             the other was matched, or when they take turns at the detections (never both
             matched on one frame): the one matched less recently ends (ByteTrack's duplicate
             removal, which ends the lost one at IoU 0.85 at once); 1: off.
+        duplicate_heading: two such targets whose headings point apart (more than 90 degrees)
+            are two people crossing, one hidden behind the other, and neither ends as a
+            duplicate. A target's heading is the direction from its matched detection 3 frames
+            back to its latest one (Cao et al.'s observation-centric velocity, "Observation-
+            Centric SORT", CVPR 2023); a move shorter than ``detection_sigma`` of the box
+            height gives none.
         lost_noise_growth: the motion noise of an unmatched target grows by this factor per
             frame without a match (up to ``max_noise_scale``): the search widens while it is
             lost.
@@ -341,6 +347,7 @@ class MultiTrackerConfig:
     exclusion: float = 0.0
     reseed_overlap: float = 0.3
     duplicate_iou: float = 0.6
+    duplicate_heading: bool = False
     lost_noise_growth: float = 0.1
     max_noise_scale: float = 3.0
     detection_proposal: float = 0.0

@@ -98,6 +98,11 @@ MOTION_MIN = 3.0
 #: below this share of the unaligned one)
 CAMERA_PEAK = 0.1
 CAMERA_EXPLAINS = 0.5
+#: ``duplicate_heading``: a target's heading runs from its observation (matched detection) this
+#: many frames back to its latest one (Cao et al.'s delta t = 3); the last OBSERVATIONS matches
+#: are kept
+DIRECTION_LAG = 3
+OBSERVATIONS = DIRECTION_LAG + 1
 #: a target sitting on another one (``duplicate_iou``) that has missed its detection on this
 #: many scans in a row while the other was matched more recently is a duplicate of it
 DUPLICATE_MISSES = 2
@@ -200,6 +205,11 @@ class MultiTargetTracker:
         self.last_score = torch.zeros(0, dtype=f64)
         self.detected = torch.zeros(0, dtype=torch.bool)  # matched on this frame
         self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
+        # the last OBSERVATIONS matched detections' centres, oldest first (frame -1: none),
+        # and the heading they give (a unit vector; 0: none yet, or a move within the noise)
+        self.obs_frames = torch.full((0, OBSERVATIONS), -1, dtype=torch.int64)
+        self.obs_xy = torch.zeros((0, OBSERVATIONS, 2), dtype=f64)
+        self.heading = torch.zeros((0, 2), dtype=f64)
         self._next_id = 1
         # overlapping pairs of confirmed targets (ids) -> (each one matched since they began)
         self._turns: dict[tuple[int, int], tuple[bool, bool]] = {}
@@ -235,6 +245,9 @@ class MultiTargetTracker:
             "last_score",
             "detected",
             "hist",
+            "obs_frames",
+            "obs_xy",
+            "heading",
         ):
             setattr(self, name, getattr(self, name)[keep])
 
@@ -635,6 +648,25 @@ class MultiTargetTracker:
         stage(tent_rows, high, use_app=True)
         return matched, overlap
 
+    def _observe(self, rows: torch.Tensor, boxes: torch.Tensor) -> None:
+        """Targets ``rows`` matched detections ``boxes (R, 4)`` on this frame: their headings,
+        from the observation ``DIRECTION_LAG`` frames back (the oldest one kept from then on,
+        else the latest: Cao et al.'s ``k_previous_obs``), and their kept observations."""
+        t = self.frame_index
+        c = boxes[:, 0:2] + boxes[:, 2:4] / 2
+        f = self.obs_frames[rows]
+        recent = (f >= t - DIRECTION_LAG) & (f >= 0)
+        first = torch.where(recent.any(1), recent.long().argmax(1), f.shape[1] - 1)
+        own = torch.arange(rows.numel())
+        d = c - self.obs_xy[rows][own, first]
+        norm = d.norm(dim=-1, keepdim=True)
+        moved = (f[own, first] >= 0) & (norm[:, 0] >= self.config.detection_sigma * boxes[:, 3])
+        self.heading[rows] = torch.where(moved[:, None], d / norm.clamp_min(1e-9), 0.0)
+        self.obs_frames[rows] = torch.cat(
+            [self.obs_frames[rows, 1:], torch.full((rows.numel(), 1), t)], 1
+        )
+        self.obs_xy[rows] = torch.cat([self.obs_xy[rows, 1:], c[:, None]], 1)
+
     def _detection_term(self, det_boxes: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
         """Log Gaussian of each particle around its target's matched detection (0 elsewhere):
         ``(T, N)``."""
@@ -773,6 +805,7 @@ class MultiTargetTracker:
         if rows.numel():
             a = self._aspect_of(det_boxes[matched[rows]])
             self.aspect[rows] = 0.7 * self.aspect[rows] + 0.3 * a
+            self._observe(rows, det_boxes[matched[rows]])
         newly = hit & ~self.confirmed & (self.hits >= cfg.confirm_hits)
         for r in torch.nonzero(newly).flatten().tolist():
             self.ids[r] = self._next_id
@@ -883,6 +916,13 @@ class MultiTargetTracker:
         else:
             h = torch.zeros((k, self.hist.shape[1]), dtype=torch.float32)
         self.hist = torch.cat([self.hist, h])
+        frames = torch.full((k, OBSERVATIONS), -1, dtype=torch.int64)
+        frames[:, -1] = self.frame_index
+        xy = torch.zeros((k, OBSERVATIONS, 2), dtype=torch.float64)
+        xy[:, -1] = boxes[:, 0:2] + boxes[:, 2:4] / 2
+        self.obs_frames = torch.cat([self.obs_frames, frames])
+        self.obs_xy = torch.cat([self.obs_xy, xy])
+        self.heading = torch.cat([self.heading, torch.zeros((k, 2), dtype=torch.float64)])
 
     def _follow_camera(self, gray: torch.Tensor) -> None:
         """``camera_motion``: move every target's particles (current and previous centres) by
@@ -896,6 +936,8 @@ class MultiTargetTracker:
             self.stats["frames with a camera shift"] += 1
             self.states[..., 0:4:2] += sx
             self.states[..., 1:4:2] += sy
+            self.obs_xy[..., 0] += sx  # the observations are where the scene now shows them
+            self.obs_xy[..., 1] += sy
 
     def _moving(self, boxes: torch.Tensor) -> torch.Tensor:
         """``(M,)`` bool: object boxes ``(M, 4)`` whose pixels changed since ``MOTION_LAG``
@@ -1008,7 +1050,9 @@ class MultiTargetTracker:
           matched together whenever the scan sees both); the one matched less recently ends.
 
         A target that drifted onto a neighbour whose detection it lost in the assignment is
-        such a target; two people side by side, both detected, are never one."""
+        such a target; two people side by side, both detected, are never one. With
+        ``duplicate_heading``, neither are two targets whose headings (:meth:`_observe`) point
+        apart (more than 90 degrees): people crossing, one hidden behind the other."""
         t = self.n_targets
         out = torch.zeros(t, dtype=torch.bool)
         if t < 2 or self.config.duplicate_iou >= 1.0:
@@ -1024,6 +1068,11 @@ class MultiTargetTracker:
         sm = self.since_match
         worse = sm[:, None] > sm[None, :]  # i matched less recently than j
         missed = sm >= DUPLICATE_MISSES * self.config.scan_every
+        if self.config.duplicate_heading:
+            # headings that point apart: two people crossing, one hidden behind the other
+            # (a duplicate follows the one person the other target follows)
+            h = self.heading
+            pair = pair & ~((h @ h.T) < 0)
         out = (pair & worse & missed[:, None]).any(1)
         turns: dict[tuple[int, int], tuple[bool, bool]] = {}
         ids, det = self.ids.tolist(), self.detected.tolist()
