@@ -133,3 +133,19 @@ def test_parallel_jobs_and_a_crashing_worker(tmp_path):
     assert summary["overall"]["test-crash"]["n_failed"] == 1
     with pytest.raises(ConfigError, match="cannot import tracker module"):
         evaluate(seqs, ["camshift"], tmp_path / "o", modules=["no_such_module_xyz"])
+
+
+def test_mil_on_a_tiny_first_box_is_a_recorded_box_error(tmp_path, monkeypatch):
+    # OpenCV's TrackerMIL hangs on such a box: the wrapper refuses it before OpenCV is called,
+    # and the runner records it like any tracker error
+    import torchtrack.track.opencv as opencv
+
+    class NeverCalled:
+        def init(self, img, rect):
+            raise AssertionError(f"OpenCV init was called on {rect}")
+
+    monkeypatch.setattr(opencv, "opencv_constructor", lambda kind: NeverCalled)
+    (s,) = load_sequence(make_sequence(tmp_path / "tiny", box=(4, 5, 4, 4)))
+    res = run_sequence("mil", s)
+    assert res.error.startswith("BoxError: OpenCV mil needs an init box of at least 5x5 pixels")
+    assert res.error_frame == 0

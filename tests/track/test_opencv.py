@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchtrack.boxes import box_iou
-from torchtrack.errors import ConfigError, TrackerError
+from torchtrack.errors import BoxError, ConfigError, TrackerError
 from torchtrack.io.sequences import load_bobot
 from torchtrack.io.video import to_numpy_bgr
 from torchtrack.track.base import create_tracker
@@ -127,6 +127,31 @@ def test_box_reaching_outside_the_frame_starts_on_its_visible_part(monkeypatch):
     mil = create_tracker("mil")
     mil.init(frame, torch.tensor([25.0, -16.0, 75.0, 186.0]))
     assert mil.update(frame).box.shape == (1, 4)
+
+
+@pytest.mark.parametrize("kind", ["mil", "boosting"])
+def test_box_under_5_pixels_is_refused_before_opencv_sees_it(monkeypatch, kind):
+    # OpenCV 5.0's TrackerMIL and legacy TrackerBoosting never return from init on a 4x4 box
+    # (and ignore SIGTERM); the check runs before OpenCV, so a fake stands in for it
+    import torchtrack.track.opencv as opencv
+
+    frame = torch.zeros((3, 240, 320), dtype=torch.uint8)
+    seen = []
+
+    class Fake:
+        def init(self, img, rect):
+            seen.append(rect)
+            return True
+
+    monkeypatch.setattr(opencv, "opencv_constructor", lambda k: Fake)
+    t = OpenCVTracker(kind)
+    for box, got in [((100.0, 100.0, 3.0, 3.0), "3x3"), ((100.0, 100.0, 40.0, 4.0), "40x4"),
+                     ((317.0, 100.0, 30.0, 30.0), "3x30")]:  # fmt: skip
+        with pytest.raises(BoxError, match=f"OpenCV {kind} needs an init box of at least 5x5 pixels inside the frame, got {got}"):  # fmt: skip
+            t.init(frame, torch.tensor(box))
+    assert seen == []
+    t.init(frame, torch.tensor([100.0, 100.0, 5.0, 5.0]))
+    assert seen == [(100, 100, 5, 5)]
 
 
 def test_opencv_exception_becomes_a_tracker_error(monkeypatch):

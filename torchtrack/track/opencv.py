@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from torchtrack.boxes import clip_boxes
-from torchtrack.errors import ConfigError, TrackerError
+from torchtrack.errors import BoxError, ConfigError, TrackerError
 from torchtrack.io.video import to_numpy_bgr
 from torchtrack.track.base import Tracker, TrackState, register_tracker
 
@@ -53,6 +53,14 @@ _KINDS: dict[str, tuple[tuple[str, ...], bool, str]] = {
         "OpenCV legacy TrackerBoosting (contrib)",
     ),
 }
+
+
+# name -> the smallest init box side (pixels, of the box's part inside the frame) the kind
+# takes: OpenCV 5.0's TrackerMIL and legacy TrackerBoosting never return from init on boxes of
+# 4x4 pixels or less (they draw random Haar features until one fits the patch), and no signal
+# can stop them there. The other kinds start on 3x3 boxes (CSRT and MOSSE raise a cv2.error,
+# a TrackerError here, on a 1x1 one).
+_MIN_SIDE: dict[str, int] = {"mil": 5, "boosting": 5}
 
 
 def _lookup(path: str) -> Callable | None:
@@ -88,6 +96,9 @@ def _box_from_cv(b, frame_size: tuple[int, int]) -> torch.Tensor:
 class OpenCVTracker(Tracker):
     """An OpenCV tracker (``kind`` in mil, kcf, csrt, mosse, medianflow, tld, boosting).
 
+    ``mil`` and ``boosting`` refuse (:class:`BoxError`) an init box with less than 5 pixels a
+    side inside the frame, before OpenCV sees it: OpenCV hangs on such boxes.
+
     Attributes:
         failures: number of ``update`` calls where OpenCV reported ``ok=False`` (or returned an
             empty box); on those frames the last box is kept and ``visible`` is False.
@@ -115,7 +126,6 @@ class OpenCVTracker(Tracker):
             raise TrackerError("OpenCV trackers need an initial box")
         img = to_numpy_bgr(frame)
         x, y, w, h = boxes[0].tolist()
-        self._cv = self._ctor()
         # Integer cv::Rect for every kind (round the corners, keep >= 1 pixel): the legacy
         # Boosting tracker of OpenCV 5.0 crashes (segfault) on fractional boxes.
         # The part of the box inside the frame: builds of OpenCV differ on boxes that reach
@@ -124,6 +134,14 @@ class OpenCVTracker(Tracker):
         x1, y1 = min(max(round(x), 0), fw - 1), min(max(round(y), 0), fh - 1)
         x2, y2 = min(max(round(x + w), x1 + 1), fw), min(max(round(y + h), y1 + 1), fh)
         rect = (x1, y1, x2 - x1, y2 - y1)
+        least = _MIN_SIDE.get(self.kind, 1)
+        if min(rect[2:]) < least:
+            raise BoxError(
+                f"OpenCV {self.kind} needs an init box of at least {least}x{least} pixels "
+                f"inside the frame, got {rect[2]}x{rect[3]} at ({x1}, {y1}); give a larger box "
+                "or another tracker"
+            )
+        self._cv = self._ctor()
         try:
             ok = self._cv.init(img, rect)
         except cv2.error as exc:
