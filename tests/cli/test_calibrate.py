@@ -212,6 +212,30 @@ def test_model_in_place_and_json(tiny_model, tmp_path, capsys):
     assert isinstance(load_detector(tiny_model).calibrator, PlattCalibrator)
 
 
+def test_a_failing_output_takes_the_others_of_the_run_with_it(
+    tiny_model, tmp_path, capsys, monkeypatch
+):
+    """-o OUT with --json writes both; when the model, written last, fails, the plot and the
+    JSON of that run are removed (they were left behind; -o with --json wrote no model)."""
+    import torchtrack.detect
+    from torchtrack.errors import ConfigError
+
+    args = ["calibrate", str(tiny_model), "--pos", str(tmp_path / "pos"), "--neg"]
+    args += [str(tmp_path / "neg"), "--quiet", "--plot", str(tmp_path / "r.png")]
+    args += ["--json", str(tmp_path / "c.json"), "-o", str(tmp_path / "m.safetensors")]
+
+    def full(path, det):
+        raise ConfigError(f"cannot write {str(path)!r}: No space left on device")
+
+    monkeypatch.setattr(torchtrack.detect, "save_detector", full)
+    assert main(args) == 1
+    monkeypatch.undo()
+    assert "No space left" in capsys.readouterr().err
+    assert not any((tmp_path / f).exists() for f in ("r.png", "c.json", "m.safetensors"))
+    assert main(args) == 0
+    assert all((tmp_path / f).is_file() for f in ("r.png", "c.json", "m.safetensors"))
+
+
 def test_model_bad_crop_folder(tiny_model, tmp_path, capsys):
     (tmp_path / "neg" / "notes.bin").write_bytes(b"not an image")
     args = [

@@ -165,7 +165,8 @@ def backend_from_args(args: argparse.Namespace, *, num_cpus: float = 1, modules=
 # ------------------------------------------------------------------------------ output paths
 def check_output_file(path: str | None, option: str, suffixes: tuple[str, ...] = ()):
     """Check an output file path before any work: not empty, not an existing folder, its
-    folder exists and is writable, and (given ``suffixes``) one of those extensions.
+    folder exists and a file can be created there (tried), and (given ``suffixes``) one of
+    those extensions.
 
     Returns:
         the path as a :class:`~pathlib.Path` (``None`` for ``None``).
@@ -196,13 +197,13 @@ def check_output_file(path: str | None, option: str, suffixes: tuple[str, ...] =
 
 
 def check_output_dir(path: str | None, option: str):
-    """Check an output folder path before any work: not an existing file; an existing folder
-    must be writable, a new one's parent must exist (the folder itself is made by the run).
+    """Check an output folder path before any work: not an existing file; a file must be
+    creatable (tried) in an existing folder, or in a new one's parent, which must exist (the
+    folder itself is made by the run).
 
     Raises:
         ConfigError: naming ``option`` and what is wrong.
     """
-    import os
     from pathlib import Path
 
     from torchtrack.errors import ConfigError
@@ -215,16 +216,31 @@ def check_output_dir(path: str | None, option: str):
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{option} {str(p)!r} is an existing file; give a folder")
     if p.is_dir():
-        if not os.access(p, os.W_OK | os.X_OK):
-            raise ConfigError(f"{option} folder {str(p)!r} is not writable")
+        why = _cannot_create_in(p)
+        if why:
+            raise ConfigError(f"{option} folder {str(p)!r} is not writable ({why})")
         return p
     _check_parent(p, option)
     return p
 
 
-def _check_parent(p, option: str) -> None:
+def _cannot_create_in(folder) -> str | None:
+    """Why no file can be created in ``folder`` (``None`` when one can): a uniquely named file
+    is made there and removed. Permission bits alone do not tell (root passes ``os.access``
+    on ``/proc``; a read-only mount)."""
     import os
+    import tempfile
 
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None
+
+
+def _check_parent(p, option: str) -> None:
     from torchtrack.errors import ConfigError
 
     parent = p.parent if str(p.parent) else type(p)(".")
@@ -232,8 +248,9 @@ def _check_parent(p, option: str) -> None:
         raise ConfigError(f"{option} {str(p)!r}: folder {str(parent)!r} does not exist")
     if not parent.is_dir():
         raise ConfigError(f"{option} {str(p)!r}: {str(parent)!r} is not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{option} {str(p)!r}: folder {str(parent)!r} is not writable")
+    why = _cannot_create_in(parent)
+    if why:
+        raise ConfigError(f"{option} {str(p)!r}: folder {str(parent)!r} is not writable ({why})")
 
 
 def check_distinct(paths: dict[str, str | None]) -> None:

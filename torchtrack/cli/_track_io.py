@@ -43,7 +43,12 @@ class RowWriter:
 
     def write(self, text: str) -> None:
         if self._f is None:
-            self._f = open(self.part, "w", encoding="utf-8", newline="")
+            try:
+                self._f = open(self.part, "w", encoding="utf-8", newline="")
+            except OSError as exc:  # checked before the run; the folder changed since
+                from torchtrack.errors import ConfigError
+
+                raise ConfigError(f"cannot write {self.path!r}: {exc.strerror or exc}") from None
             if self.header is not None:
                 self._f.write(self.header + "\n")
         if text:

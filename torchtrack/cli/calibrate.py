@@ -4,7 +4,8 @@ Two inputs (Chateau et al. 2006, section 2.4):
 
 * a model file plus folders of labelled calibration crops (not used in training): the crops are
   scored by the detector, a calibrator is fitted to the margins and written into the model
-  (atomically; ``-o`` writes a copy) or, with ``--json``, to a JSON file;
+  (atomically; ``-o`` writes a copy) or, with ``--json``, to a JSON file (with both ``-o`` and
+  ``--json``, to both);
 * a CSV of ``score,label`` rows (header optional; labels two distinct numbers, the larger is
   positive): the calibrator is written to ``--json``.
 
@@ -386,29 +387,58 @@ def run(args: argparse.Namespace) -> int:
         "metrics": metrics,
         "source": source,
     }
-    if args.json:
-        doc = {"format": JSON_FORMAT, "format_version": JSON_VERSION, **calibrator_to_dict(cal)}
-        doc.update(record)
-        write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
-        print(f"wrote {args.json}")
-    elif det is not None:
-        if args.method == "platt" and not cal.a_ < 0:
-            from torchtrack.errors import DataError
+    if args.method == "platt" and (cal.a_ > 0 or (det is not None and cal.a_ == 0)):
+        from torchtrack.errors import DataError
 
-            raise DataError(
-                f"the Platt fit gives a probability that falls as the model's margin rises "
-                f"(A = {cal.a_:.4g} >= 0): on these crops the model scores the negatives higher; "
-                "are --pos and --neg swapped, or is it the wrong model? Nothing was written"
+        what = "score" if det is None else "model's margin"
+        if det is not None:
+            why = (
+                "on these crops the model scores the negatives higher; are --pos and --neg "
+                "swapped, or is it the wrong model?"
             )
-        out = args.out or args.model
-        new = det.with_calibrator(cal)
-        new.summary = {**det.summary, "recalibration": record}
-        save_detector(out, new)
+        else:
+            why = (
+                f"in {str(args.scores)!r} the negatives score higher; are the labels swapped "
+                "(the larger label is the positive class), or does a lower score mean positive "
+                "(then negate the scores)?"
+            )
+        raise DataError(
+            f"the Platt fit gives a probability that falls as the {what} rises "
+            f"(A = {cal.a_:.4g} >= 0): {why} Nothing was written"
+        )
+    # Every output is written before any is reported, the model (which may be MODEL itself)
+    # last: when one fails, those this run wrote before it are removed.
+    import contextlib
+    import os
+
+    written: list[str] = []
+    out = None
+    try:
+        if args.plot:
+            curves = {before_name: p_before, "after (in-sample)": p_after}
+            if p_cv is not None:
+                curves["after (5-fold CV)"] = p_cv
+            reliability_diagram(curves, y01, args.plot, n_bins=args.bins)
+            written.append(args.plot)
+        if args.json:
+            doc = {"format": JSON_FORMAT, "format_version": JSON_VERSION, **calibrator_to_dict(cal)}
+            doc.update(record)
+            write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+            written.append(args.json)
+        if det is not None and (args.out or not args.json):  # --json alone: MODEL untouched
+            out = args.out or args.model
+            new = det.with_calibrator(cal)
+            new.summary = {**det.summary, "recalibration": record}
+            save_detector(out, new)
+    except BaseException:
+        for path in written:
+            with contextlib.suppress(OSError):
+                os.remove(path)
+        raise
+    if args.json:
+        print(f"wrote {args.json}")
+    if out is not None:
         print(f"wrote calibration into {out}")
     if args.plot:
-        curves = {before_name: p_before, "after (in-sample)": p_after}
-        if p_cv is not None:
-            curves["after (5-fold CV)"] = p_cv
-        reliability_diagram(curves, y01, args.plot, n_bins=args.bins)
         print(f"wrote {args.plot}")
     return 0

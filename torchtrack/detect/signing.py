@@ -137,7 +137,8 @@ def generate_key(private_path: str | os.PathLike, public_path: str | os.PathLike
     suffix ``.pub``). Returns ``(private_path, public_path, key_id)``.
 
     Raises:
-        ConfigError: either file exists already, or its folder does not exist.
+        ConfigError: either file exists already, its folder does not exist, or it cannot be
+            written (then neither is left).
     """
     from cryptography.hazmat.primitives import serialization
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
@@ -161,12 +162,21 @@ def generate_key(private_path: str | os.PathLike, public_path: str | os.PathLike
     pub_pem = pub.public_bytes(
         serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     )
-    fd = os.open(priv_p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "wb") as f:
-        f.write(priv_pem)
     from torchtrack.io.atomic import write_bytes_atomic
 
-    write_bytes_atomic(pub_p, pub_pem)
+    try:
+        fd = os.open(priv_p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as exc:
+        raise ConfigError(f"cannot write {str(priv_p)!r}: {exc.strerror or exc}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(priv_pem)
+        write_bytes_atomic(pub_p, pub_pem)
+    except BaseException as exc:
+        priv_p.unlink(missing_ok=True)  # never half a key pair
+        if isinstance(exc, OSError):
+            raise ConfigError(f"cannot write {str(priv_p)!r}: {exc.strerror or exc}") from None
+        raise
     return priv_p, pub_p, key_id(pub)
 
 

@@ -32,23 +32,43 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     ``matplotlib.savefig``). ``suffix`` defaults to the destination's, so writers that pick a
     format from the extension still work. On error the temporary file is removed and ``path``
     is untouched.
+
+    Raises:
+        ConfigError: naming ``path``, when the file system refuses to make the temporary file
+            (the folder cannot be made or written) or to rename it into place. What the
+            writer itself raises passes unchanged.
     """
     dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{dest.name}.", suffix=dest.suffix if suffix is None else suffix, dir=dest.parent
-    )
-    os.close(fd)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{dest.name}.",
+            suffix=dest.suffix if suffix is None else suffix,
+            dir=dest.parent,
+        )
+        os.close(fd)
+    except OSError as exc:
+        raise _write_error(dest, exc) from None
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        # mkstemp creates 0600; give the result the permissions a plain open() would.
-        os.chmod(tmp_path, 0o666 & ~_umask())
-        os.replace(tmp_path, dest)
+        try:
+            # mkstemp creates 0600; give the result the permissions a plain open() would.
+            os.chmod(tmp_path, 0o666 & ~_umask())
+            os.replace(tmp_path, dest)
+        except OSError as exc:
+            raise _write_error(dest, exc) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+def _write_error(dest: Path, exc: OSError):
+    """The :class:`ConfigError` of a file system's refusal to write ``dest``."""
+    from torchtrack.errors import ConfigError
+
+    return ConfigError(f"cannot write {str(dest)!r}: {exc.strerror or exc}")
 
 
 @contextlib.contextmanager
@@ -58,20 +78,31 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
         raise ValueError(f"atomic_write only writes (mode 'w' or 'wb'), got mode={mode!r}")
     with atomic_path(path) as tmp, open(tmp, mode, **kwargs) as f:
         yield f
-        f.flush()
-        os.fsync(f.fileno())
+        try:
+            f.flush()
+            os.fsync(f.fileno())
+        except OSError as exc:  # e.g. the disk is full
+            raise _write_error(Path(path), exc) from None
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    """Write ``text`` (UTF-8) to ``path`` atomically (:class:`ConfigError` when the file
+    system refuses it)."""
     with atomic_write(path, "w", encoding="utf-8") as f:
-        f.write(text)
+        try:
+            f.write(text)
+        except OSError as exc:
+            raise _write_error(Path(path), exc) from None
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically."""
+    """Write ``data`` to ``path`` atomically (:class:`ConfigError` when the file system
+    refuses it)."""
     with atomic_write(path, "wb") as f:
-        f.write(data)
+        try:
+            f.write(data)
+        except OSError as exc:
+            raise _write_error(Path(path), exc) from None
 
 
 def check_writable_dir(path: str | os.PathLike, what: str = "output folder") -> Path:
