@@ -198,6 +198,18 @@ def corpus(tmp_path_factory, forge_model):
     (c / "threelabels.csv").write_text("".join(f"{a},{i % 3}\n" for i, a in enumerate(m)))
     (c / "latin1.csv").write_bytes("0.1,0\n0.2,1 \xe9\n".encode("latin-1"))
     (c / "cols.csv").write_text("0.1\n0.2\n")
+    (c / "inverted.csv").write_text(  # the labels flipped: P falls as the score rises
+        "score,label\n" + "".join(f"{a},{1 - b}\n" for a, b in zip(m, y, strict=True))
+    )
+    (c / "huge.csv").write_text(  # the same ranking at magnitudes whose squares overflow
+        "score,label\n" + "".join(f"{float(a) * 1e300!r},{b}\n" for a, b in zip(m, y, strict=True))
+    )
+    (c / "binary.toml").write_bytes(b"\xff\xfe\x00")  # not UTF-8: no TOML, JSON or name list
+    for name, a in (("cal_inverted", 1.43), ("cal_flat", 0.0), ("cal_good", -1.2)):
+        doc = {"format": "torchtrack-calibration", "format_version": 1, "tensors": {}}
+        (c / f"{name}.json").write_text(
+            json.dumps({**doc, "calibrator": {"kind": "platt", "a": a, "b": 0.3}})
+        )
     # sequences
     _otb(c / "seqs" / "good")
     _otb(c / "badgt" / "short", gt="11,15,14,20\n13,15,14,20\n")
@@ -1058,10 +1070,141 @@ CASES += [
         "--scan-workers must be >= 0",
     ),
     E("detect-model-is-a-folder", "detect {c}/frames {c}/frames -o {o}/d.jsonl", "is a folder"),
+    # the bad-input report: non-UTF-8 files given as text
+    E(
+        "track-config-binary",
+        f"{T} {HB} --config {{c}}/binary.toml",
+        "is not valid TOML: not UTF-8",
+    ),
+    E(
+        "track-spec-config-binary",
+        f"{T} --box 10,14,14,20 --tracker histogram:config={{c}}/binary.toml",
+        "is not valid TOML: not UTF-8",
+    ),
+    E("train-config-binary", "train --config {c}/binary.toml -o {o}/m.safetensors", "not UTF-8"),
+    E(
+        "train-exclude-binary",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 16 --features 4 "
+        "--exclude {c}/toy.safetensors -o {o}/m.safetensors",
+        "name list .*toy.safetensors.* not UTF-8",
+    ),
+    E(
+        "track-det-calibration-binary",
+        "track {c}/frames --detections {c}/det.txt --det-calibration {c}/toy.safetensors "
+        "--mot {o}/m.txt",
+        "is not a calibration JSON",
+    ),
+    # calibrations whose probability falls (or stays flat) as the score rises
+    E(
+        "track-det-calibration-inverted",
+        "track {c}/frames --detections {c}/det.txt --det-calibration {c}/cal_inverted.json "
+        "--mot {o}/m.txt",
+        r"Platt slope A = 1.43 must be in \[-1e\+06, 0\)",
+    ),
+    E(
+        "track-det-calibration-flat",
+        "track {c}/frames --detections {c}/det.txt --det-calibration {c}/cal_flat.json "
+        "--mot {o}/m.txt",
+        "Platt slope A = 0 must be",
+    ),
+    A(
+        "track-det-calibration-ok",
+        "track {c}/frames --detections {c}/det.txt --det-calibration {c}/cal_good.json "
+        "--mot {o}/m.txt",
+        "wrote",
+        ("m.txt",),
+    ),
+    E(
+        "cal-scores-inverted",
+        "calibrate --scores {c}/inverted.csv --json {o}/p.json --plot {o}/r.png",
+        "negatives score higher; are the labels swapped",
+    ),
+    A(
+        "cal-scores-huge",
+        "calibrate --scores {c}/huge.csv --json {o}/p.json",
+        "did not move from A = 0.*isotonic",
+        ("p.json",),
+    ),
+    # calibrate MODEL -o OUT --json J writes both
+    A(
+        "cal-model-out-and-json",
+        "calibrate {c}/toy.safetensors --pos {c}/crops/neg --neg {c}/crops/pos -q "
+        "-o {o}/m.safetensors --json {o}/c.json",
+        "wrote calibration into",
+        ("m.safetensors", "c.json"),
+    ),
+    # non-finite values
+    E("detect-max-scale-nan", "detect {c}/toy.safetensors {c}/frames --max-scale nan", "finite"),
+    E("detect-max-scale-inf", "detect {c}/toy.safetensors {c}/frames --max-scale inf", "finite"),
+    E("detect-min-scale-inf", "detect {c}/toy.safetensors {c}/frames --min-scale inf", "finite"),
+    # messages that came late or named the wrong thing
+    E(
+        "train-name-empty",
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 16 --features 4 --name '' "
+        "-o {o}/m.safetensors",
+        "name must be a string of 1 to 256 characters, got 0 characters",
+    ),
+    E(
+        "track-scan-stride-zero",
+        "track {c}/frames --tracker multi:scan_stride=0 -o {o}/b.csv",
+        r"scan_stride must be in \(0, 1\]",
+    ),
+    E("track-tracker-unknown-lists-multi", f"{T} --tracker sift", "known trackers: multi"),
+    E("track-multi-with-box", f"{T} --tracker multi --box 10,14,14,20", "takes no --box"),
+    E(
+        "track-frames-below-window",
+        "track {c}/tiny --detect {c}/toy.safetensors -o {o}/b.csv",
+        "smaller than the detector window 16x8",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),
 ]
+
+
+def _cannot_create_in(folder: str) -> bool:
+    import tempfile
+
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder)
+    except OSError:
+        return True
+    os.close(fd)
+    os.unlink(probe)
+    return False
+
+
+# Outputs in a folder that exists but takes no new file (/proc, even for root, who passes
+# every permission check): refused before any work, never a traceback after it.
+if os.path.isdir("/proc") and _cannot_create_in("/proc"):
+    NO = "folder '/proc' is not writable"
+    CASES += [
+        E("proc-track-out", f"{T} {HB} -o /proc/x.csv", NO),
+        E("proc-track-mot", "track {c}/frames --detections {c}/det.txt --mot /proc/x.txt", NO),
+        E("proc-track-video", f"{T} {HB} -o {{o}}/b.csv --video /proc/x.mp4", NO),
+        E("proc-detect-out", "detect {c}/toy.safetensors {c}/frames -o /proc/x.jsonl", NO),
+        E("proc-detect-video", "detect {c}/toy.safetensors {c}/frames --video /proc/x.mp4", NO),
+        E(
+            "proc-detect-annotate",
+            "detect {c}/toy.safetensors {c}/frames -o {o}/d.jsonl --annotate /proc/xdir",
+            NO,
+        ),
+        E("proc-cal-json", f"{CS} --json /proc/c.json", NO),
+        E("proc-cal-plot", f"{CS} --json {{o}}/c.json --plot /proc/p.png", NO),
+        E("proc-cal-model-plot", f"{CM} -o {{o}}/m.safetensors --plot /proc/p.png", NO),
+        E(
+            "proc-train-out",
+            "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 16 --features 4 "
+            "-o /proc/m.safetensors",
+            NO,
+        ),
+        E(
+            "proc-sign-out",
+            "sign {c}/toy.safetensors --key {c}/alice.pem -o /proc/s.safetensors",
+            NO,
+        ),
+        E("proc-sign-new-key", "sign --new-key /proc/k.pem", NO),
+    ]
 
 
 def _fill(argv: tuple[str, ...], c: Path, o: Path) -> list[str]:

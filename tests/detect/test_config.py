@@ -64,6 +64,21 @@ def test_no_negatives_and_missing_file(tmp_path):
         read_name_list(tmp_path / "missing.txt")
 
 
+def test_binary_config_and_name_list_are_config_errors(tmp_path):
+    # bytes that are not UTF-8 (were a UnicodeDecodeError traceback)
+    (tmp_path / "b.toml").write_bytes(b"\xff\xfe\x00")
+    with pytest.raises(ConfigError, match=r"b\.toml' is not valid TOML: not UTF-8"):
+        load_train_config(tmp_path / "b.toml")
+    with pytest.raises(ConfigError, match=r"name list .*b\.toml' is not a text file .*UTF-8"):
+        read_name_list(tmp_path / "b.toml")
+
+
+@pytest.mark.parametrize("name", ["", "x" * 257, 7])
+def test_a_name_no_model_file_may_hold_is_refused_before_training(tmp_path, name):
+    with pytest.raises(ConfigError, match="name must be a string of 1 to 256 characters"):
+        load_train_config(write(tmp_path, BASE), {"name": name})
+
+
 def test_object_region_to_window_fractions(tmp_path):
     from torchtrack.detect.config import TrainConfig
 

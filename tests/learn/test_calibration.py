@@ -107,6 +107,20 @@ def test_all_identical_scores_give_base_rate():
     np.testing.assert_allclose(cal.predict_proba(np.array([-5.0, 2.5, 9.0])), expected)
 
 
+def test_platt_fit_that_cannot_leave_zero_warns():
+    # the same ranking as a good fit, at magnitudes whose squares overflow: Newton cannot
+    # take a step from A = 0 (was silent: every probability the base rate)
+    rng = np.random.default_rng(0)
+    y = (rng.random(100) < 0.4).astype(int)
+    s = rng.normal(size=100) + 2.0 * y
+    with pytest.warns(UserWarning, match="did not move from A = 0.*isotonic"):
+        cal = PlattCalibrator().fit(s * 1e300, y)
+    assert cal.a_ == 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert PlattCalibrator().fit(s * 1e150, y).a_ < 0  # large but fine: no warning
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
 def test_non_finite_scores_rejected_with_index(bad, cls):

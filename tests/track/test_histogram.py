@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -75,8 +76,9 @@ def test_occluded_target_is_not_visible(bobot):
 def test_config(tmp_path):
     with pytest.raises(ConfigError, match=r"unknown key.*'bins'"):
         HistogramTracker(bins=8)
-    with pytest.raises(ConfigError, match="lam must be > 0"):
-        HistogramTracker(lam=0.0)
+    for lam in (0.0, math.inf, math.nan):  # inf made every particle's weight NaN, silently
+        with pytest.raises(ConfigError, match="lam must be a finite number > 0"):
+            HistogramTracker(lam=lam)
     with pytest.raises(ConfigError, match="unknown estimator"):
         HistogramTracker(estimator="median")
     p = tmp_path / "h.toml"
@@ -84,3 +86,10 @@ def test_config(tmp_path):
     assert HistogramTracker(config=p).config.lam == 10.0
     shipped = Path(__file__).resolve().parents[2] / "configs" / "trackers" / "histogram.toml"
     assert load_tracker_config(shipped, HistogramTrackerConfig) == HistogramTrackerConfig()
+
+
+def test_config_file_not_utf8(tmp_path):
+    p = tmp_path / "binary.toml"
+    p.write_bytes(b"\xff\xfe\x00")  # was a UnicodeDecodeError traceback
+    with pytest.raises(ConfigError, match=r"binary\.toml' is not valid TOML: not UTF-8"):
+        HistogramTracker(config=p)

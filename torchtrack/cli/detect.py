@@ -221,8 +221,10 @@ def _check_args(args: argparse.Namespace) -> None:
 
     if not 0.0 <= args.threshold <= 1.0:
         raise ConfigError(f"--threshold is a probability in [0, 1], got {args.threshold}")
-    if args.min_scale is not None and not args.min_scale > 0:
-        raise ConfigError(f"--min-scale must be > 0, got {args.min_scale}")
+    if args.min_scale is not None and not 0 < args.min_scale < math.inf:
+        raise ConfigError(f"--min-scale must be > 0 and finite, got {args.min_scale}")
+    if args.max_scale is not None and not 0 < args.max_scale < math.inf:
+        raise ConfigError(f"--max-scale must be > 0 and finite, got {args.max_scale}")
     if not args.min_height > 0:
         raise ConfigError(f"--min-height must be > 0 pixels, got {args.min_height}")
     if (

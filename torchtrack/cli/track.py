@@ -536,11 +536,22 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
             raise ConfigError(
                 f"--det-calibration {args.det_calibration!r} cannot be read: {exc}"
             ) from None
-        except (json.JSONDecodeError, ModelFormatError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, ModelFormatError) as exc:
             raise ConfigError(
                 f"--det-calibration {args.det_calibration!r} is not a calibration JSON "
                 f"written by `torchtrack calibrate --json` ({exc})"
             ) from None
+        from torchtrack.detect.model_checks import LIMITS
+
+        a, cap = getattr(cal, "a_", None), LIMITS.coefficient
+        if a is not None and not -cap <= a < 0:
+            # the rule of model files (calibration.a in [-cap, 0), not 0): a detection's
+            # probability rises with its score
+            raise ConfigError(
+                f"--det-calibration {args.det_calibration!r}: the Platt slope A = {a:.4g} must "
+                f"be in [{-cap:g}, 0): with A >= 0 the probability falls (or stays flat) as the "
+                "detection score rises; was it fitted on inverted labels?"
+            )
         prob = cal.predict_proba(score).to(torch.float64)
     else:
         from torchtrack.track.multi import score_probabilities
@@ -599,6 +610,8 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
             run.progress.update(1)
             if frame is None:
                 continue
+            if n_frames == 0 and dets is None:
+                _check_scan_fits(mt, frame)
             t1 = time.perf_counter()
             if dets is not None:
                 res = mt.update(frame.to(device), dets(i))
@@ -638,6 +651,24 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         )
         or None,
     )
+
+
+def _check_scan_fits(mt, frame) -> None:
+    """:class:`ShapeError` when ``frame`` is smaller than the detector window at the smallest
+    scan scale: the tracker's scans would find nothing, and the run would end with empty
+    tracks as if the scene had no target (``detect`` refuses such frames the same way)."""
+    from torchtrack.errors import ShapeError
+
+    fh, fw = (int(v) for v in frame.shape[-2:])
+    wh, ww = mt.detector.window
+    least = mt.config.scan_min_scale
+    if fh < wh * least or fw < ww * least:
+        raise ShapeError(
+            f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
+            f"smallest scan scale {least:g} ({wh * least:g}x{ww * least:g}): no target can be "
+            f"detected; use --tracker multi:scan_min_scale={min(fh / wh, fw / ww):.3g} or less, "
+            "or larger frames"
+        )
 
 
 def parse_box(text: str):
@@ -701,9 +732,25 @@ def build_tracker(args: argparse.Namespace, auto: bool):
     import torch
 
     from torchtrack.errors import ConfigError
-    from torchtrack.track.base import create_tracker, parse_tracker_spec, tracker_info
+    from torchtrack.track.base import (
+        create_tracker,
+        parse_tracker_spec,
+        tracker_info,
+        tracker_names,
+    )
 
     name, params = parse_tracker_spec(args.tracker or "detector")
+    single = ", ".join(tracker_names())
+    if name == "multi":  # is_multi: only with --box
+        raise ConfigError(
+            "tracker 'multi' finds every target itself and takes no --box: drop --box, or "
+            f"give a single-target tracker ({single})"
+        )
+    if name not in tracker_names():  # the registry's message, with multi (not registered)
+        raise ConfigError(
+            f"unknown tracker {name!r}; known trackers: multi (the multi-target tracker, the "
+            f"default without --box) and, single-target, {single}"
+        )
     info = tracker_info(name)
     try:
         accepted = set(inspect.signature(info.factory).parameters)

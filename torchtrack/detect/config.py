@@ -273,6 +273,13 @@ class TrainConfig:
         seed = self.seed
         if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
             raise ConfigError(f"seed must be an integer in [0, 2^63 - 1], got {self.seed!r}")
+        name = self.name
+        if not isinstance(name, str) or not 0 < len(name) <= LIMITS.name_chars:
+            # what a model file may hold: checked here, not after the training
+            got = f"{len(name)} characters" if isinstance(name, str) else repr(name)
+            raise ConfigError(
+                f"name must be a string of 1 to {LIMITS.name_chars} characters, got {got}"
+            )
         d = self.data
         if not d.positives:
             raise ConfigError("data.positives must name at least one folder of positive crops")
@@ -525,6 +532,11 @@ def load_train_config(
         raise ConfigError(f"config file {str(p)!r} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"config file {str(p)!r} is not valid TOML: not UTF-8 text ({exc.reason} at byte "
+            f"{exc.start})"
+        ) from None
     cfg = _fill(TrainConfig, raw, "top level")
     base = p.resolve().parent
     d = cfg.data
@@ -554,11 +566,16 @@ def read_name_list(path: str | os.PathLike) -> set[str]:
     """File names listed one per line (blank lines and ``#`` comments ignored).
 
     Raises:
-        ConfigError: the file does not exist.
+        ConfigError: the file does not exist or is not UTF-8 text.
     """
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"name list {str(p)!r} does not exist") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"name list {str(p)!r} is not a text file of names: not UTF-8 ({exc.reason} at "
+            f"byte {exc.start})"
+        ) from None
     return {ln.split("#", 1)[0].strip() for ln in text.splitlines()} - {""}

@@ -146,7 +146,8 @@ class PlattCalibrator(BaseEstimator):
     method of Lin, Lin & Weng (2007), see :func:`platt_fit`.
 
     All-identical scores carry no ranking information; then ``A = 0`` and ``B`` gives the
-    (smoothed) base rate of the positive class, with a ``UserWarning``.
+    (smoothed) base rate of the positive class, with a ``UserWarning``. A fit that cannot leave
+    ``A = 0`` (scores so large that their squares overflow) warns the same way.
 
     Attributes:
         a_, b_: the fitted ``A`` and ``B``.
@@ -161,7 +162,8 @@ class PlattCalibrator(BaseEstimator):
         """Fit on classifier margins ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
 
         Raises:
-            DataError: NaN / inf scores (index named), a single class, bad sample weights.
+            DataError: NaN / inf scores (index named), a single class, bad sample weights,
+                a fit that is not finite.
             ShapeError: mismatched lengths.
         """
         s = _scores(scores)
@@ -192,6 +194,22 @@ class PlattCalibrator(BaseEstimator):
         self.a_, self.b_, self.n_iter_ = platt_fit(
             s, y01, sw, max_iter=int(self.max_iter), tol=float(self.tol)
         )
+        if not (math.isfinite(self.a_) and math.isfinite(self.b_)):
+            raise errors.DataError(
+                f"the Platt fit is not finite (A = {self.a_}, B = {self.b_}) on scores up to "
+                f"{float(s.abs().max()):.3g} in magnitude; rescale the scores"
+            )
+        if self.a_ == 0.0:
+            # Newton could not take a single step from its start: the scores carry a ranking,
+            # but their products overflow (e.g. magnitudes near 1e300)
+            warnings.warn(
+                "the Platt fit did not move from A = 0: the calibrator ignores the scores and "
+                "returns the positive rate for every score; their magnitude (up to "
+                f"{float(s.abs().max()):.3g}) overflows the fit: rescale them, or calibrate "
+                "with the isotonic method",
+                UserWarning,
+                stacklevel=2,
+            )
         return self
 
     def predict_proba(self, scores: Any) -> Any:

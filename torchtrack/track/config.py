@@ -155,8 +155,8 @@ class HistogramTrackerConfig:
     def validate(self) -> None:
         _positive_int(self, "n_particles", "n_h", "n_s", "n_v", "grid")
         _in_unit(self, "update_rate", "visible_threshold")
-        if not self.lam > 0:
-            raise ConfigError(f"lam must be > 0, got {self.lam}")
+        if not (self.lam > 0 and math.isfinite(self.lam)):
+            raise ConfigError(f"lam must be a finite number > 0, got {self.lam}")
         for k in ("sigma_xy", "sigma_wh"):
             if not getattr(self, k) >= 0:
                 raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
@@ -377,7 +377,6 @@ class MultiTrackerConfig:
             "reseed_overlap",
             "duplicate_iou",
             "min_visible_fraction",
-            "scan_stride",
             "birth_overlap",
             "detection_proposal",
         )
@@ -405,6 +404,8 @@ class MultiTrackerConfig:
             )
         if not self.scan_scale_step > 1:
             raise ConfigError(f"scan_scale_step must be > 1, got {self.scan_scale_step}")
+        if not 0 < self.scan_stride <= 1:
+            raise ConfigError(f"scan_stride must be in (0, 1], got {self.scan_stride}")
         if not 0 < self.scan_nms <= 1:
             raise ConfigError(f"scan_nms must be in (0, 1], got {self.scan_nms}")
         if not (self.scan_cascade <= 0 and math.isfinite(self.scan_cascade)):
@@ -556,6 +557,10 @@ def load_tracker_config(path: str | os.PathLike, cls: type[C]) -> C:
         raise ConfigError(f"cannot read tracker config {p!r}: {e.strerror or e}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"tracker config {p!r} is not valid TOML: {e}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"tracker config {p!r} is not valid TOML: not UTF-8 text ({e.reason} at byte {e.start})"
+        ) from None
     base = os.path.dirname(os.path.abspath(p))
     for key in ("dynamics", "model"):
         v = data.get(key)
