@@ -845,6 +845,8 @@ CASES += [
         else [E("eval-device-no-cuda", f"{EV} --device cuda -o {{o}}/e", "no CUDA")]
     ),
     E("eval-out-parent", f"{EV} -o {{o}}/a/b", "does not exist"),
+    E("eval-out-inside-sequences", f"{EV} -o {{c}}/seqs/res", "inside the input folder"),
+    E("eval-out-is-sequences", f"{EV} -o {{c}}/seqs", "is the input folder --sequences"),
     E("eval-no-out", EV, "needs --out"),
     E("eval-no-sequences", "eval --trackers camshift -o {o}/r", "needs --sequences"),
     E("eval-no-trackers", "eval --sequences {c}/seqs -o {o}/r", "needs --trackers"),
@@ -905,6 +907,11 @@ CASES += [
         "eval-mot-out-file",
         "eval --mot {c}/mot/TOY-01 --results {c}/res.txt -o {c}/afile",
         "is an existing file",
+    ),
+    E(
+        "eval-mot-out-inside",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt -o {c}/mot/TOY-01/gt",
+        "inside the input folder --mot",
     ),
     E(
         "eval-mot-out-parent",
@@ -1068,6 +1075,11 @@ CASES += [
         "detect-scan-workers-negative",
         "detect {c}/toy.safetensors {c}/frames --scan-workers -1",
         "--scan-workers must be >= 0",
+    ),
+    E(
+        "detect-scan-workers-too-many",
+        "detect {c}/toy.safetensors {c}/frames --scan-workers 100000",
+        "more than 4 per CPU core",
     ),
     E("detect-model-is-a-folder", "detect {c}/frames {c}/frames -o {o}/d.jsonl", "is a folder"),
     # the bad-input report: non-UTF-8 files given as text

@@ -110,6 +110,7 @@ def test_raw_scores_and_calibrated_scores(clip, dets, tmp_path):
         (["--tracker", "multi:nonsense=1"], "unknown key"),
         (["--adapt", "global"], "--adapt"),
         (["--scan-workers", "-1"], "--scan-workers must be >= 0"),
+        (["--scan-workers", "100000"], "more than 4 per CPU core"),
         (["--scan-workers", "2", "--box", "1,2,3,4"], "belong"),
     ],
 )

@@ -30,6 +30,7 @@ __all__ = [
     "check_distinct",
     "check_output_dir",
     "check_output_file",
+    "check_scan_workers",
     "check_spares_inputs",
     "seed_value",
     "show_progress",
@@ -160,6 +161,29 @@ def backend_from_args(args: argparse.Namespace, *, num_cpus: float = 1, modules=
         num_cpus=num_cpus,
         modules=tuple(modules),
     )
+
+
+def check_scan_workers(n: int | None) -> None:
+    """``--scan-workers``: 0 (scan in this process) up to 4 per CPU core (each worker holds a
+    model and a queue of frames; past the cores they only take turns). ``None``: the default.
+
+    Raises:
+        ConfigError: naming the option.
+    """
+    import os
+
+    from torchtrack.errors import ConfigError
+
+    if n is None:
+        return
+    if n < 0:
+        raise ConfigError(f"--scan-workers must be >= 0 (0: scan in this process), got {n}")
+    cores = os.cpu_count() or 1
+    if n > 4 * cores:
+        raise ConfigError(
+            f"--scan-workers {n} is more than 4 per CPU core ({cores} here): workers beyond the "
+            "cores only take turns (the default uses the cores there are)"
+        )
 
 
 # ------------------------------------------------------------------------------ output paths

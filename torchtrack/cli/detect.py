@@ -217,6 +217,7 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
 
 
 def _check_args(args: argparse.Namespace) -> None:
+    from torchtrack.cli._common import check_scan_workers
     from torchtrack.errors import ConfigError
 
     if not 0.0 <= args.threshold <= 1.0:
@@ -252,10 +253,7 @@ def _check_args(args: argparse.Namespace) -> None:
             )
     if args.batch < 1:
         raise ConfigError(f"--batch must be >= 1, got {args.batch}")
-    if args.scan_workers is not None and args.scan_workers < 0:
-        raise ConfigError(
-            f"--scan-workers must be >= 0 (0: scan in this process), got {args.scan_workers}"
-        )
+    check_scan_workers(args.scan_workers)
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.video is not None and Path(args.video).suffix.lower() != ".mp4":

@@ -185,11 +185,17 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
-    from torchtrack.cli._common import backend_from_args, check_output_dir, device_of
+    from torchtrack.cli._common import (
+        backend_from_args,
+        check_output_dir,
+        check_spares_inputs,
+        device_of,
+    )
     from torchtrack.eval.backends import check_backend
 
     device = device_of(args)
     check_output_dir(args.out, "--out")
+    check_spares_inputs({"--out": args.out}, {"--sequences": args.sequences})
     from torchtrack.eval.report import overall_table
     from torchtrack.eval.runner import evaluate
     from torchtrack.io.sequences import find_sequences
@@ -287,10 +293,14 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
 
 def run_mot(args: argparse.Namespace) -> int:
     """``torchtrack eval --mot SEQ ... --results FILE_OR_DIR ...``: score MOT results files."""
-    from torchtrack.cli._common import check_output_dir
+    from torchtrack.cli._common import check_output_dir, check_spares_inputs
     from torchtrack.errors import ConfigError
 
     check_output_dir(args.out, "--out")  # before any work, on both MOT paths
+    check_spares_inputs(
+        {"--out": args.out},
+        {"--mot": args.mot or [], "--results": args.results or [], "--gt": args.gt or []},
+    )
 
     if args.mot and args.trackers and not args.results:
         return run_mot_trackers(args)

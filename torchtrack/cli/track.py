@@ -208,7 +208,7 @@ def check_args(args: argparse.Namespace) -> None:
     (:class:`ConfigError` naming the option)."""
     import math
 
-    from torchtrack.cli._common import apply_threads, device_of
+    from torchtrack.cli._common import apply_threads, check_scan_workers, device_of
     from torchtrack.errors import ConfigError
 
     if args.max_frames is not None and args.max_frames < 1:
@@ -239,10 +239,7 @@ def check_args(args: argparse.Namespace) -> None:
         )
     if args.max_targets is not None and args.max_targets < 1:
         raise ConfigError(f"--max-targets must be >= 1, got {args.max_targets}")
-    if args.scan_workers is not None and args.scan_workers < 0:
-        raise ConfigError(
-            f"--scan-workers must be >= 0 (0: scan in this process), got {args.scan_workers}"
-        )
+    check_scan_workers(args.scan_workers)
     if args.scan_workers and args.detections:
         raise ConfigError("--scan-workers runs our scans: --detections FILE replaces them")
     if args.det_min_score is not None and not math.isfinite(args.det_min_score):
