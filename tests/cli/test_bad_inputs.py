@@ -667,6 +667,11 @@ CASES += [
     ),
     E("train-features-0", f"{TR} --features 0 -o {{o}}/m.safetensors", "n_features"),
     E(
+        "train-features-with-channels",
+        f"{TR} --bank channels -o {{o}}/m.safetensors",
+        "--features 4 sets how many features AdaBoost selects",
+    ),
+    E(
         "train-window-0",
         "train --pos {c}/crops/pos --neg {c}/crops/neg --window 0 16 -o {o}/m.safetensors",
         "window",
@@ -691,7 +696,7 @@ CASES += [
     E(
         "train-random-neg",
         "train --pos {c}/crops/pos --neg-images {c}/frames --random-negatives -5 --window 16 16 -o {o}/m.safetensors",
-        "random_negatives|no negatives",
+        "data.random_negatives must be >= 0, got -5",
     ),
     E(
         "train-exclude-missing",

@@ -137,6 +137,12 @@ def run(args: argparse.Namespace) -> int:
         for k, v in overrides.items():
             apply_override(cfg, k, v)
         cfg.validate()
+    if args.features is not None and cfg.classifier() == "trees":
+        raise ConfigError(
+            f"--features {args.features} sets how many features AdaBoost selects (a Haar bank, "
+            "classifier adaboost or svm); boosted trees draw on the whole channel pool "
+            "(learn.n_trees in a --config sets their number): leave --features out"
+        )
     if args.random_negatives is not None and not cfg.data.negative_images:
         raise ConfigError(
             "--random-negatives draws windows from --neg-images (or data.negative_images): "

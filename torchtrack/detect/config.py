@@ -283,13 +283,13 @@ class TrainConfig:
         d = self.data
         if not d.positives:
             raise ConfigError("data.positives must name at least one folder of positive crops")
+        if d.random_negatives < 0:
+            raise ConfigError(f"data.random_negatives must be >= 0, got {d.random_negatives}")
         if not d.negatives and not (d.negative_images and d.random_negatives > 0):
             raise ConfigError(
                 "no negatives: give data.negatives (crop folders) or data.negative_images with "
                 "data.random_negatives > 0"
             )
-        if d.random_negatives < 0:
-            raise ConfigError(f"data.random_negatives must be >= 0, got {d.random_negatives}")
         if (d.region is None) != (d.crop_size is None):
             raise ConfigError("data.region and data.crop_size go together (give both or neither)")
         if d.object is not None:
