@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -322,6 +323,22 @@ def test_score_sequence_rejects_rows_beyond(tmp_path):
     (tmp_path / "r.txt").write_text("1,1,11,11,20,40,1\n4,1,11,11,20,40,1\n")
     with pytest.raises(MotFormatError, match=r"r.txt line 2: frame 4 is beyond the sequence's 3"):
         score_sequence(seq, tmp_path / "r.txt")
+
+
+def test_score_sequence_warns_when_no_result_box_touches_the_frame(tmp_path):
+    d = tmp_path / "Sized"
+    (d / "gt").mkdir(parents=True)
+    (d / "seqinfo.ini").write_text("[Sequence]\nname=Sized\nseqLength=2\nimWidth=64\nimHeight=48\n")
+    (d / "gt" / "gt.txt").write_text("1,1,11,11,20,30,1,-1,-1,-1\n2,1,11,11,20,30,1,-1,-1,-1\n")
+    seq = load_mot_sequence(d)
+    (tmp_path / "far.txt").write_text("1,1,5011,11,20,30,1\n2,1,11,5011,20,30,1\n")
+    with pytest.warns(UserWarning, match=r"no box of .*far.txt' touches the 64x48 frames"):
+        m = score_sequence(seq, tmp_path / "far.txt")
+    assert m.fp == 2
+    (tmp_path / "near.txt").write_text("1,1,5011,11,20,30,1\n2,1,11,11,20,30,1\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # one box in the frame: no warning
+        score_sequence(seq, tmp_path / "near.txt")
 
 
 def test_resolve_results_by_name(tmp_path):

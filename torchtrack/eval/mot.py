@@ -34,6 +34,7 @@ import datetime as _dt
 import io
 import json
 import os
+import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import ModuleType
@@ -325,6 +326,18 @@ def score_sequence(seq: MotSequence, results: str | os.PathLike) -> MotMetrics:
         MissingDependencyError: TrackEval is missing.
     """
     rows = read_mot(results, n_frames=seq.n_frames, kind="results")
+    if seq.width and seq.height and len(rows.boxes):
+        b = rows.boxes
+        inside = (b[:, 0] < seq.width) & (b[:, 1] < seq.height)
+        inside &= (b[:, 0] + b[:, 2] > 0) & (b[:, 1] + b[:, 3] > 0)
+        if not inside.any():
+            warnings.warn(
+                f"no box of {os.fspath(results)!r} touches the {seq.width}x{seq.height} frames "
+                f"of {seq.name}: every one is a false positive (results written at another "
+                "scale or in other units?)",
+                UserWarning,
+                stacklevel=2,
+            )
     return score_mot(seq.gt, rows, seq.n_frames, name=seq.name)
 
 
