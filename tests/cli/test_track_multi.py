@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -53,6 +55,18 @@ def test_external_detections_to_csv_and_mot(clip, dets, tmp_path, capsys):
     assert vid.stat().st_size > 0
     said = capsys.readouterr().out
     assert "2 target(s)" in said and "ground plane" not in said  # outside detections: no line
+
+
+def test_detections_of_another_video_warn(clip, dets, tmp_path, capsys):
+    """Boxes from a wider video (x beyond the 320 px frames): a warning, the run goes on."""
+    far = tmp_path / "far.txt"
+    rows = [r.split(",") for r in dets.read_text().splitlines()]
+    far.write_text("".join(",".join([*r[:2], str(float(r[2]) + 400), *r[3:]]) + "\n" for r in rows))
+    with pytest.warns(UserWarning, match=r"24 of the 24 boxes of --detections .* 320x240 frames"):
+        assert main(["track", str(clip), "--detections", str(far), "--no-progress"]) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the boxes of this clip: no warning
+        assert main(["track", str(clip), "--detections", str(dets), "--no-progress"]) == 0
 
 
 def test_video_without_any_target_writes_empty_tracks(clip, tmp_path, capsys):

@@ -509,7 +509,8 @@ def build_multi(args: argparse.Namespace):
 
 def external_detections(args: argparse.Namespace, n_frames: int | None):
     """The ``--detections`` file as a per-frame lookup ``frame -> (boxes, probabilities)``
-    (see ``--det-calibration`` / ``--det-min-score`` for the scores)."""
+    (see ``--det-calibration`` / ``--det-min-score`` for the scores), and every box it holds
+    ``(K, 4)`` (for :func:`_check_detections_fit`)."""
     import json
 
     import numpy as np
@@ -564,7 +565,7 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
         for f, a, b in zip(uniq.tolist(), starts.tolist(), ends.tolist(), strict=True)
     }
     empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
-    return lambda i: table.get(i, empty)
+    return (lambda i: table.get(i, empty)), boxes
 
 
 def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
@@ -584,7 +585,9 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_workers
 
     device = device_of(args)
-    dets = external_detections(args, len(src) or None) if args.detections else None
+    dets, det_boxes = (
+        external_detections(args, len(src) or None) if args.detections else (None, None)
+    )
     workers = args.scan_workers
     if workers is None:  # scans on a GPU run in this process, next to the filter
         workers = default_scan_workers() if device.type == "cpu" else 0
@@ -609,6 +612,8 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 continue
             if n_frames == 0 and dets is None:
                 _check_scan_fits(mt, frame)
+            elif n_frames == 0:
+                _check_detections_fit(args.detections, det_boxes, frame)
             t1 = time.perf_counter()
             if dets is not None:
                 res = mt.update(frame.to(device), dets(i))
@@ -648,6 +653,30 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         )
         or None,
     )
+
+
+#: warn when more than this share of the --detections boxes lie wholly outside the frames
+OFF_FRAME_SHARE = 0.1
+
+
+def _check_detections_fit(path: str, boxes, frame) -> None:
+    """A warning when more than ``OFF_FRAME_SHARE`` of the ``--detections`` boxes lie wholly
+    outside the video's frames: detections of another video, or at another scale."""
+    import warnings
+
+    if boxes is None or not len(boxes):
+        return
+    fh, fw = (int(v) for v in frame.shape[-2:])
+    x, y, w, h = boxes.unbind(1)
+    off = (x >= fw) | (y >= fh) | (x + w <= 0) | (y + h <= 0)
+    n = int(off.sum())
+    if n > OFF_FRAME_SHARE * len(boxes):
+        warnings.warn(
+            f"{n} of the {len(boxes)} boxes of --detections {path!r} lie wholly outside the "
+            f"{fw}x{fh} frames: detections of another video, or at another scale?",
+            UserWarning,
+            stacklevel=2,
+        )
 
 
 def _check_scan_fits(mt, frame) -> None:
