@@ -155,6 +155,8 @@ def test_parse_tracker_spec():
         parse_tracker_spec("mil:fast")
     with pytest.raises(ConfigError, match="has no name"):
         parse_tracker_spec(":a=1")
+    with pytest.raises(ConfigError, match="nothing after ':'"):
+        parse_tracker_spec("histogram: ")  # was the tracker "histogram" labelled "histogram:"
 
 
 def test_a_broken_tracker_module_only_warns(monkeypatch):

@@ -388,12 +388,17 @@ def parse_tracker_spec(spec: str) -> tuple[str, dict[str, Any]]:
     Example: ``parse_tracker_spec("adaptive-haar:adapt=none,particles=500")``.
 
     Raises:
-        ConfigError: an item without ``=``, a key given twice, or an empty name.
+        ConfigError: an item without ``=``, a key given twice, an empty name, or a ``:``
+            with nothing after it.
     """
-    name, _, rest = spec.partition(":")
+    name, colon, rest = spec.partition(":")
     name = name.strip()
     if not name:
         raise ConfigError(f"tracker spec {spec!r} has no name")
+    if colon and not rest.strip():
+        raise ConfigError(
+            f"tracker spec {spec!r}: nothing after ':' (give name:key=value,... or the name alone)"
+        )
     params: dict[str, Any] = {}
     if rest.strip():
         for item in rest.split(","):
