@@ -868,6 +868,7 @@ CASES += [
     E("eval-gt-mismatch", "eval --sequences {c}/badgt --trackers camshift -o {o}/r", "rows|frames"),
     E("eval-gt-text", "eval --sequences {c}/textgt --trackers camshift -o {o}/r", "line 2"),
     E("eval-tracker-unknown", f"{EV} --trackers sift -o {{o}}/r", "unknown tracker 'sift'"),
+    E("eval-tracker-multi-on-sequences", f"{EV} --trackers multi -o {{o}}/r", "--mot SEQ"),
     E("eval-tracker-param", f"{EV} --trackers camshift:wings=1 -o {{o}}/r", "no parameter"),
     E("eval-max-frames-1", f"{EV} --max-frames 1 -o {{o}}/r", "--max-frames must be >= 2"),
     E("eval-jobs-0", f"{EV} --jobs 0 -o {{o}}/r", "--jobs must be >= 1"),

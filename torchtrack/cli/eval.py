@@ -185,6 +185,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"torchtrack eval needs {', '.join(missing)}")
     if args.max_frames is not None and args.max_frames < 2:
         raise ConfigError(f"--max-frames must be >= 2, got {args.max_frames}")
+    if any(t.partition(":")[0].strip() == "multi" for t in args.trackers):
+        raise ConfigError(
+            "tracker 'multi' (the multi-target tracker) is scored on MOT sequences: "
+            "torchtrack eval --mot SEQ ... --trackers multi -o DIR; --sequences takes "
+            "single-target trackers"
+        )
     from torchtrack.cli._common import (
         backend_from_args,
         check_output_dir,
