@@ -407,7 +407,8 @@ def run(args: argparse.Namespace) -> int:
             f"(A = {cal.a_:.4g} >= 0): {why} Nothing was written"
         )
     # Every output is written before any is reported, the model (which may be MODEL itself)
-    # last: when one fails, those this run wrote before it are removed.
+    # last: when one fails, those this run created before it are removed (a file that was
+    # there before the run, now replaced, is left: its old content is gone either way).
     import contextlib
     import os
 
@@ -418,13 +419,15 @@ def run(args: argparse.Namespace) -> int:
             curves = {before_name: p_before, "after (in-sample)": p_after}
             if p_cv is not None:
                 curves["after (5-fold CV)"] = p_cv
+            new_file = not os.path.exists(args.plot)
             reliability_diagram(curves, y01, args.plot, n_bins=args.bins)
-            written.append(args.plot)
+            written += [args.plot] if new_file else []
         if args.json:
             doc = {"format": JSON_FORMAT, "format_version": JSON_VERSION, **calibrator_to_dict(cal)}
             doc.update(record)
+            new_file = not os.path.exists(args.json)
             write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
-            written.append(args.json)
+            written += [args.json] if new_file else []
         if det is not None and (args.out or not args.json):  # --json alone: MODEL untouched
             out = args.out or args.model
             new = det.with_calibrator(cal)
