@@ -71,13 +71,21 @@ def test_histogram_tracker_and_max_frames(frames, tmp_path):
 
 def test_unreadable_frames_are_counted_and_keep_a_row(frames, tmp_path, capsys):
     (frames / "0005.jpg").write_bytes(b"not a jpeg")
-    out = tmp_path / "b.csv"
-    assert main(["track", str(frames), "--box", BOX, "--out", str(out), "--no-progress"]) == 0
+    out, video = tmp_path / "b.csv", tmp_path / "b.avi"
+    args = ["track", str(frames), "--box", BOX, "--out", str(out), "--video", str(video)]
+    assert main([*args, "--no-progress"]) == 0
     _, rows = read_csv(out)
     assert len(rows) == 8
     assert rows[4][0] == "4" and rows[4][5:] == ["0.0000", "0"]  # previous box, not visible
     assert rows[4][1:5] == rows[3][1:5]
     assert "1 unreadable frame(s)" in capsys.readouterr().out
+    cap = cv2.VideoCapture(str(video))
+    shown = []
+    while (got := cap.read())[0]:
+        shown.append(got[1].astype(int))
+    # one video frame per source frame: the unreadable one shows the frame before it again
+    assert len(shown) == 8
+    assert abs(shown[4] - shown[3]).mean() < 1.0 < abs(shown[5] - shown[4]).mean()
 
 
 def test_video_that_ends_early(frames, tmp_path, capsys):

@@ -174,6 +174,13 @@ class VideoOut:
         self._writer = None
         self._stack = contextlib.ExitStack()
         self._tmp = None
+        self._last = None
+
+    def repeat(self) -> None:
+        """Write the last frame again (for a source frame that could not be read: the video
+        keeps the source's timing); nothing before the first frame."""
+        if self._last is not None:
+            self._writer.write(self._last)
 
     def write(self, img) -> None:
         import cv2
@@ -199,6 +206,7 @@ class VideoOut:
                     + (f": {detail}" if detail else "")
                 )
         self._writer.write(img)
+        self._last = img
 
     def close(self) -> None:
         """Finish and rename into place (nothing when no frame was written)."""

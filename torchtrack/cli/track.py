@@ -396,6 +396,8 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
                     csv.write_bad(i, last)
                 elif last is None:
                     pending_bad.append(i)
+                if vid is not None:
+                    vid.repeat()  # the video keeps the source's timing
                 continue
             t1 = time.perf_counter()
             on = frame.to(device)
@@ -609,6 +611,8 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
             run.index = i
             run.progress.update(1)
             if frame is None:
+                if vid is not None:
+                    vid.repeat()  # the video keeps the source's timing
                 continue
             if n_frames == 0 and dets is None:
                 _check_scan_fits(mt, frame)
