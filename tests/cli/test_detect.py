@@ -216,6 +216,18 @@ def test_small_image_in_folder_is_skipped(car_images, tmp_path, capsys):
     assert "skipped frame 1" in cap.err and "smaller than the detector window" in cap.err
 
 
+def test_video_of_frames_of_two_sizes_warns(car_images, tmp_path, capsys):
+    d = tmp_path / "two"
+    d.mkdir()
+    shutil.copy(car_images / "test-0.pgm", d / "a.pgm")
+    img = cv2.imread(str(car_images / "test-0.pgm"))
+    cv2.imwrite(str(d / "b.png"), cv2.resize(img, None, fx=1.5, fy=1.5))
+    video = tmp_path / "v.mp4"
+    with pytest.warns(UserWarning, match=r"frame 1 is \d+x\d+, the video \d+x\d+"):
+        assert main(["detect", "vehicle", str(d), "--video", str(video), "--quiet"]) == 0
+    assert video.stat().st_size > 0
+
+
 @pytest.mark.skipif(not fork_available(), reason="scan workers are forked processes (Linux)")
 def test_scan_workers_write_the_same_records(tmp_path, capsys):
     """The bundled clip scanned in two forked workers and in this process: the same JSON

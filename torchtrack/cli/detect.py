@@ -329,6 +329,7 @@ class _Writers:
         self._tmp = None
         self._writer = None
         self._size = None
+        self._warned_size = False
         self._written: list[Path] = []  # annotated PNGs of this run (removed if it fails)
         self._made_dir = False
 
@@ -372,6 +373,17 @@ class _Writers:
                         + (f" ({detail})" if detail else "")
                     )
             if (w, h) != self._size:  # a video has one frame size: pad or crop to the first
+                if not self._warned_size:
+                    import warnings
+
+                    warnings.warn(
+                        f"--video {self.video_path!r}: frame {index} is {w}x{h}, the video "
+                        f"{self._size[0]}x{self._size[1]} (its first frame): frames of another "
+                        "size are padded or cropped into it (the JSON boxes are not)",
+                        UserWarning,
+                        stacklevel=2,
+                    )
+                    self._warned_size = True
                 canvas = cv2.copyMakeBorder(
                     img[: self._size[1], : self._size[0]],
                     0,
