@@ -3,6 +3,7 @@ input (unreadable images, unopenable video, frames smaller than the window, unkn
 luma handling of grayscale vs colour input."""
 
 import json
+import re
 import shutil
 
 import cv2
@@ -202,6 +203,11 @@ def test_frame_smaller_than_window(tmp_path, capsys):
     assert main(["detect", "pedestrian", str(tmp_path / "small.png"), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert "smaller than the detector window 128x64" in err and "min_scale" in err
+    # the scale came from --min-height (32 px by default): the hint names that option
+    hint = re.search(r"--min-height 32 px: these frames take --min-height ([\d.]+) px", err)
+    assert hint, err
+    args = ["detect", "pedestrian", str(tmp_path / "small.png"), "--quiet"]
+    assert main([*args, "--min-height", hint.group(1)]) == 0  # and that value scans
 
 
 def test_small_image_in_folder_is_skipped(car_images, tmp_path, capsys):

@@ -452,7 +452,15 @@ def run(args: argparse.Namespace) -> int:
             try:
                 return det.scan(frames, **scan_kw)
             except ShapeError as exc:  # returned, so that the batches after it go on
-                return exc
+                if args.min_scale is not None:
+                    return exc
+                # the smallest scale came from --min-height: say it in the option's terms
+                (wh, ww), (fh, fw) = det.window, frames.shape[-2:]
+                most = min(fh / wh, fw / ww) * object_height(det)
+                return ShapeError(
+                    f"{exc}. That scale is --min-height {args.min_height:g} px: these frames "
+                    f"take --min-height {math.floor(most * 10) / 10:g} px or less"
+                )
 
         def batches():
             """Batches of equal-size frames, ``(batch, stacked frames)``; unreadable frames
