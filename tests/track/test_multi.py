@@ -550,6 +550,10 @@ def test_bad_frames_and_detections():
     # non-finite or empty boxes are dropped, not tracked
     bad = torch.tensor([[float("nan"), 0, 10, 10], [5.0, 5.0, 0.0, 10.0]], dtype=torch.float64)
     mt.update(blank(), (bad, torch.ones(2)))
+    # a frame no scan window fits (44.8 px at scan_min_scale 0.35): an error, not empty tracks
+    with pytest.raises(ShapeError, match=r"smaller than the detector window .* scan_min_scale"):
+        make().update(blank(40, 320))
+    assert len(make().update(blank(40, 320), (people(0)[:0], torch.ones(0)))) == 0  # no scan
 
 
 def test_shipped_config_file_is_the_defaults():

@@ -614,9 +614,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 if vid is not None:
                     vid.repeat()  # the video keeps the source's timing
                 continue
-            if n_frames == 0 and dets is None:
-                _check_scan_fits(mt, frame)
-            elif n_frames == 0:
+            if n_frames == 0 and dets is not None:
                 _check_detections_fit(args.detections, det_boxes, frame)
             t1 = time.perf_counter()
             if dets is not None:
@@ -680,24 +678,6 @@ def _check_detections_fit(path: str, boxes, frame) -> None:
             f"{fw}x{fh} frames: detections of another video, or at another scale?",
             UserWarning,
             stacklevel=2,
-        )
-
-
-def _check_scan_fits(mt, frame) -> None:
-    """:class:`ShapeError` when ``frame`` is smaller than the detector window at the smallest
-    scan scale: the tracker's scans would find nothing, and the run would end with empty
-    tracks as if the scene had no target (``detect`` refuses such frames the same way)."""
-    from torchtrack.errors import ShapeError
-
-    fh, fw = (int(v) for v in frame.shape[-2:])
-    wh, ww = mt.detector.window
-    least = mt.config.scan_min_scale
-    if fh < wh * least or fw < ww * least:
-        raise ShapeError(
-            f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
-            f"smallest scan scale {least:g} ({wh * least:g}x{ww * least:g}): no target can be "
-            f"detected; use --tracker multi:scan_min_scale={min(fh / wh, fw / ww):.3g} or less, "
-            "or larger frames"
         )
 
 

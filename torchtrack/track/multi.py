@@ -270,14 +270,25 @@ class MultiTargetTracker:
 
         ``ground`` (:meth:`scan_ground`, with ``ground_gate`` on): only the windows whose
         object box fits that line (or that the frame's top or bottom edge cuts) are scored;
-        the rest of the frame's windows would be dropped before association anyway."""
+        the rest of the frame's windows would be dropped before association anyway.
+
+        Raises:
+            ShapeError: a frame smaller than the detector window at ``scan_min_scale``.
+        """
         from torchtrack.detect.scan import scan
 
         cfg = self.config
         fh, fw = frame.shape[-2:]
         wh, ww = self.detector.window
         if fh < wh * cfg.scan_min_scale or fw < ww * cfg.scan_min_scale:
-            return torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64)
+            # no window fits: the tracks would be empty as if the scene had no target
+            least = cfg.scan_min_scale
+            raise ShapeError(
+                f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
+                f"smallest scan scale {least:g} ({wh * least:g}x{ww * least:g}): no target "
+                f"can be detected; use scan_min_scale={min(fh / wh, fw / ww):.3g} or less "
+                "(--tracker multi:scan_min_scale=...), or larger frames"
+            )
         wins, p = scan(
             self.detector,
             frame,
