@@ -262,7 +262,7 @@ class TrainConfig:
         w = self.window
         if not (isinstance(w, (list, tuple)) and len(w) == 2 and all(_posint(v) for v in w)):
             raise ConfigError(f"window must be [H, W] positive integers, got {w!r}")
-        from torchtrack.detect.model_checks import LIMITS
+        from torchtrack.detect.model_checks import LIMITS, name_error
 
         side = LIMITS.window_side
         if not all(4 <= v <= side for v in w):
@@ -273,13 +273,9 @@ class TrainConfig:
         seed = self.seed
         if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
             raise ConfigError(f"seed must be an integer in [0, 2^63 - 1], got {self.seed!r}")
-        name = self.name
-        if not isinstance(name, str) or not 0 < len(name) <= LIMITS.name_chars:
-            # what a model file may hold: checked here, not after the training
-            got = f"{len(name)} characters" if isinstance(name, str) else repr(name)
-            raise ConfigError(
-                f"name must be a string of 1 to {LIMITS.name_chars} characters, got {got}"
-            )
+        bad_name = name_error(self.name)  # what a model file may hold: here, not after training
+        if bad_name:
+            raise ConfigError(bad_name)
         d = self.data
         if not d.positives:
             raise ConfigError("data.positives must name at least one folder of positive crops")

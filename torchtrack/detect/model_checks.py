@@ -42,6 +42,7 @@ __all__ = [
     "Limits",
     "TensorEntry",
     "check_tensor_values",
+    "name_error",
     "validate_description",
 ]
 
@@ -85,6 +86,16 @@ class Limits:
 
 
 LIMITS = Limits()
+
+
+def name_error(name: Any) -> str | None:
+    """What is wrong with a model name (``None``: nothing): a string of 1 to
+    ``LIMITS.name_chars`` characters, the one rule for model files and training configs."""
+    if isinstance(name, str) and 0 < len(name) <= LIMITS.name_chars:
+        return None
+    got = f"{len(name)} characters" if isinstance(name, str) else repr(name)
+    return f"name must be a string of 1 to {LIMITS.name_chars} characters, got {got}"
+
 
 #: safetensors dtype names -> (torch dtype, bytes per element)
 _DTYPES: dict[str, tuple[torch.dtype, int]] = {
@@ -458,8 +469,8 @@ _V1_KEYS = {
 def _validate_v1(meta: dict, entries: dict[str, TensorEntry]) -> Description:
     _mapping(meta, "the description", _V1_KEYS, {"object_box"})
     name = meta["name"]
-    if not isinstance(name, str) or not 0 < len(name) <= LIMITS.name_chars:
-        raise ModelFormatError(f"name must be a string of 1 to {LIMITS.name_chars} characters")
+    if name_error(name):
+        raise ModelFormatError(name_error(name))
     if not isinstance(meta["training"], dict):
         raise ModelFormatError("training must be a JSON object")
     if "object_box" in meta:
@@ -572,8 +583,8 @@ def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
         meta, "the description", _V2_KEYS, {"object_box", "selected_features", "tracking_head"}
     )
     name = meta["name"]
-    if not isinstance(name, str) or not 0 < len(name) <= LIMITS.name_chars:
-        raise ModelFormatError(f"name must be a string of 1 to {LIMITS.name_chars} characters")
+    if name_error(name):
+        raise ModelFormatError(name_error(name))
     if not isinstance(meta["training"], dict):
         raise ModelFormatError("training must be a JSON object")
     if "object_box" in meta:
