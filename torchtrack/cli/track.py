@@ -668,10 +668,10 @@ def _check_detections_fit(path: str, boxes, frame) -> None:
 
     if boxes is None or not len(boxes):
         return
+    from torchtrack.boxes import inside_fraction
+
     fh, fw = (int(v) for v in frame.shape[-2:])
-    x, y, w, h = boxes.unbind(1)
-    off = (x >= fw) | (y >= fh) | (x + w <= 0) | (y + h <= 0)
-    n = int(off.sum())
+    n = int((inside_fraction(boxes, (fh, fw)) == 0).sum())
     if n > OFF_FRAME_SHARE * len(boxes):
         warnings.warn(
             f"{n} of the {len(boxes)} boxes of --detections {path!r} lie wholly outside the "

@@ -327,10 +327,12 @@ def score_sequence(seq: MotSequence, results: str | os.PathLike) -> MotMetrics:
     """
     rows = read_mot(results, n_frames=seq.n_frames, kind="results")
     if seq.width and seq.height and len(rows.boxes):
-        b = rows.boxes
-        inside = (b[:, 0] < seq.width) & (b[:, 1] < seq.height)
-        inside &= (b[:, 0] + b[:, 2] > 0) & (b[:, 1] + b[:, 3] > 0)
-        if not inside.any():
+        import torch
+
+        from torchtrack.boxes import inside_fraction
+
+        inside = inside_fraction(torch.from_numpy(rows.boxes), (seq.height, seq.width))
+        if not bool((inside > 0).any()):
             warnings.warn(
                 f"no box of {os.fspath(results)!r} touches the {seq.width}x{seq.height} frames "
                 f"of {seq.name}: every one is a false positive (results written at another "
