@@ -46,9 +46,9 @@ class RowWriter:
             try:
                 self._f = open(self.part, "w", encoding="utf-8", newline="")
             except OSError as exc:  # checked before the run; the folder changed since
-                from torchtrack.errors import ConfigError
+                from torchtrack.io.atomic import write_error
 
-                raise ConfigError(f"cannot write {self.path!r}: {exc.strerror or exc}") from None
+                raise write_error(self.path, exc) from None
             if self.header is not None:
                 self._f.write(self.header + "\n")
         if text:

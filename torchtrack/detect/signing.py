@@ -162,12 +162,12 @@ def generate_key(private_path: str | os.PathLike, public_path: str | os.PathLike
     pub_pem = pub.public_bytes(
         serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     )
-    from torchtrack.io.atomic import write_bytes_atomic
+    from torchtrack.io.atomic import write_bytes_atomic, write_error
 
     try:
         fd = os.open(priv_p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except OSError as exc:
-        raise ConfigError(f"cannot write {str(priv_p)!r}: {exc.strerror or exc}") from None
+        raise write_error(priv_p, exc) from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(priv_pem)
@@ -175,7 +175,7 @@ def generate_key(private_path: str | os.PathLike, public_path: str | os.PathLike
     except BaseException as exc:
         priv_p.unlink(missing_ok=True)  # never half a key pair
         if isinstance(exc, OSError):
-            raise ConfigError(f"cannot write {str(priv_p)!r}: {exc.strerror or exc}") from None
+            raise write_error(priv_p, exc) from None
         raise
     return priv_p, pub_p, key_id(pub)
 

@@ -14,6 +14,7 @@ __all__ = [
     "atomic_write",
     "check_writable_dir",
     "write_bytes_atomic",
+    "write_error",
     "write_text_atomic",
 ]
 
@@ -48,7 +49,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         )
         os.close(fd)
     except OSError as exc:
-        raise _write_error(dest, exc) from None
+        raise write_error(dest, exc) from None
     tmp_path = Path(tmp)
     try:
         yield tmp_path
@@ -57,15 +58,15 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             os.chmod(tmp_path, 0o666 & ~_umask())
             os.replace(tmp_path, dest)
         except OSError as exc:
-            raise _write_error(dest, exc) from None
+            raise write_error(dest, exc) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
 
 
-def _write_error(dest: Path, exc: OSError):
-    """The :class:`ConfigError` of a file system's refusal to write ``dest``."""
+def write_error(dest: str | os.PathLike, exc: OSError):
+    """The :class:`ConfigError` of a file system's refusal to write ``dest`` (raise it)."""
     from torchtrack.errors import ConfigError
 
     return ConfigError(f"cannot write {str(dest)!r}: {exc.strerror or exc}")
@@ -82,7 +83,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
             f.flush()
             os.fsync(f.fileno())
         except OSError as exc:  # e.g. the disk is full
-            raise _write_error(Path(path), exc) from None
+            raise write_error(path, exc) from None
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -92,7 +93,7 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
         try:
             f.write(text)
         except OSError as exc:
-            raise _write_error(Path(path), exc) from None
+            raise write_error(path, exc) from None
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
@@ -102,7 +103,7 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
         try:
             f.write(data)
         except OSError as exc:
-            raise _write_error(Path(path), exc) from None
+            raise write_error(path, exc) from None
 
 
 def check_writable_dir(path: str | os.PathLike, what: str = "output folder") -> Path:
