@@ -150,7 +150,7 @@ def test_duplicate_heading_keeps_a_person_hidden_while_two_people_cross(seed):
         for t in range(28):
             out = mt.update(blank(), _crossers(t))
             if t == 12:
-                assert mt.heading.tolist() == [[1.0, 0.0], [-1.0, 0.0]]
+                assert mt.headings().tolist() == [[1.0, 0.0], [-1.0, 0.0]]
         seen = {int(i): float(b[0]) for i, b in zip(out.ids, out.boxes, strict=True)}
         if heading:
             assert mt.stats["ended: duplicate"] == 0
@@ -164,7 +164,7 @@ def test_a_target_standing_still_has_no_heading():
     box = torch.tensor([[100.0, 60.0, 20.0, 60.0]], dtype=torch.float64)
     for t in range(6):  # jitter of 1 px: below detection_sigma (3 px) of its 60 px height
         mt.update(blank(), (box + (t % 2), torch.ones(1)))
-    assert mt.heading.tolist() == [[0.0, 0.0]]
+    assert mt.headings().tolist() == [[0.0, 0.0]]
 
 
 def test_target_walking_out_of_the_frame_is_ended_not_reported_outside():

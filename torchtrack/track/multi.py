@@ -205,11 +205,10 @@ class MultiTargetTracker:
         self.last_score = torch.zeros(0, dtype=f64)
         self.detected = torch.zeros(0, dtype=torch.bool)  # matched on this frame
         self.hist = torch.zeros((0, self._bins.n_bins if self._bins else 0), dtype=torch.float32)
-        # the last OBSERVATIONS matched detections' centres, oldest first (frame -1: none),
-        # and the heading they give (a unit vector; 0: none yet, or a move within the noise)
+        # the last OBSERVATIONS matched detections (centre x, y and height), oldest first, and
+        # their frames (-1: none); headings() reads them
         self.obs_frames = torch.full((0, OBSERVATIONS), -1, dtype=torch.int64)
-        self.obs_xy = torch.zeros((0, OBSERVATIONS, 2), dtype=f64)
-        self.heading = torch.zeros((0, 2), dtype=f64)
+        self.obs = torch.zeros((0, OBSERVATIONS, 3), dtype=f64)
         self._next_id = 1
         # overlapping pairs of confirmed targets (ids) -> (each one matched since they began)
         self._turns: dict[tuple[int, int], tuple[bool, bool]] = {}
@@ -246,8 +245,7 @@ class MultiTargetTracker:
             "detected",
             "hist",
             "obs_frames",
-            "obs_xy",
-            "heading",
+            "obs",
         ):
             setattr(self, name, getattr(self, name)[keep])
 
@@ -660,23 +658,29 @@ class MultiTargetTracker:
         return matched, overlap
 
     def _observe(self, rows: torch.Tensor, boxes: torch.Tensor) -> None:
-        """Targets ``rows`` matched detections ``boxes (R, 4)`` on this frame: their headings,
-        from the observation ``DIRECTION_LAG`` frames back (the oldest one kept from then on,
-        else the latest: Cao et al.'s ``k_previous_obs``), and their kept observations."""
-        t = self.frame_index
-        c = boxes[:, 0:2] + boxes[:, 2:4] / 2
-        f = self.obs_frames[rows]
-        recent = (f >= t - DIRECTION_LAG) & (f >= 0)
-        first = torch.where(recent.any(1), recent.long().argmax(1), f.shape[1] - 1)
-        own = torch.arange(rows.numel())
-        d = c - self.obs_xy[rows][own, first]
-        norm = d.norm(dim=-1, keepdim=True)
-        moved = (f[own, first] >= 0) & (norm[:, 0] >= self.config.detection_sigma * boxes[:, 3])
-        self.heading[rows] = torch.where(moved[:, None], d / norm.clamp_min(1e-9), 0.0)
+        """Targets ``rows`` matched (or were born from) detections ``boxes (R, 4)`` on this
+        frame: kept as their latest observations."""
+        seen = torch.cat([boxes[:, 0:2] + boxes[:, 2:4] / 2, boxes[:, 3:4]], 1)
         self.obs_frames[rows] = torch.cat(
-            [self.obs_frames[rows, 1:], torch.full((rows.numel(), 1), t)], 1
+            [self.obs_frames[rows, 1:], torch.full((rows.numel(), 1), self.frame_index)], 1
         )
-        self.obs_xy[rows] = torch.cat([self.obs_xy[rows, 1:], c[:, None]], 1)
+        self.obs[rows] = torch.cat([self.obs[rows, 1:], seen[:, None]], 1)
+
+    def headings(self) -> torch.Tensor:
+        """``(T, 2)`` unit vectors: each target's heading, from its observation
+        ``DIRECTION_LAG`` frames before its latest one (the oldest kept from then on, else the
+        one before the latest: Cao et al.'s ``k_previous_obs``) to the latest; 0 with a single
+        observation, or for a move shorter than ``detection_sigma`` of the latest height."""
+        f = self.obs_frames
+        before = f[:, :-1]
+        recent = (before >= (f[:, -1] - DIRECTION_LAG)[:, None]) & (before >= 0)
+        first = torch.where(recent.any(1), recent.long().argmax(1), before.shape[1] - 1)
+        rows = torch.arange(f.shape[0])
+        latest = self.obs[:, -1]
+        d = latest[:, 0:2] - self.obs[rows, first, 0:2]
+        norm = d.norm(dim=-1, keepdim=True)
+        moved = (f[rows, first] >= 0) & (norm[:, 0] >= self.config.detection_sigma * latest[:, 2])
+        return torch.where(moved[:, None], d / norm.clamp_min(1e-9), 0.0)
 
     def _detection_term(self, det_boxes: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
         """Log Gaussian of each particle around its target's matched detection (0 elsewhere):
@@ -927,13 +931,11 @@ class MultiTargetTracker:
         else:
             h = torch.zeros((k, self.hist.shape[1]), dtype=torch.float32)
         self.hist = torch.cat([self.hist, h])
-        frames = torch.full((k, OBSERVATIONS), -1, dtype=torch.int64)
-        frames[:, -1] = self.frame_index
-        xy = torch.zeros((k, OBSERVATIONS, 2), dtype=torch.float64)
-        xy[:, -1] = boxes[:, 0:2] + boxes[:, 2:4] / 2
-        self.obs_frames = torch.cat([self.obs_frames, frames])
-        self.obs_xy = torch.cat([self.obs_xy, xy])
-        self.heading = torch.cat([self.heading, torch.zeros((k, 2), dtype=torch.float64)])
+        self.obs_frames = torch.cat(
+            [self.obs_frames, torch.full((k, OBSERVATIONS), -1, dtype=torch.int64)]
+        )
+        self.obs = torch.cat([self.obs, torch.zeros((k, OBSERVATIONS, 3), dtype=torch.float64)])
+        self._observe(torch.arange(self.n_targets - k, self.n_targets), boxes)
 
     def _follow_camera(self, gray: torch.Tensor) -> None:
         """``camera_motion``: move every target's particles (current and previous centres) by
@@ -947,8 +949,8 @@ class MultiTargetTracker:
             self.stats["frames with a camera shift"] += 1
             self.states[..., 0:4:2] += sx
             self.states[..., 1:4:2] += sy
-            self.obs_xy[..., 0] += sx  # the observations are where the scene now shows them
-            self.obs_xy[..., 1] += sy
+            self.obs[..., 0] += sx  # the observations are where the scene now shows them
+            self.obs[..., 1] += sy
 
     def _moving(self, boxes: torch.Tensor) -> torch.Tensor:
         """``(M,)`` bool: object boxes ``(M, 4)`` whose pixels changed since ``MOTION_LAG``
@@ -1062,7 +1064,7 @@ class MultiTargetTracker:
 
         A target that drifted onto a neighbour whose detection it lost in the assignment is
         such a target; two people side by side, both detected, are never one. With
-        ``duplicate_heading``, neither are two targets whose headings (:meth:`_observe`) point
+        ``duplicate_heading``, neither are two targets whose headings (:meth:`headings`) point
         apart (more than 90 degrees): people crossing, one hidden behind the other."""
         t = self.n_targets
         out = torch.zeros(t, dtype=torch.bool)
@@ -1082,7 +1084,7 @@ class MultiTargetTracker:
         if self.config.duplicate_heading:
             # headings that point apart: two people crossing, one hidden behind the other
             # (a duplicate follows the one person the other target follows)
-            h = self.heading
+            h = self.headings()
             pair = pair & ~((h @ h.T) < 0)
         out = (pair & worse & missed[:, None]).any(1)
         turns: dict[tuple[int, int], tuple[bool, bool]] = {}
