@@ -106,3 +106,59 @@ def test_scan_vote_needs_nms():
         scan(det, frame, nms_iou=None, vote_iou=0.5)
     with pytest.raises(ConfigError, match="vote_iou must be"):
         scan(det, frame, vote_iou=1.5)
+
+
+def test_padded_frames_keep_their_dtype_and_continue_the_edges():
+    """8-bit frames stay 8-bit through the scan's padding (their colour channels then come from
+    the 8-bit table), with the values of a replicate pad of the float frame."""
+    from torch.nn import functional as F
+
+    from torchtrack.detect.scan import _pad_frames
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randint(0, 256, (2, 3, 7, 9), dtype=torch.uint8, generator=g)
+    got = _pad_frames(x, 3, 5)
+    assert got.dtype == torch.uint8 and got.shape == (2, 3, 13, 19)
+    ref = F.pad(x.float(), (5, 5, 3, 3), mode="replicate")
+    assert torch.equal(got.float(), ref)
+    assert _pad_frames(x, 0, 0) is x
+
+
+def test_box_corners_combine_as_the_weighted_sum_bit_for_bit():
+    """The scan's shortcut for one-rectangle features gives the values of the general
+    ``(v * coef).sum(-1)``, to the last bit (the cascade's splits see the same numbers)."""
+    from torchtrack.detect.scan import _box_features, _combine_corners
+
+    g = torch.Generator().manual_seed(1)
+    v = torch.rand(5000, 3, 4, dtype=torch.float64, generator=g) * 1e6
+    coef = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64).expand(3, 4)
+    assert _box_features(coef) and torch.equal(_combine_corners(v, None), (v * coef).sum(-1))
+    assert not _box_features(torch.tensor([[1.0, -1.0, -1.0, 1.0, 0.0, 0.0]]))
+    assert not _box_features(torch.tensor([[1.0, -1.0, 1.0, -1.0]]))
+    other = torch.tensor([[0.5, -2.0, 1.0, 1.0]], dtype=torch.float64)
+    assert torch.equal(_combine_corners(v[:, :1], other), (v[:, :1] * other).sum(-1))
+
+
+def test_bundled_model_scan_is_the_same_with_and_without_the_box_shortcut(data_dir, monkeypatch):
+    """The bundled pedestrian model (one-rectangle features) scans a real frame through the
+    shortcut; the general path gives the same windows and margins, bit for bit, with and
+    without the cascade."""
+    from torchtrack.detect import scan as scan_module
+    from torchtrack.io.video import open_source
+
+    with open_source(data_dir / "videos" / "pets2009_s2l1_vtest" / "vtest.avi") as src:
+        frame = next(f for _, f in src.items() if f is not None)
+    det = load_model("pedestrian")
+    kw = {"min_scale": 0.5, "max_scale": 0.9, "stride": 0.1, "pad": 0.1, "threshold": None,
+          "margin": True, "nms_iou": None}  # fmt: skip
+    runs = {}
+    for shortcut in (True, False):
+        if not shortcut:
+            monkeypatch.setattr(scan_module, "_box_features", lambda coef: False)
+        runs[shortcut] = [
+            scan_module.scan_batch(det, frame[None], cascade=c, cascade_threshold=t, **kw)[0]
+            for c, t in ((False, None), (True, None), (True, -3.0))
+        ]
+    assert runs[True][0][0].shape[0] > 5000  # every window, no cascade
+    for (wa, ma), (wb, mb) in zip(runs[True], runs[False], strict=True):
+        assert torch.equal(wa, wb) and torch.equal(ma, mb)

@@ -355,3 +355,27 @@ def test_gpu_arithmetic_of_the_channels_equals_kornias_cpu_path():
     assert torch.equal(
         C._central_differences(lum), spatial_gradient(lum, mode="diff", normalized=False)
     )
+
+
+def test_a_lattice_with_no_kept_window_computes_no_channels():
+    """``keep_windows`` is asked before the octave's channels are computed: a scale none of whose
+    windows is kept costs nothing (the ground plane's sizes skip whole octaves)."""
+    x = frames(1, 120, 160)
+    bank = small_bank()
+    ints = bank.integrals(x)
+    assert scale_lattice(ints, bank, 2.0, keep_windows=lambda b: b[:, 0] < -1) is None
+    assert ints._levels == {}
+    lat = scale_lattice(ints, bank, 2.0, keep_windows=lambda b: b[:, 0] < 20)
+    assert lat is not None and set(ints._levels) == {1}
+
+
+@pytest.mark.parametrize("names", [None, ("gray", "grad", "orient")])
+def test_channels_last_layout_holds_the_same_values(names):
+    """``memory_format=torch.channels_last`` (the layout the integral images are summed in)
+    lays the same channels out with the channel innermost."""
+    cs = ChannelSet() if names is None else ChannelSet(names=names)
+    x = frames(2, 33, 47)
+    planar = compute_channels(x, cs)
+    last = compute_channels(x, cs, memory_format=torch.channels_last)
+    assert last.shape == planar.shape and torch.equal(last, planar)
+    assert last.permute(0, 2, 3, 1).is_contiguous()

@@ -256,12 +256,15 @@ def _outside_cells(bank, pad: float) -> tuple[int, int]:
 def _pad_frames(frames: torch.Tensor, py: int, px: int) -> torch.Tensor:
     """Frames with their border rows / columns repeated ``py`` / ``px`` times on each side
     (as Dollár's channel pyramids pad: a window hanging over the edge sees the edge continued
-    rather than black)."""
+    rather than black), in their own dtype: 8-bit frames stay 8-bit, so their colour channels
+    are read from the 256-entry table (``features.channels._linear_rgb``), not recomputed."""
     if py == 0 and px == 0:
         return frames
-    import torch.nn.functional as F
-
-    return F.pad(frames.to(torch.float32), (px, px, py, py), mode="replicate")
+    h, w = frames.shape[-2:]
+    dev = frames.device
+    rows = torch.arange(-py, h + py, device=dev).clamp_(0, h - 1)
+    cols = torch.arange(-px, w + px, device=dev).clamp_(0, w - 1)
+    return frames.index_select(-2, rows).index_select(-1, cols)
 
 
 def scan_window_count(
@@ -312,6 +315,23 @@ def _lattice_capable(detector) -> bool:
     return isinstance(detector.bank, ChannelBank) and hasattr(detector.classifier, "cascade")
 
 
+def _box_features(coef: torch.Tensor) -> bool:
+    """Whether every feature of ``coef (K, P)`` (:meth:`ChannelBank.padded_points`) is one
+    rectangle: four corners weighted +1, -1, -1, +1 (the bundled models' features)."""
+    return coef.shape[1] == 4 and bool((coef == coef.new_tensor([1, -1, -1, 1])).all())
+
+
+def _combine_corners(v: torch.Tensor, coef: torch.Tensor | None) -> torch.Tensor:
+    """Corner values ``v (..., P)`` -> features ``(...)``: ``(v * coef).sum(-1)``, or with
+    ``coef = None`` (every feature one rectangle, :func:`_box_features`) ``((a - b) - c) + d``,
+    the order in which the CPU's sum adds ``v * (1, -1, -1, 1)`` (the same values), without
+    reading a coefficient per window and tree: ~25% of a cascade read's time."""
+    if coef is None:
+        a, b, c, d = v.unbind(-1)
+        return ((a - b) - c) + d
+    return (v * coef).sum(-1)
+
+
 #: lattice values (float64) scored together in one cascade call: scales are grouped up to this
 #: many, so that one call serves most of a frame's scales (the cascade's per-call work is then
 #: paid once per group instead of once per scale) while a batch of large frames stays bounded
@@ -346,6 +366,7 @@ def _scan_lattice(
     ints = bank.integrals(_pad_frames(frames, py, px))
     dev = frames.device
     pc, pi, pj, coef, lam = bank.padded_points(detector.feature_index, dev)
+    box_only = _box_features(coef)
     wh, ww = bank.window
     step = (max(1, round(stride * wh / bank.cell)), max(1, round(stride * ww / bank.cell)))
     nb = frames.shape[0]
@@ -391,7 +412,7 @@ def _scan_lattice(
                 # index_select on the flat indices: the same values as values[idx], ~2x faster
                 # on CPU than advanced indexing (the scan's hottest gather)
                 v = group[g].values.index_select(0, idx.view(-1)).view(idx.shape)
-                v = (v * coef[fg]).sum(-1)  # (A, T, P) -> (A, T)
+                v = _combine_corners(v, None if box_only else coef[fg])  # (A, T)
                 parts.append((v * factors[g][fg]).to(torch.float32))
             if len(parts) == 1:
                 return parts[0]

