@@ -54,6 +54,16 @@ panning camera, a check of the motion model and of ``camera_motion``.
 ``--set key=v,...`` holds other keys at those values for every candidate (a grid on top of a
 non-default setting).
 
+``--live N``: the own-detection runs scan every frame themselves, as ``torchtrack track``
+does (once the video's ground plane is learnt, each scan scores only the windows that fit it,
+with ``N`` processes scanning ahead), instead of reading the cache. The cache holds full scans
+whose off-plane detections the tracker drops afterwards, with boxes and probabilities rounded:
+close to the command, not the same, and identities swing with such differences. On
+2026-11-28 the two disagreed on a change (docs/multi_target.md, the explained-away term): the
+cached scans for quick screening, ``--live`` for the choice. About 1-2 minutes per PETS run.
+
+    python tools/loso_multi.py --grid duplicate_iou=0.6,0.85 --live 2 --settings own:PETS09-S2L1,own:TUD-Stadtmitte
+
 Prints a markdown table: HOTA mean ± sd over seeds (MOTA and IDF1 means beside), then the
 leave-one-sequence-out line. Nothing is timed.
 """
@@ -338,10 +348,22 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
     return read_mot(path, 1.0, seq.n_frames, kind="det")  # the same rounding as a cache hit
 
 
-def run_one(seq: MotSequence, dets: MotRows, params: dict, seed: int, own: bool) -> dict:
+def run_one(
+    seq: MotSequence,
+    dets: MotRows | None,
+    params: dict,
+    seed: int,
+    own: bool,
+    scan_workers: int = 0,
+) -> dict:
+    """One tracked run, scored. ``dets`` None: the tracker scans every frame itself, as
+    ``torchtrack track`` does (``scan_workers`` processes scanning ahead: the same tracks)."""
     mt = MultiTargetTracker(generator=torch.Generator().manual_seed(seed), **params)
     with seq.open() as src:  # cached scans go in as the tracker's own scans
-        rows = track_sequence(mt, src, dets, max_frames=seq.n_frames, as_scans=own)
+        rows = track_sequence(
+            mt, src, dets, max_frames=seq.n_frames, as_scans=own and dets is not None,
+            scan_workers=scan_workers if dets is None else 0,
+        )  # fmt: skip
     m = score_mot(seq.gt, rows, seq.n_frames, name=seq.name)
     return {"hota": 100 * m.hota, "mota": 100 * m.mota, "idf1": 100 * m.idf1}
 
@@ -391,6 +413,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--cache", type=Path, default=REPO / "runs" / "loso_multi")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--live",
+        type=int,
+        metavar="WORKERS",
+        help="own detections scanned live by every run, as `torchtrack track` scans (the "
+        "ground plane shapes each scan), with this many scan-ahead processes, instead of the "
+        "cached scans: slower, and what the command gives",
+    )
     ap.add_argument(
         "--rescale",
         type=float,
@@ -448,7 +478,7 @@ def main(argv: list[str] | None = None) -> int:
     for kind, name in settings:
         seq = seqs[name]
         base = None
-        if kind == "own":
+        if kind == "own" and args.live is None:
             base = own_detections(seq, args.cache, fixed)
         elif kind == "public":
             d = seq.detections()
@@ -456,11 +486,14 @@ def main(argv: list[str] | None = None) -> int:
                 d, conf=score_probabilities(torch.from_numpy(d.conf)).numpy()
             )
         for v in values:
-            if kind == "own" and key in SCAN_KEYS:  # the scan itself changes with the value
-                base = own_detections(seq, args.cache, {**fixed, key: v})
+            if kind == "own" and key in SCAN_KEYS and args.live is None:
+                base = own_detections(seq, args.cache, {**fixed, key: v})  # the scan changes
             for seed in seeds:
                 dets = gt_as_detections(seq.gt, seed) if kind == "gt" else base
-                r = run_one(seq, dets, {**fixed, key: v}, seed, own=kind == "own")
+                r = run_one(
+                    seq, dets, {**fixed, key: v}, seed, own=kind == "own",
+                    scan_workers=args.live or 0,
+                )  # fmt: skip
                 res.setdefault((kind, name, v), []).append(r)
                 print(f"{kind}:{name} {key}={v} seed {seed}: HOTA {r['hota']:.1f} "
                       f"MOTA {r['mota']:.1f} IDF1 {r['idf1']:.1f}", file=sys.stderr, flush=True)  # fmt: skip

@@ -91,3 +91,34 @@ def test_degrade_gain_follows_the_sine_and_leaves_the_default_unchanged():
 def test_degrade_refuses_a_bad_gain(spec, tmp_path):
     with pytest.raises(SystemExit, match="--degrade: expected"):
         loso.degraded(None, spec, tmp_path)
+
+
+def test_live_runs_score_what_the_command_writes(data_dir, tmp_path, one_thread, trackeval):
+    """``--live``: the own-detection run scans every frame itself, as ``torchtrack track`` does;
+    on the first 30 TUD-Stadtmitte frames it scores exactly what the command's MOT file scores
+    (the cached scans are close to the command, not the same: docs/multi_target.md)."""
+    import dataclasses
+
+    import numpy as np
+
+    from torchtrack.cli import main
+    from torchtrack.eval.mot import score_mot
+    from torchtrack.io.mot import read_mot
+
+    seq = loso.load(data_dir, "TUD-Stadtmitte")
+    n = 30
+    keep = seq.gt.frames < n
+    gt = dataclasses.replace(seq.gt, **{f.name: getattr(seq.gt, f.name)[keep]
+                                        for f in dataclasses.fields(seq.gt)
+                                        if isinstance(getattr(seq.gt, f.name), np.ndarray)})  # fmt: skip
+    short = dataclasses.replace(seq, gt=gt, n_frames=n)
+    live = loso.run_one(short, None, {}, seed=1, own=True, scan_workers=0)
+    out = tmp_path / "tud.txt"
+    argv = ["track", str(data_dir / "mot" / "TUD-Stadtmitte" / "img1"), "--seed", "1",
+            "--max-frames", str(n), "--scan-workers", "0", "--no-progress", "-q", "--mot", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    m = score_mot(gt, read_mot(out, 1.0, n), n)
+    assert live["hota"] == pytest.approx(100 * m.hota) and live["mota"] == pytest.approx(
+        100 * m.mota
+    )
+    assert live["hota"] > 20  # people were found and followed
