@@ -541,12 +541,10 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
                 f"--det-calibration {args.det_calibration!r} is not a calibration JSON "
                 f"written by `torchtrack calibrate --json` ({exc})"
             ) from None
-        from torchtrack.detect.model_checks import LIMITS
+        from torchtrack.detect.model_checks import LIMITS, platt_slope_ok
 
         a, cap = getattr(cal, "a_", None), LIMITS.coefficient
-        if a is not None and not -cap <= a < 0:
-            # the rule of model files (calibration.a in [-cap, 0), not 0): a detection's
-            # probability rises with its score
+        if a is not None and not platt_slope_ok(a):  # the rule of model files
             raise ConfigError(
                 f"--det-calibration {args.det_calibration!r}: the Platt slope A = {a:.4g} must "
                 f"be in [{-cap:g}, 0): with A >= 0 the probability falls (or stays flat) as the "

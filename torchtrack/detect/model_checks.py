@@ -391,12 +391,18 @@ def _check_svm(c: dict, entries: dict[str, TensorEntry], k: int, bound: float):
     return values
 
 
+def platt_slope_ok(a: float) -> bool:
+    """Whether ``a`` can be a detector's Platt slope: ``p = 1 / (1 + exp(a m + b))`` rises with
+    the margin only for ``a < 0``, and ``|a|`` stays within ``LIMITS.coefficient`` (the rule of
+    model files and of ``torchtrack track --det-calibration``)."""
+    return -LIMITS.coefficient <= a < 0
+
+
 def _check_platt(c: dict, entries: dict[str, TensorEntry]):
     _mapping(c, "calibration", {"kind", "a", "b"})
     cap = LIMITS.coefficient
-    # p = 1 / (1 + exp(a m + b)): a detector's probability rises with its margin, so a < 0.
     _num_in(c["a"], "calibration.a (the Platt slope, negative)", -cap, 0.0)
-    if c["a"] == 0:
+    if not platt_slope_ok(c["a"]):  # in range, so 0
         raise ModelFormatError("calibration.a is 0: the probability would ignore the margin")
     _num_in(c["b"], "calibration.b", -cap, cap)
     _no_extra(entries, "calibration.", set())
