@@ -4,7 +4,13 @@ import tempfile
 import pytest
 
 from torchtrack.errors import ConfigError
-from torchtrack.io.atomic import atomic_path, atomic_write, write_text_atomic
+from torchtrack.io.atomic import (
+    atomic_path,
+    atomic_write,
+    check_regular_destination,
+    uninterrupted,
+    write_text_atomic,
+)
 
 
 def test_atomic_write_replaces(tmp_path):
@@ -57,3 +63,29 @@ def test_file_system_refusals_are_config_errors_naming_the_file(tmp_path, monkey
     with pytest.raises(OSError, match="reading an input"), atomic_path(p):
         raise OSError("reading an input")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_pipe_or_device_is_never_replaced(tmp_path):
+    """A write by rename onto a named pipe (or /dev/null) would swap it for a plain file."""
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    with pytest.raises(ConfigError, match="exists and is a named pipe"):
+        write_text_atomic(pipe, "x")
+    with pytest.raises(ConfigError, match="is a device"):
+        check_regular_destination("/dev/null")
+    import stat
+
+    assert stat.S_ISFIFO(os.stat(pipe).st_mode)
+    assert [f.name for f in tmp_path.iterdir()] == ["pipe"]  # no temporary file left
+    check_regular_destination(tmp_path / "new.txt")  # nothing there: fine
+    check_regular_destination(tmp_path)  # a folder: the callers' own message
+
+
+def test_uninterrupted_drops_signals_and_restores_the_handlers():
+    import signal
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with uninterrupted():
+        os.kill(os.getpid(), signal.SIGINT)  # ignored: no KeyboardInterrupt here
+        os.kill(os.getpid(), signal.SIGTERM)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

@@ -182,7 +182,7 @@ def hog_detections(spec: SeqSpec, frames, cache: Path) -> MotRows:
         if t % 100 == 0:
             print(f"  HOG {spec.name}: frame {t}/{len(frames)}", file=sys.stderr)
     rows = MotRows.from_arrays(f_, np.full(len(f_), -1), np.concatenate(b_), np.concatenate(c_))
-    write_mot(path, rows)
+    write_mot(path, rows, kind="det")
     print(f"  HOG {spec.name}: {time.perf_counter() - t0:.0f} s, cached {path}", file=sys.stderr)
     return read_mot(path, n_frames=spec.seq.n_frames, kind="det")
 

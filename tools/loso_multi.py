@@ -270,12 +270,15 @@ def _copy(
                 n += 1
                 cv2.imwrite(str(out / "img1" / f"{n:06d}.png"), img[..., ::-1])
         h, w = img.shape[:2]
-        write_mot(out / "gt" / "gt.txt", _copied_rows(seq.gt, box_scale, every, box_shift))
+        write_mot(
+            out / "gt" / "gt.txt", _copied_rows(seq.gt, box_scale, every, box_shift), kind="gt"
+        )
         if seq.det_path is not None:
             (out / "det").mkdir(exist_ok=True)
             write_mot(
                 out / "det" / "det.txt",
                 _copied_rows(seq.detections(), box_scale, every, box_shift),
+                kind="det",
             )
         rate = (seq.frame_rate or 25) / every
         (out / "seqinfo.ini").write_text(
@@ -343,7 +346,7 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
         np.concatenate(p_),
     )  # fmt: skip
     cache.mkdir(parents=True, exist_ok=True)
-    write_mot(path, rows)
+    write_mot(path, rows, kind="det")
     print(f"scanned {seq.name} in {time.perf_counter() - t0:.0f} s -> {path}", file=sys.stderr)
     return read_mot(path, 1.0, seq.n_frames, kind="det")  # the same rounding as a cache hit
 

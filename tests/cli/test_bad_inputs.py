@@ -232,10 +232,31 @@ def corpus(tmp_path_factory, forge_model):
     )
     (c / "det_bad.txt").write_text("1,-1,10,15,14,20,0.9,-1,-1,-1\n2,-1,ten,15,14,20,0.9\n")
     (c / "det_zero.txt").write_text("1,-1,10,15,0,20,0.9,-1,-1,-1\n")
+    (c / "det_tall.txt").write_text(  # boxes far taller than the frames (wrong units)
+        "".join(f"{t + 1},-1,{11 + 2 * t},15,14,20000,0.9,-1,-1,-1\n" for t in range(6))
+    )
+    (c / "det_twice.txt").write_text(  # every row twice: one person, one target
+        "".join(2 * f"{t + 1},-1,{11 + 2 * t},15,14,20,0.9,-1,-1,-1\n" for t in range(6))
+    )
     (c / "res.txt").write_text(
         "".join(f"{t + 1},1,{11 + 2 * t},15,14,20,1,-1,-1,-1\n" for t in range(6))
     )
     (c / "res_bad.txt").write_text("1,1,10,15,14,20,1,-1,-1,-1\n1,1,12,15,14,20,1,-1,-1,-1\n")
+    (c / "res_hugeid.txt").write_text("1,10000000000000000000,10,15,14,20,1,-1,-1,-1\n")
+    # seqinfo.ini variants of the toy sequence (ground truth only: no frames needed to score)
+    ini = (mot / "seqinfo.ini").read_text()
+    for name, text in (
+        ("ESCAPE", ini.replace("name=TOY-01", "name=../escape")),
+        ("PCT", ini.replace("name=TOY-01", "name=a%b")),
+        ("LONG", ini.replace("seqLength=6", "seqLength=1000000000000")),
+    ):
+        (c / "mot" / name / "gt").mkdir(parents=True)
+        (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
+        (c / "mot" / name / "seqinfo.ini").write_text(text)
+    (c / "mot" / "BIN" / "gt").mkdir(parents=True)
+    (c / "mot" / "BIN" / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
+    (c / "mot" / "BIN" / "seqinfo.ini").write_bytes(b"\xb3\xff\x00[Sequence]")
+    os.mkfifo(c / "pipe")  # an output there would replace the pipe with a plain file
     return c
 
 
@@ -951,6 +972,18 @@ CASES += [
         "needs -o/--out DIR",
     ),
     A(
+        "mot-track-detections-mostly-outside",
+        f"{MT} --detections {{c}}/det_tall.txt --mot {{o}}/m.txt",
+        "no target was started from --detections",
+        ("m.txt",),
+    ),
+    A(
+        "mot-track-detections-twice",
+        f"{MT} --detections {{c}}/det_twice.txt --mot {{o}}/m.txt",
+        "1 target",
+        ("m.txt",),
+    ),
+    A(
         "mot-track-ok",
         f"{MT} --detections {{c}}/det.txt --mot {{o}}/m.txt -o {{o}}/b.csv",
         "wrote",
@@ -966,6 +999,67 @@ CASES += [
         "eval-mot-trackers-out-file",
         "eval --mot {c}/mot/TOY-01 --trackers multi -o {c}/afile",
         "is an existing file",
+    ),
+    # seqinfo.ini's name is a file name (results are <name>.txt): never a path out of a folder
+    E(
+        "eval-mot-name-escapes",
+        "eval --mot {c}/mot/ESCAPE --results {c}/res.txt -o {o}/r",
+        "name='../escape' must be one plain file name",
+    ),
+    A(
+        "eval-mot-name-percent",
+        "eval --mot {c}/mot/PCT --results {c}/res.txt -o {o}/r",
+        "a%b",
+        ("r/results.json", "r/results.md"),
+    ),
+    E("eval-mot-seqinfo-binary", "eval --mot {c}/mot/BIN --results {c}/res.txt", "not a text file"),
+    E(
+        "eval-mot-seqlength-huge",
+        "eval --mot {c}/mot/LONG --results {c}/res.txt",
+        "seqLength=1000000000000 is more than 10000000 frames",
+    ),
+    E(
+        "eval-mot-results-id-huge",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res_hugeid.txt -o {o}/r",
+        "id 1e[+]19 is out of range",
+    ),
+    # outputs onto a named pipe (or a device such as /dev/null): refused, the pipe stays
+    E("detect-out-pipe", "detect {c}/toy.safetensors {c}/frames -q -o {c}/pipe", "is a named pipe"),
+    E(
+        "track-mot-pipe",
+        f"{MT} --detections {{c}}/det.txt --mot {{c}}/pipe",
+        "--mot .* exists and is a named pipe",
+    ),
+    # values that would hang, overflow or exhaust memory
+    E(
+        "detect-scale-step-near-1",
+        "detect {c}/toy.safetensors {c}/frames -q --scale-step 1.0000001 -o {o}/d.jsonl",
+        "--scale-step must be a finite number >= 1.01",
+    ),
+    E(
+        "track-multi-scale-step-near-1",
+        f"{MT}:scan_scale_step=1.0000001 -o {{o}}/b.csv",
+        "scan_scale_step must be a finite number >= 1.01",
+    ),
+    E("track-multi-int-huge", f"{MT}:max_lost=99999999999999999999 -o {{o}}/b.csv", "within"),
+    E("track-multi-sigma-huge", f"{MT}:detection_sigma=1e308 -o {{o}}/b.csv", "at most 1"),
+    E(
+        "track-multi-particles-huge",
+        f"{MT}:n_particles=1000000000 -o {{o}}/b.csv",
+        "particles in all",
+    ),
+    E("track-multi-max-scale-nan", f"{MT}:scan_max_scale=nan -o {{o}}/b.csv", "finite"),
+    E("track-multi-noise-scale-inf", f"{MT}:max_noise_scale=inf -o {{o}}/b.csv", "finite"),
+    E("track-threads-huge", f"{T} {HB} --threads 99999999999999999999", "4 per CPU core"),
+    E(
+        "track-multi-dynamics-binary",
+        f"{MT}:dynamics={{c}}/binary.toml -o {{o}}/b.csv",
+        "not a text",
+    ),
+    E(
+        "track-multi-dynamics-folder",
+        f"{MT}:dynamics={{c}}/emptydir -o {{o}}/b.csv",
+        "is a folder",
     ),
 ]
 
@@ -1451,3 +1545,13 @@ def test_warnings_print_as_one_line_like_errors():
         text = warnings.formatwarning("sequence X: 240 rows", UserWarning, "/a/b/io.py", 413)
     assert text == "torchtrack eval: warning: sequence X: 240 rows\n"
     assert warnings.formatwarning is before
+
+
+def test_detections_mostly_outside_the_frames_warn(corpus, tmp_path):
+    """Boxes that only partly fit the frames (another video's, or in other units) are tracked
+    with a warning that says so, not silently turned into empty tracks."""
+    argv = _fill(
+        tuple(_split(f"{MT} --detections {{c}}/det_tall.txt --mot {{o}}/m.txt")), corpus, tmp_path
+    )
+    with pytest.warns(UserWarning, match="6 of the 6 boxes .* lie mostly outside the 64x48 frames"):
+        assert main(argv) == 0

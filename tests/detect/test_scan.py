@@ -162,3 +162,14 @@ def test_bundled_model_scan_is_the_same_with_and_without_the_box_shortcut(data_d
     assert runs[True][0][0].shape[0] > 5000  # every window, no cascade
     for (wa, ma), (wb, mb) in zip(runs[True], runs[False], strict=True):
         assert torch.equal(wa, wb) and torch.equal(ma, mb)
+
+
+def test_a_scale_step_just_above_one_is_refused():
+    """1.0000001 would ask for millions of scales: a scan that never ends."""
+    from torchtrack.detect.scan import scan_scales
+
+    with pytest.raises(ConfigError, match=r">= 1\.01"):
+        scan_scales((480, 640), (128, 64), scale_step=1.0000001, min_scale=0.3)
+    with pytest.raises(ConfigError, match=r">= 1\.01"):
+        scan_scales((480, 640), (128, 64), scale_step=float("inf"))
+    assert len(scan_scales((480, 640), (128, 64), scale_step=1.01, min_scale=0.3)) < 300

@@ -97,3 +97,11 @@ def test_ray_not_installed_names_the_extra(monkeypatch):
     with pytest.raises(BackendError, match="needs Ray, which is not installed"):
         connect_ray()
     check_backend(Backend())  # the local backend does not need it
+
+
+def test_jobs_are_bounded():
+    from torchtrack.errors import ConfigError
+    from torchtrack.eval.backends import MAX_JOBS, Backend
+
+    with pytest.raises(ConfigError, match=f"--jobs must be at most {MAX_JOBS}"):
+        Backend("local", jobs=10**20)

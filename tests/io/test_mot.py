@@ -127,6 +127,29 @@ def test_from_arrays_shape_errors():
         MotRows.from_arrays([0, 1], [1], np.zeros((2, 4)))
     with pytest.raises(ShapeError, match="boxes must have shape"):
         MotRows.from_arrays([0, 1], [1, 2], np.zeros((3, 4)))
+    with pytest.raises(ShapeError, match="boxes must have shape"):  # 2 values: not a box
+        MotRows.from_arrays([0], [1], [5, 1])
+    with pytest.raises(ShapeError, match="boxes must have shape"):  # (2M, 2): not M boxes
+        MotRows.from_arrays([0, 1], [1, 2], np.zeros((4, 2)))
+    assert MotRows.from_arrays([0], [1], [5, 1, 2, 3]).boxes.shape == (1, 4)
+
+
+def test_write_refuses_what_read_refuses(tmp_path):
+    """A results file write_mot writes, read_mot and eval read back."""
+    for ids, boxes, match in (
+        ([-1], [[0, 0, 5, 5]], "identities must be >= 0"),
+        ([1], [[0, 0, 0, 5]], "widths and heights must be > 0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            write_mot(tmp_path / "x.txt", MotRows.from_arrays([0], ids, boxes))
+    twice = MotRows.from_arrays([0, 0], [3, 3], np.ones((2, 4)))
+    with pytest.raises(ValueError, match="id 3 appears twice in frame 1"):
+        write_mot(tmp_path / "x.txt", twice)
+    write_mot(
+        tmp_path / "d.txt", MotRows.from_arrays([0, 0], [-1, -1], np.ones((2, 4))), kind="det"
+    )
+    assert len(read_mot(tmp_path / "d.txt", kind="det")) == 2
+    assert not (tmp_path / "x.txt").exists()
 
 
 def test_write_rejects_nan(tmp_path):
@@ -160,6 +183,10 @@ def test_write_rejects_nan(tmp_path):
             "results",
             r"line 3: id 4 appears twice in frame 1 \(also on line 1\)",
         ),
+        # beyond int64 these used to wrap to -2^63 (and get past the id >= 0 check)
+        ("1,1e19,1,1,5,5,1\n", "results", r"line 1: id 1e\+19 is out of range"),
+        ("1,1e19,1,1,5,5,1\n", "gt", r"line 1: id 1e\+19 is out of range"),
+        ("1e19,1,1,1,5,5,1\n", "results", r"line 1: frame 1e\+19 is beyond any sequence"),
     ],
 )
 def test_malformed_rows(tmp_path, text, kind, match):
@@ -247,6 +274,20 @@ def test_seqinfo_errors(tmp_path):
         read_seqinfo(_write(tmp_path / "d.ini", "[Sequence]\nseqLength=0\n"))
     with pytest.raises(MotFormatError, match="not a valid ini"):
         read_seqinfo(_write(tmp_path / "e.ini", "seqLength=3\n"))
+    # the name and imDir are file names beside the sequence, never paths out of its folders
+    for key, value in (("name", "../x"), ("name", ""), ("name", "a/b"), ("imDir", "..")):
+        with pytest.raises(MotFormatError, match=f"{key}=.* must be one plain file name"):
+            read_seqinfo(_write(tmp_path / "f.ini", f"[Sequence]\nseqLength=3\n{key}={value}\n"))
+    with pytest.raises(MotFormatError, match="is more than 10000000 frames"):
+        read_seqinfo(_write(tmp_path / "g.ini", "[Sequence]\nseqLength=1000000000000\n"))
+    (tmp_path / "h.ini").write_bytes(b"\xb3\xff[Sequence]\n")
+    with pytest.raises(MotFormatError, match="not a text file"):
+        read_seqinfo(tmp_path / "h.ini")
+    # '%' is a character of the value, not ConfigParser's interpolation
+    assert (
+        read_seqinfo(_write(tmp_path / "i.ini", "[Sequence]\nseqLength=3\nname=a%b\n")).name
+        == "a%b"
+    )
 
 
 def _video(path, n, size=(32, 24)):

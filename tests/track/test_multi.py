@@ -505,6 +505,16 @@ def test_reset_forgets_outside_detections():
         ({"detection_proposal": 1.5}, "detection_proposal"),
         ({"birth_velocity": -0.01}, "birth_velocity"),
         ({"birth_velocity": float("inf")}, "birth_velocity"),
+        # values that would hang, overflow or exhaust memory
+        ({"scan_scale_step": 1.0000001}, "scan_scale_step must be a finite number >= 1.01"),
+        ({"scan_max_scale": float("nan")}, "scan_max_scale must be a finite number"),
+        ({"max_noise_scale": float("inf")}, "max_noise_scale must be a finite number"),
+        ({"max_lost": 10**20}, "'max_lost' must be an integer within"),
+        ({"detection_sigma": 1e308}, "detection_sigma is a fraction of the box height"),
+        ({"birth_velocity": 1e308}, "birth_velocity is a fraction of the box height"),
+        ({"motion_noise": 1e308}, "motion_noise"),
+        ({"w_overlap": 1e308, "w_appearance": 1e308}, "add up to a finite number"),
+        ({"n_particles": 10**9}, "particles in all"),
     ],
 )
 def test_bad_config(kw, match):
@@ -547,13 +557,34 @@ def test_bad_frames_and_detections():
         mt.update(blank(200, 320))
     with pytest.raises(ShapeError, match="probabilities"):
         mt.update(blank(), (people(1), torch.ones(2)))
-    # non-finite or empty boxes are dropped, not tracked
-    bad = torch.tensor([[float("nan"), 0, 10, 10], [5.0, 5.0, 0.0, 10.0]], dtype=torch.float64)
-    mt.update(blank(), (bad, torch.ones(2)))
+    # malformed detections are an error naming the detection, never dropped or reshaped
+    for boxes, p, match in (
+        ([[float("nan"), 0, 10, 10]], [1.0], "detection 0: box .* must be finite"),
+        ([[5.0, 5.0, 10.0, 10.0], [5.0, 5.0, 0.0, 10.0]], [1.0, 1.0], "detection 1: box"),
+        ([[5.0, 5.0, 10.0, 10.0]], [5.0], r"probability 5.0 is not in \[0, 1\]"),
+        ([[5.0, 5.0, 10.0, 10.0]], [float("nan")], "probability nan"),
+        (torch.zeros((2, 5)), torch.ones(2), r"boxes \(M, 4\)"),
+        (torch.ones((4, 2)), torch.ones(2), r"boxes \(M, 4\)"),  # not 2 boxes
+    ):
+        with pytest.raises(ShapeError, match=match):
+            mt.update(blank(), (torch.tensor(boxes, dtype=torch.float64), torch.tensor(p)))
     # a frame no scan window fits (44.8 px at scan_min_scale 0.35): an error, not empty tracks
     with pytest.raises(ShapeError, match=r"smaller than the detector window .* scan_min_scale"):
         make().update(blank(40, 320))
     assert len(make().update(blank(40, 320), (people(0)[:0], torch.ones(0)))) == 0  # no scan
+
+
+def test_the_same_detection_twice_starts_one_target():
+    """A detections file with every row twice (or another detector's unsuppressed windows):
+    one target per person, not two on the same boxes."""
+    once, twice = make(), make()
+    for t in range(6):
+        b = people(t)
+        a = once.update(blank(), (b, torch.ones(3)))
+        d = twice.update(blank(), (torch.cat([b, b + 0.5]), torch.ones(6)))
+    assert once.n_targets == twice.n_targets == 3
+    assert a.ids.tolist() == d.ids.tolist() == [1, 2, 3]
+    assert twice.stats["births merged: the same detection twice"] == 3
 
 
 def test_shipped_config_file_is_the_defaults():

@@ -98,7 +98,8 @@ def show_progress(args: argparse.Namespace) -> bool:
 
 
 def apply_threads(args: argparse.Namespace) -> None:
-    """Set torch's thread count from ``--threads`` (:class:`ConfigError` below 1)."""
+    """Set torch's thread count from ``--threads`` (:class:`ConfigError` below 1 or above 4
+    per CPU core, as ``--scan-workers``)."""
     from torchtrack.errors import ConfigError
 
     n = getattr(args, "threads", None)
@@ -106,6 +107,14 @@ def apply_threads(args: argparse.Namespace) -> None:
         return
     if n < 1:
         raise ConfigError(f"--threads must be >= 1, got {n}")
+    import os
+
+    cores = os.cpu_count() or 1
+    if n > 4 * cores:
+        raise ConfigError(
+            f"--threads {n} is more than 4 per CPU core ({cores} here): threads beyond the "
+            "cores only take turns"
+        )
     import torch
 
     torch.set_num_threads(n)
@@ -188,9 +197,9 @@ def check_scan_workers(n: int | None) -> None:
 
 # ------------------------------------------------------------------------------ output paths
 def check_output_file(path: str | None, option: str, suffixes: tuple[str, ...] = ()):
-    """Check an output file path before any work: not empty, not an existing folder, its
-    folder exists and a file can be created there (tried), and (given ``suffixes``) one of
-    those extensions.
+    """Check an output file path before any work: not empty, not an existing folder nor an
+    existing device, pipe or socket (the output would replace it), its folder exists and a
+    file can be created there (tried), and (given ``suffixes``) one of those extensions.
 
     Returns:
         the path as a :class:`~pathlib.Path` (``None`` for ``None``).
@@ -214,6 +223,9 @@ def check_output_file(path: str | None, option: str, suffixes: tuple[str, ...] =
         raise ConfigError(
             f"{option} {str(p)!r} must end in {' or '.join(suffixes)}, got {p.suffix or 'none'}"
         )
+    from torchtrack.io.atomic import check_regular_destination
+
+    check_regular_destination(p, f"{option} {str(p)!r}")
     _check_parent(p, option)
     if p.exists() and not os.access(p, os.W_OK):
         raise ConfigError(f"{option} {str(p)!r} exists and is not writable")

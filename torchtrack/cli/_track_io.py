@@ -66,6 +66,13 @@ class RowWriter:
         self._f.flush()
         os.fsync(self._f.fileno())
         self._f.close()
+        from torchtrack.io.atomic import check_regular_destination
+
+        try:  # checked before the run; something may have taken its place since
+            check_regular_destination(self.path)
+        except Exception:
+            self.discard()
+            raise
         os.replace(self.part, self.path)
 
     def discard(self) -> None:

@@ -236,8 +236,12 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--max-scale {args.max_scale} is below --min-scale {args.min_scale}")
     if not 0.0 < args.stride <= 1.0:
         raise ConfigError(f"--stride is a fraction of the window in (0, 1], got {args.stride}")
-    if not 1.0 < args.scale_step < float("inf"):
-        raise ConfigError(f"--scale-step must be a finite number > 1, got {args.scale_step}")
+    from torchtrack.detect.scan import MIN_SCALE_STEP
+
+    if not MIN_SCALE_STEP <= args.scale_step < float("inf"):
+        raise ConfigError(
+            f"--scale-step must be a finite number >= {MIN_SCALE_STEP:g}, got {args.scale_step}"
+        )
     if not 0.0 < args.nms_iou <= 1.0:
         raise ConfigError(f"--nms-iou must be in (0, 1], got {args.nms_iou}")
     if not 0.0 <= args.pad <= 0.5:
@@ -245,8 +249,11 @@ def _check_args(args: argparse.Namespace) -> None:
     if not 0.0 <= args.vote_iou <= 1.0:
         raise ConfigError(f"--vote-iou must be in [0, 1] (0: off), got {args.vote_iou}")
     if args.cascade is not None:
-        if not math.isfinite(args.cascade):
-            raise ConfigError(f"--cascade is a running margin, a finite number, got {args.cascade}")
+        if not (math.isfinite(args.cascade) and args.cascade <= 0):
+            raise ConfigError(
+                f"--cascade is a running margin <= 0 (a looser cascade than the model's; 0: the "
+                f"model's own), got {args.cascade}"
+            )
         if args.no_cascade:
             raise ConfigError(
                 "--cascade loosens the soft cascade and --no-cascade turns it off: give one"
@@ -417,7 +424,7 @@ def run(args: argparse.Namespace) -> int:
 
     from torchtrack.cli._common import apply_threads, show_progress
     from torchtrack.detect.bundled import load_model
-    from torchtrack.errors import DataError, NotFittedError, ShapeError
+    from torchtrack.errors import ConfigError, DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
     from torchtrack.track.scan_ahead import Ahead, default_scan_workers
 
@@ -452,7 +459,12 @@ def run(args: argparse.Namespace) -> int:
             try:
                 return det.scan(frames, **scan_kw)
             except ShapeError as exc:  # returned, so that the batches after it go on
-                if args.min_scale is not None:
+                if (
+                    args.min_scale is not None
+                    or min(frames.shape[-2] / det.window[0], frames.shape[-1] / det.window[1])
+                    * det.window[0]
+                    < 8
+                ):  # no useful --min-height to suggest
                     return exc
                 # the smallest scale came from --min-height: say it in the option's terms
                 (wh, ww), (fh, fw) = det.window, frames.shape[-2:]
@@ -506,7 +518,13 @@ def run(args: argparse.Namespace) -> int:
                             "boxes": [[round(v, 2) for v in b] for b in boxes.tolist()],
                             "probabilities": [round(p, 6) for p in probs.tolist()],
                         }
-                        out.write(json.dumps(rec) + "\n")
+                        try:
+                            out.write(json.dumps(rec) + "\n")
+                        except OSError as exc:  # stdout on a full disk, a closed pipe
+                            raise ConfigError(
+                                f"cannot write the detections to "
+                                f"{args.out or 'standard output'}: {exc.strerror or exc}"
+                            ) from None
                         n_frames += 1
                         n_det += len(rec["boxes"])
                         if args.annotate or args.video:

@@ -390,14 +390,23 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
             dataclasses.replace(s, n_frames=min(n, s.n_frames), gt=s.gt.select(s.gt.frames < n))
             for s in seqs
         ]
+    # everything that can be wrong is found before the first sequence is tracked and written:
+    # every tracker's settings, every sequence's detections file
+    from torchtrack.track.config import MultiTrackerConfig, resolve_tracker_config
+
+    for spec, params in specs:
+        p = dict(params)
+        resolve_tracker_config(MultiTrackerConfig, p.pop("config", None), p, where=spec)
+    public = {}
+    if args.public_detections:
+        for seq in seqs:
+            d = full[seq.name].detections()
+            d = d.select(d.frames < seq.n_frames)
+            public[seq.name] = dataclasses.replace(d, conf=score_probabilities(
+                torch.from_numpy(d.conf)).numpy())  # fmt: skip
     for (spec, params), label in zip(specs, labels, strict=True):
         for seq in seqs:
-            dets = None
-            if args.public_detections:
-                d = full[seq.name].detections()
-                d = d.select(d.frames < seq.n_frames)
-                dets = dataclasses.replace(d, conf=score_probabilities(
-                    torch.from_numpy(d.conf)).numpy())  # fmt: skip
+            dets = public.get(seq.name)
             mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
             with seq.open() as src:
                 rows = track_sequence(

@@ -354,16 +354,18 @@ class _Outputs:
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         from torchtrack.errors import ShapeError
+        from torchtrack.io.atomic import uninterrupted
 
         failed = exc_type is not None and not issubclass(exc_type, KeyboardInterrupt)
-        self.progress.close()
-        keep = self.tracked > 0 and not failed
-        for w in (w for w in self.writers if w is not None):
-            if keep:
-                w.close()
-            else:
-                w.discard()
-        self.src.close()
+        with uninterrupted():  # a second Ctrl-C must not leave .part files behind
+            self.progress.close()
+            keep = self.tracked > 0 and not failed
+            for w in (w for w in self.writers if w is not None):
+                if keep:
+                    w.close()
+                else:
+                    w.discard()
+            self.src.close()
         if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
             self.status = _interrupted(exc)  # SIGINT, or SIGTERM (torchtrack.cli.Terminated)
             return True
@@ -635,10 +637,12 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     if n_frames == 0 and status == 0:
         raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
     if not seen and status == 0:
-        print(
-            f"no {mt.detector.name!r} target was found in {source} (empty tracks written)",
-            file=sys.stderr,
+        what = (
+            f"no target was started from --detections {args.detections!r}"
+            if getattr(args, "detections", None)
+            else f"no {mt.detector.name!r} target was found"
         )
+        print(f"{what} in {source} (empty tracks written)", file=sys.stderr)
     t_track += ahead.seconds  # the scans, or the wait for them
     return _summary(
         source,
@@ -669,11 +673,20 @@ def _check_detections_fit(path: str, boxes, frame) -> None:
     from torchtrack.boxes import inside_fraction
 
     fh, fw = (int(v) for v in frame.shape[-2:])
-    n = int((inside_fraction(boxes, (fh, fw)) == 0).sum())
+    inside = inside_fraction(boxes, (fh, fw))
+    n = int((inside == 0).sum())
     if n > OFF_FRAME_SHARE * len(boxes):
         warnings.warn(
             f"{n} of the {len(boxes)} boxes of --detections {path!r} lie wholly outside the "
             f"{fw}x{fh} frames: detections of another video, or at another scale?",
+            UserWarning,
+            stacklevel=2,
+        )
+    elif int((inside < 0.5).sum()) > OFF_FRAME_SHARE * len(boxes):
+        warnings.warn(
+            f"{int((inside < 0.5).sum())} of the {len(boxes)} boxes of --detections {path!r} "
+            f"lie mostly outside the {fw}x{fh} frames (less than half of each inside): "
+            "detections of another video, or at another scale?",
             UserWarning,
             stacklevel=2,
         )

@@ -405,8 +405,13 @@ class TrainConfig:
         m = self.mining
         if m.rounds < 0 or m.per_round < 1:
             raise ConfigError("mining.rounds must be >= 0 and mining.per_round >= 1")
-        if not m.scale_step > 1.0:
-            raise ConfigError(f"mining.scale_step must be > 1, got {m.scale_step}")
+        from torchtrack.detect.scan import MIN_SCALE_STEP
+
+        if not MIN_SCALE_STEP <= m.scale_step < math.inf:
+            raise ConfigError(
+                f"mining.scale_step must be a finite number >= {MIN_SCALE_STEP:g}, got "
+                f"{m.scale_step}"
+            )
         if not 0.0 < m.stride <= 1.0:
             raise ConfigError(f"mining.stride must be in (0, 1], got {m.stride}")
         if m.rounds > 0 and not d.negative_images:

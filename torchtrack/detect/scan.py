@@ -44,6 +44,11 @@ __all__ = [
 ]
 
 
+#: the smallest ratio between successive scan scales: 1.01 already gives ~100 scales an
+#: octave; a step just above 1 would ask for millions (a scan that never ends)
+MIN_SCALE_STEP = 1.01
+
+
 def sliding_windows(
     frame_size: tuple[int, int],
     window: tuple[int, int],
@@ -226,9 +231,17 @@ def scan_scales(
     max_scale: float | None = None,
 ) -> list[float]:
     """The geometric scales ``min_scale * scale_step ** i`` at which the window fits the frame
-    (and ``<= max_scale``)."""
-    if not scale_step > 1.0:
-        raise ConfigError(f"scale_step must be > 1, got {scale_step}")
+    (and ``<= max_scale``).
+
+    Raises:
+        ConfigError: ``scale_step`` below :data:`MIN_SCALE_STEP` (a step just above 1 would
+            ask for millions of scales: a scan that never ends), or not finite.
+    """
+    if not (MIN_SCALE_STEP <= scale_step < math.inf):
+        raise ConfigError(
+            f"scale_step must be a finite number >= {MIN_SCALE_STEP:g} (a smaller step scans "
+            f"hundreds of nearly equal scales), got {scale_step}"
+        )
     if not (min_scale > 0 and math.isfinite(min_scale)):
         raise ConfigError(f"min_scale must be a positive number, got {min_scale}")
     fh, fw = frame_size
@@ -603,10 +616,15 @@ def scan_batch(
     fh, fw = frames.shape[-2:]
     wh, ww = detector.window
     if fh < wh * min_scale or fw < ww * min_scale:
+        fits = min(fh / wh, fw / ww)
         raise ShapeError(
             f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
             f"smallest scan scale {min_scale:g} ({wh * min_scale:g}x{ww * min_scale:g}); "
-            f"scan with min_scale <= {min(fh / wh, fw / ww):.3g} or use larger frames"
+            + (
+                f"scan with min_scale <= {fits:.3g} or use larger frames"
+                if fits * wh >= 8
+                else "frames this small hold no window of at least 8 px: use larger frames"
+            )
         )
     nb = frames.shape[0]
     if _lattice_capable(detector):

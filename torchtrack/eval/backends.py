@@ -62,6 +62,10 @@ CRASH_MESSAGE = "the worker process crashed (killed or a segmentation fault in n
 RAY_EXTRA = "ray"
 
 
+#: the most processes (local) or CPUs (a local Ray instance) --jobs may ask for
+MAX_JOBS = 4096
+
+
 @dataclass(frozen=True)
 class Backend:
     """Where and how :func:`run_tasks` runs its tasks (see the module doc).
@@ -94,6 +98,8 @@ class Backend:
             raise ConfigError(f"backend must be one of {', '.join(BACKENDS)}, got {self.kind!r}")
         if self.jobs is not None and self.jobs < 1:
             raise ConfigError(f"--jobs must be >= 1, got {self.jobs}")
+        if self.jobs is not None and self.jobs > MAX_JOBS:
+            raise ConfigError(f"--jobs must be at most {MAX_JOBS}, got {self.jobs}")
         if self.max_retries < 0:
             raise ConfigError(f"--max-retries must be >= 0, got {self.max_retries}")
         if self.num_cpus <= 0:

@@ -326,6 +326,21 @@ def score_sequence(seq: MotSequence, results: str | os.PathLike) -> MotMetrics:
         MissingDependencyError: TrackEval is missing.
     """
     rows = read_mot(results, n_frames=seq.n_frames, kind="results")
+    if seq.width and seq.height and len(seq.gt.boxes):
+        import torch
+
+        from torchtrack.boxes import inside_fraction
+
+        out = inside_fraction(torch.from_numpy(seq.gt.boxes), (seq.height, seq.width)) <= 0
+        if float(out.double().mean()) > 0.05:
+            warnings.warn(
+                f"{int(out.sum())} of the {len(out)} ground-truth boxes of {seq.name} "
+                f"({os.fspath(seq.gt_path)}) lie wholly outside its {seq.width}x{seq.height} "
+                "frames: the ground truth is at another scale (--gt-scale, or a seqinfo.ini "
+                "with imWidth / imHeight beside it)",
+                UserWarning,
+                stacklevel=2,
+            )
     if seq.width and seq.height and len(rows.boxes):
         import torch
 

@@ -270,6 +270,10 @@ def load_chateau_toml(
     try:
         with open(path, "rb") as f:
             data = tomllib.load(f)
+    except UnicodeDecodeError:
+        raise ConfigError(
+            f"dynamics config {os.fspath(path)!r} is not a text (UTF-8 TOML) file"
+        ) from None
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise ConfigError(f"cannot read dynamics config {os.fspath(path)!r}: {e}") from None
     data.pop("fit", None)

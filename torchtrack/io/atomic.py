@@ -12,7 +12,9 @@ from typing import IO
 __all__ = [
     "atomic_path",
     "atomic_write",
+    "check_regular_destination",
     "check_writable_dir",
+    "uninterrupted",
     "write_bytes_atomic",
     "write_error",
     "write_text_atomic",
@@ -26,6 +28,60 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Ignore SIGINT and SIGTERM while the block runs (in the main thread; elsewhere nothing
+    changes), then restore their handlers: the end of a run that is finishing its outputs
+    (after an error, or after a first Ctrl-C asked it to stop and keep the results so far) is
+    not cut short by a second signal, which would leave partial files or a half shut pool of
+    worker processes behind. A signal that arrives meanwhile is dropped: the run is ending."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def check_regular_destination(path: str | os.PathLike, what: str | None = None) -> None:
+    """Refuse to write onto ``path`` when it exists and is not a regular file: a write by
+    rename would replace a device (``/dev/null``), a named pipe or a socket with a plain file.
+
+    Raises:
+        ConfigError: naming ``what`` (default: the path) and what is there.
+    """
+    import stat
+
+    from torchtrack.errors import ConfigError
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:  # nothing there (or nothing we may look at): the write itself will say
+        return
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):  # a folder: the caller's own message
+        return
+    kind = (
+        "a named pipe"
+        if stat.S_ISFIFO(mode)
+        else "a socket"
+        if stat.S_ISSOCK(mode)
+        else "a device"
+        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+        else "not a regular file"
+    )
+    name = what or repr(os.fspath(path))
+    raise ConfigError(
+        f"{name} exists and is {kind}: outputs are written to a temporary file renamed into "
+        "place, which would replace it; give a regular file name"
+    )
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path in the destination's folder; on success rename it onto ``path``.
 
@@ -35,11 +91,14 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     is untouched.
 
     Raises:
-        ConfigError: naming ``path``, when the file system refuses to make the temporary file
-            (the folder cannot be made or written) or to rename it into place. What the
+        ConfigError: naming ``path``, when it exists and is not a regular file (a device, a
+            pipe: :func:`check_regular_destination`), or when the file system refuses to make
+            the temporary file (the folder cannot be made or written) or to rename it into
+            place. What the
             writer itself raises passes unchanged.
     """
     dest = Path(path)
+    check_regular_destination(dest)
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(

@@ -138,7 +138,13 @@ class MotRows:
             ShapeError: inconsistent lengths or shapes.
         """
         f = _as_numpy(frames, np.int64, "frames").reshape(-1)
-        b = _as_numpy(boxes, np.float64, "boxes").reshape(-1, 4) if len(f) else np.zeros((0, 4))
+        b = _as_numpy(boxes, np.float64, "boxes")
+        if not len(f):
+            b = np.zeros((0, 4))
+        elif b.shape == (4,) and len(f) == 1:  # one row's box
+            b = b.reshape(1, 4)
+        elif b.ndim != 2 or b.shape[1] != 4:
+            raise ShapeError(f"boxes must have shape ({len(f)}, 4), got {b.shape}")
         i = _as_numpy(ids, np.int64, "ids").reshape(-1)
         c = np.ones(len(f)) if conf is None else _as_numpy(conf, np.float64, "conf").reshape(-1)
         return cls(frames=f, ids=i, boxes=b, conf=c)
@@ -182,6 +188,13 @@ class MotRows:
 # ---------------------------------------------------------------------------------------------
 # Reading and writing files
 # ---------------------------------------------------------------------------------------------
+#: the largest identity a MOTChallenge row may carry (2^31 - 1, as the devkits' integers)
+MAX_ID = 2**31 - 1
+#: the most frames a sequence may have (about four days at 25 fps): a larger ``seqLength``
+#: or frame number is a typo that would size the scoring's per-frame tables beyond any memory
+MAX_SEQ_LENGTH = 10_000_000
+
+
 def _fail(path: Path, no: int, msg: str, line: str | None = None) -> MotFormatError:
     shown = f": {line.strip()[:80]!r}" if line is not None else ""
     return MotFormatError(f"{path} line {no}: {msg}{shown}")
@@ -274,12 +287,20 @@ def read_mot(
 
     check(a[:, 0] != np.round(a[:, 0]), lambda k: "the frame number is not an integer")
     check(a[:, 0] < 1, lambda k: f"frame {a[k, 0]:g}: frames are numbered from 1")
+    check(
+        a[:, 0] > MAX_SEQ_LENGTH,
+        lambda k: f"frame {a[k, 0]:g} is beyond any sequence (at most {MAX_SEQ_LENGTH} frames)",
+    )
     if n_frames is not None:
         check(
             a[:, 0] > n_frames,
             lambda k: f"frame {int(a[k, 0])} is beyond the sequence's {n_frames} frames",
         )
     check(a[:, 1] != np.round(a[:, 1]), lambda k: "the id is not an integer")
+    check(
+        np.abs(a[:, 1]) > MAX_ID,
+        lambda k: f"id {a[k, 1]:g} is out of range (identities are at most {MAX_ID})",
+    )
     if kind != "det":
         check(a[:, 1] < 0, lambda k: f"id {int(a[k, 1])}: identities must be >= 0")
     check(
@@ -315,21 +336,35 @@ def read_mot(
     )
 
 
-def write_mot(path: str | os.PathLike, rows: MotRows) -> None:
-    """Write ``rows`` as a MOTChallenge results file, atomically.
+def write_mot(path: str | os.PathLike, rows: MotRows, *, kind: Kind = "results") -> None:
+    """Write ``rows`` as a MOTChallenge results file (or ``kind`` ``"gt"`` / ``"det"``, as
+    :func:`read_mot` reads them), atomically.
 
     Lines are ``frame,id,x,y,w,h,conf,-1,-1,-1`` (1-based frame and pixels, boxes with three
     decimals), sorted by frame then id. No rows give an empty file (a valid, empty tracker).
 
     Raises:
-        ValueError: a non-finite box or confidence, or a negative frame index.
+        ValueError: what :func:`read_mot` would refuse in a results file: a non-finite box or
+            confidence, a box without area, a negative frame index or identity, or an
+            identity twice in one frame.
     """
+    order = np.lexsort((rows.ids, rows.frames))
     if len(rows):
         if not (np.isfinite(rows.boxes).all() and np.isfinite(rows.conf).all()):
             raise ValueError("write_mot: boxes and confidences must be finite")
         if rows.frames.min() < 0:
             raise ValueError("write_mot: frame indices are 0-based and must be >= 0")
-    order = np.lexsort((rows.ids, rows.frames))
+        if kind not in _MIN_COLS:
+            raise ValueError(f"kind must be 'gt', 'det' or 'results', got {kind!r}")
+        if kind != "det" and rows.ids.min() < 0:
+            raise ValueError(f"write_mot: identities must be >= 0 in a {kind} file")
+        if not ((rows.boxes[:, 2] > 0) & (rows.boxes[:, 3] > 0)).all():
+            raise ValueError("write_mot: box widths and heights must be > 0")
+        f, i = rows.frames[order], rows.ids[order]
+        twice = np.nonzero((f[1:] == f[:-1]) & (i[1:] == i[:-1]))[0]
+        if len(twice) and kind != "det":
+            k = int(twice[0])
+            raise ValueError(f"write_mot: id {i[k]} appears twice in frame {f[k] + 1}")
     with atomic_write(path, "w", encoding="utf-8", newline="\n") as f:
         for k in order:
             f.write(format_mot_row(rows.frames[k], rows.ids[k], rows.boxes[k], rows.conf[k]))
@@ -369,12 +404,14 @@ def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
             value that is not a positive number.
     """
     p = Path(path)
-    cp = configparser.ConfigParser()
+    cp = configparser.ConfigParser(interpolation=None)  # values as written ('%' included)
     try:
         with open(p, encoding="utf-8-sig") as f:
             cp.read_file(f)
     except OSError as exc:
         raise MotFormatError(f"{p} cannot be read: {exc}") from None
+    except UnicodeDecodeError:
+        raise MotFormatError(f"{p} is not a text file (not UTF-8)") from None
     except configparser.Error as exc:
         raise MotFormatError(f"{p} is not a valid ini file: {exc}") from None
     if not cp.has_section("Sequence"):
@@ -394,10 +431,27 @@ def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
             raise MotFormatError(f"{p}: {key}={sec[key]!r} must be > 0")
         return v
 
+    def component(key: str, default: str) -> str:
+        # used as a file or folder name beside the sequence (results are <name>.txt): one
+        # plain path component, so nothing is read or written outside the folders given
+        v = sec.get(key, default).strip()
+        if not v or v in (".", "..") or any(c in v for c in "/\\\0"):
+            raise MotFormatError(
+                f"{p}: {key}={v!r} must be one plain file name (no path separators, not "
+                "empty, not '.' or '..')"
+            )
+        return v
+
+    length = num("seqLength", int, required=True)
+    if length > MAX_SEQ_LENGTH:
+        raise MotFormatError(
+            f"{p}: seqLength={length} is more than {MAX_SEQ_LENGTH} frames (the count of the "
+            "sequence's frames, not their size)"
+        )
     return SeqInfo(
-        name=sec.get("name", p.parent.name),
-        seq_length=num("seqLength", int, required=True),
-        im_dir=sec.get("imDir", "img1"),
+        name=component("name", p.parent.name),
+        seq_length=length,
+        im_dir=component("imDir", "img1"),
         frame_rate=num("frameRate", float),
         im_width=num("imWidth", int),
         im_height=num("imHeight", int),

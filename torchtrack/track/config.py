@@ -187,7 +187,7 @@ class MultiTrackerConfig:
             filter carries the targets in between.
         scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
             (:func:`torchtrack.detect.scan.sliding_windows`; ``scan_max_scale = 0``: up to the
-            largest window that fits the frame).
+            largest window that fits the frame; ``scan_scale_step`` at least 1.01).
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
             each detection moves to the probability-weighted mean position and scale of the
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
@@ -253,7 +253,7 @@ class MultiTrackerConfig:
         appearance_rate: colour-model update rate on confident, unoccluded matches.
         detection_sigma: a matched detection weights the particles by a Gaussian around it,
             with this standard deviation as a fraction of its height (position) and of its
-            scale (log scale).
+            scale (log scale); at most 1.
         detection_sigma_rate: 0 keeps ``detection_sigma`` fixed; above 0 the tracker
             estimates it from the video's own matches (innovation-based adaptive estimation:
             the squared distance of each matched detection from its target's predicted
@@ -397,13 +397,23 @@ class MultiTrackerConfig:
             )
         if not self.scan_min_scale > 0:
             raise ConfigError(f"scan_min_scale must be > 0, got {self.scan_min_scale}")
+        if not math.isfinite(self.scan_max_scale):
+            raise ConfigError(
+                f"scan_max_scale must be a finite number (0: no upper bound), got "
+                f"{self.scan_max_scale}"
+            )
         if self.scan_max_scale != 0 and self.scan_max_scale < self.scan_min_scale:
             raise ConfigError(
                 f"scan_max_scale ({self.scan_max_scale}) is below scan_min_scale "
                 f"({self.scan_min_scale}); 0 means no upper bound"
             )
-        if not self.scan_scale_step > 1:
-            raise ConfigError(f"scan_scale_step must be > 1, got {self.scan_scale_step}")
+        from torchtrack.detect.scan import MIN_SCALE_STEP
+
+        if not MIN_SCALE_STEP <= self.scan_scale_step < math.inf:
+            raise ConfigError(
+                f"scan_scale_step must be a finite number >= {MIN_SCALE_STEP:g}, got "
+                f"{self.scan_scale_step}"
+            )
         if not 0 < self.scan_stride <= 1:
             raise ConfigError(f"scan_stride must be in (0, 1], got {self.scan_stride}")
         if not 0 < self.scan_nms <= 1:
@@ -431,14 +441,36 @@ class MultiTrackerConfig:
                 raise ConfigError(f"{k} must be a finite number >= 0, got {v}")
         if self.w_overlap + self.w_appearance <= 0:
             raise ConfigError("w_overlap and w_appearance cannot both be 0")
+        if not math.isfinite(self.w_overlap + self.w_appearance):
+            raise ConfigError(
+                f"w_overlap and w_appearance must add up to a finite number, got "
+                f"{self.w_overlap} and {self.w_appearance}"
+            )
+        # fractions of a box's height (per frame): beyond 1 they say nothing a tracker can use
+        for k in ("detection_sigma", "birth_velocity"):
+            if getattr(self, k) > 1:
+                raise ConfigError(
+                    f"{k} is a fraction of the box height, at most 1, got {getattr(self, k)}"
+                )
+        if self.n_particles * self.max_targets > MAX_PARTICLES:
+            raise ConfigError(
+                f"n_particles x max_targets = {self.n_particles} x {self.max_targets} is more "
+                f"than {MAX_PARTICLES} particles in all (their states alone would take "
+                f"{self.n_particles * self.max_targets * 48 / 2**30:.3g} GiB)"
+            )
         if not (self.max_cost > 0 and math.isfinite(self.max_cost)):
             raise ConfigError(f"max_cost must be > 0, got {self.max_cost}")
         if not (self.detection_sigma > 0 and math.isfinite(self.detection_sigma)):
             raise ConfigError(f"detection_sigma must be > 0, got {self.detection_sigma}")
-        if not self.max_noise_scale >= 1:
-            raise ConfigError(f"max_noise_scale must be >= 1, got {self.max_noise_scale}")
-        if not (self.motion_noise > 0 and math.isfinite(self.motion_noise)):
-            raise ConfigError(f"motion_noise must be > 0, got {self.motion_noise}")
+        if not 1 <= self.max_noise_scale < math.inf:
+            raise ConfigError(
+                f"max_noise_scale must be a finite number >= 1, got {self.max_noise_scale}"
+            )
+        if not (0 < self.motion_noise <= 100):
+            raise ConfigError(
+                f"motion_noise (a factor on the fitted noise's sd) must be in (0, 100], got "
+                f"{self.motion_noise}"
+            )
         if not (self.noise_height >= 0 and math.isfinite(self.noise_height)):
             raise ConfigError(
                 f"noise_height must be >= 0 (0: noise in pixels), got {self.noise_height}"
@@ -478,6 +510,15 @@ def _estimator_and_scheme(cfg: Any) -> None:
         )
 
 
+#: the most particles the multi-target tracker may hold (n_particles x max_targets): 10^7
+#: states of 6 float64 are 0.45 GiB, before the per-particle work of every frame
+MAX_PARTICLES = 10_000_000
+
+#: the largest integer a tracker setting takes (counts of frames, particles, targets, scans):
+#: 2^31 - 1, far beyond any real setting, and safe in every tensor and C call it reaches
+_INT_LIMIT = 2**31 - 1
+
+
 def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
     """Check ``value`` against the annotation ``tp`` (int, float, str, bool, list[float])."""
     origin = typing.get_origin(tp)
@@ -505,6 +546,10 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{where}: {key!r} must be an integer, got {value!r}")
+        if not -_INT_LIMIT <= value <= _INT_LIMIT:  # counts of frames, particles, targets
+            raise ConfigError(
+                f"{where}: {key!r} must be an integer within +-{_INT_LIMIT}, got {value!r}"
+            )
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):

@@ -94,6 +94,8 @@ def load_dynamics(path: str | os.PathLike | None = None, structure: str = "free"
             stacklevel=2,
         )
         return ChateauAR()
+    if p.is_dir():
+        raise ConfigError(f"dynamics file {os.fspath(p)!r} is a folder; give a TOML file")
     if not p.is_file():
         raise ConfigError(f"dynamics file {os.fspath(p)!r} does not exist")
     return load_chateau_toml(p)

@@ -82,6 +82,11 @@ __all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_seq
 #: the same line as scans run here)
 GROUND_LAG = 16
 
+#: the smallest detector window height (pixels) worth suggesting when frames are too small
+MIN_WINDOW_PX = 8
+#: two birth candidates of one frame that overlap more than this (IoU) are the same detection
+SAME_BOX_IOU = 0.9
+
 #: adaptive births (``birth_floor``): the video's detection level is the median of the best
 #: detection of each of its last LEVEL_SCANS scans, once there are MIN_LEVEL_SCANS of them
 LEVEL_SCANS = 64
@@ -281,11 +286,17 @@ class MultiTargetTracker:
         if fh < wh * cfg.scan_min_scale or fw < ww * cfg.scan_min_scale:
             # no window fits: the tracks would be empty as if the scene had no target
             least = cfg.scan_min_scale
+            fits = min(fh / wh, fw / ww)
+            advice = (
+                f"use scan_min_scale={fits:.3g} or less (--tracker multi:scan_min_scale=...), "
+                "or larger frames"
+                if fits * wh >= MIN_WINDOW_PX
+                else f"frames this small hold no window of at least {MIN_WINDOW_PX} px"
+            )
             raise ShapeError(
                 f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
                 f"smallest scan scale {least:g} ({wh * least:g}x{ww * least:g}): no target "
-                f"can be detected; use scan_min_scale={min(fh / wh, fw / ww):.3g} or less "
-                "(--tracker multi:scan_min_scale=...), or larger frames"
+                f"can be detected; {advice}"
             )
         wins, p = scan(
             self.detector,
@@ -357,7 +368,9 @@ class MultiTargetTracker:
             :class:`MultiState` of the targets reported on this frame.
 
         Raises:
-            ShapeError: a frame of the wrong type or size, or malformed detections.
+            ShapeError: a frame of the wrong type or size, or malformed detections (not boxes
+                ``(M, 4)`` with probabilities ``(M,)`` in [0, 1], or a box that is not finite or
+                has no area).
             TrackerError: ``scan`` given with ``detections``, or on a frame not scanned.
         """
         cfg = self.config
@@ -481,13 +494,33 @@ class MultiTargetTracker:
             raise ShapeError(
                 "detections must be a pair (boxes (M, 4), probabilities (M,))"
             ) from None
-        boxes = torch.as_tensor(boxes).to("cpu", torch.float64).reshape(-1, 4)
-        p = torch.as_tensor(p).to("cpu", torch.float64).reshape(-1)
+        try:
+            boxes = torch.as_tensor(boxes).to("cpu", torch.float64)
+            p = torch.as_tensor(p).to("cpu", torch.float64)
+        except (TypeError, ValueError, RuntimeError, NotImplementedError) as exc:
+            raise ShapeError(f"detections must be numeric tensors or arrays ({exc})") from None
+        if boxes.numel() == 0:
+            boxes = boxes.reshape(0, 4)
+        if boxes.ndim != 2 or boxes.shape[1] != 4 or p.ndim != 1:
+            raise ShapeError(
+                f"detections must be boxes (M, 4) and probabilities (M,), got "
+                f"{tuple(boxes.shape)} and {tuple(p.shape)}"
+            )
         if p.shape[0] != boxes.shape[0]:
             raise ShapeError(f"{boxes.shape[0]} detection boxes but {p.shape[0]} probabilities")
-        ok = torch.isfinite(boxes).all(1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
-        ok &= torch.isfinite(p)
-        return boxes[ok], p[ok].clamp(0.0, 1.0)
+        bad = ~(torch.isfinite(boxes).all(1) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0))
+        if bool(bad.any()):
+            k = int(bad.nonzero()[0])
+            raise ShapeError(
+                f"detection {k}: box {boxes[k].tolist()} must be finite with width and height > 0"
+            )
+        if not bool(((p >= 0) & (p <= 1)).all()):  # NaN fails too
+            k = int((~((p >= 0) & (p <= 1))).nonzero()[0])
+            raise ShapeError(
+                f"detection {k}: probability {float(p[k])} is not in [0, 1] (map other "
+                "detectors' scores first: torchtrack.track.multi.score_probabilities)"
+            )
+        return boxes, p
 
     def ground_summary(self) -> str | None:
         """One line on the ground plane of the video so far (None when it is not in use: off,
@@ -881,6 +914,17 @@ class MultiTargetTracker:
             keep = iou.max(1).values < cfg.birth_overlap
             boxes = boxes[keep]
             cand = [c for c, k in zip(cand, keep.tolist(), strict=True) if k]
+        if len(cand) > 1:
+            # Two candidates of one frame with nearly the same box are one person seen twice
+            # (a detections file with repeated rows, another detector's unsuppressed windows):
+            # the more confident one starts the target. Two people, one half behind the other,
+            # overlap far less (IoU ~0.7); our own scans are suppressed far below this already.
+            from torchtrack.detect.scan import nms
+
+            kept = set(nms(boxes, det_p[cand], SAME_BOX_IOU).tolist())
+            self.stats["births merged: the same detection twice"] += len(cand) - len(kept)
+            cand = [c for i, c in enumerate(cand) if i in kept]  # in their order: same draws
+            boxes = det_boxes[cand]
         room = cfg.max_targets - self.n_targets
         if len(cand) > room:
             if not self._warned_full:

@@ -150,9 +150,14 @@ class Ahead:
         self.close()
 
     def close(self) -> None:
-        """Stop the workers (pending calls are dropped)."""
+        """Stop the workers (pending calls are dropped; the ones running finish). Not cut
+        short by a second Ctrl-C or SIGTERM, which would leave the pool half shut and this
+        process waiting on its workers for ever."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            from torchtrack.io.atomic import uninterrupted
+
+            with uninterrupted():
+                self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
     def map(self, items: Iterable[tuple[Any, Any]], where: Any = str) -> Iterator[tuple[Any, Any]]:
