@@ -571,6 +571,8 @@ def test_bad_frames_and_detections():
     # a frame no scan window fits (44.8 px at scan_min_scale 0.35): an error, not empty tracks
     with pytest.raises(ShapeError, match=r"smaller than the detector window .* scan_min_scale"):
         make().update(blank(40, 320))
+    with pytest.raises(ShapeError, match="frames this small hold no window of at least 8 px"):
+        make().update(blank(2, 2))  # no scale to suggest
     assert len(make().update(blank(40, 320), (people(0)[:0], torch.ones(0)))) == 0  # no scan
 
 

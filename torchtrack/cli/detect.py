@@ -424,6 +424,7 @@ def run(args: argparse.Namespace) -> int:
 
     from torchtrack.cli._common import apply_threads, show_progress
     from torchtrack.detect.bundled import load_model
+    from torchtrack.detect.scan import MIN_WINDOW_PX
     from torchtrack.errors import ConfigError, DataError, NotFittedError, ShapeError
     from torchtrack.io.atomic import atomic_write
     from torchtrack.track.scan_ahead import Ahead, default_scan_workers
@@ -463,7 +464,7 @@ def run(args: argparse.Namespace) -> int:
                     args.min_scale is not None
                     or min(frames.shape[-2] / det.window[0], frames.shape[-1] / det.window[1])
                     * det.window[0]
-                    < 8
+                    < MIN_WINDOW_PX
                 ):  # no useful --min-height to suggest
                     return exc
                 # the smallest scale came from --min-height: say it in the option's terms

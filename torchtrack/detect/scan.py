@@ -47,6 +47,8 @@ __all__ = [
 #: the smallest ratio between successive scan scales: 1.01 already gives ~100 scales an
 #: octave; a step just above 1 would ask for millions (a scan that never ends)
 MIN_SCALE_STEP = 1.01
+#: the smallest window height (pixels) worth suggesting when frames are too small for a scan
+MIN_WINDOW_PX = 8
 
 
 def sliding_windows(
@@ -622,8 +624,9 @@ def scan_batch(
             f"smallest scan scale {min_scale:g} ({wh * min_scale:g}x{ww * min_scale:g}); "
             + (
                 f"scan with min_scale <= {fits:.3g} or use larger frames"
-                if fits * wh >= 8
-                else "frames this small hold no window of at least 8 px: use larger frames"
+                if fits * wh >= MIN_WINDOW_PX
+                else f"frames this small hold no window of at least {MIN_WINDOW_PX} px: use "
+                "larger frames"
             )
         )
     nb = frames.shape[0]

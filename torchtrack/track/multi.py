@@ -82,8 +82,6 @@ __all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_seq
 #: the same line as scans run here)
 GROUND_LAG = 16
 
-#: the smallest detector window height (pixels) worth suggesting when frames are too small
-MIN_WINDOW_PX = 8
 #: two birth candidates of one frame that overlap more than this (IoU) are the same detection
 SAME_BOX_IOU = 0.9
 
@@ -285,6 +283,8 @@ class MultiTargetTracker:
         wh, ww = self.detector.window
         if fh < wh * cfg.scan_min_scale or fw < ww * cfg.scan_min_scale:
             # no window fits: the tracks would be empty as if the scene had no target
+            from torchtrack.detect.scan import MIN_WINDOW_PX
+
             least = cfg.scan_min_scale
             fits = min(fh / wh, fw / ww)
             advice = (
