@@ -257,6 +257,15 @@ def corpus(tmp_path_factory, forge_model):
     (c / "mot" / "BIN" / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
     (c / "mot" / "BIN" / "seqinfo.ini").write_bytes(b"\xb3\xff\x00[Sequence]")
     os.mkfifo(c / "pipe")  # an output there would replace the pipe with a plain file
+    # two sequences, the second with a frame of another size: it fails after the first was
+    # tracked and its tracks written
+    import shutil
+
+    shutil.copytree(mot, c / "mot2" / "TOY-01")
+    shutil.copytree(mot, c / "mot2" / "TOY-02")
+    (c / "mot2" / "TOY-02" / "seqinfo.ini").write_text(ini.replace("name=TOY-01", "name=TOY-02"))
+    odd = sorted((c / "mot2" / "TOY-02" / "img1").iterdir())[3]
+    cv2.imwrite(str(odd), np.zeros((40, 64, 3), np.uint8))
     return c
 
 
@@ -999,6 +1008,11 @@ CASES += [
         "eval-mot-trackers-out-file",
         "eval --mot {c}/mot/TOY-01 --trackers multi -o {c}/afile",
         "is an existing file",
+    ),
+    E(
+        "eval-mot-trackers-fail-on-a-later-sequence",
+        "eval --mot {c}/mot2 --trackers multi -o {o}/r --no-progress",
+        "frame 40x64 .* is smaller than the detector window",
     ),
     # seqinfo.ini's name is a file name (results are <name>.txt): never a path out of a folder
     E(

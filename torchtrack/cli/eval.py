@@ -404,29 +404,46 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
             d = d.select(d.frames < seq.n_frames)
             public[seq.name] = dataclasses.replace(d, conf=score_probabilities(
                 torch.from_numpy(d.conf)).numpy())  # fmt: skip
-    for (spec, params), label in zip(specs, labels, strict=True):
-        for seq in seqs:
-            dets = public.get(seq.name)
-            mt = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
-            with seq.open() as src:
-                rows = track_sequence(
-                    mt,
-                    src,
-                    dets,
-                    max_frames=seq.n_frames,
-                    # a GPU scans in this process, next to the filter
-                    scan_workers=default_scan_workers() if device.type == "cpu" else 0,
-                    device=device,
+    out = Path(args.out)
+    # what this run makes, removed again if it fails: a half set of tracks looks finished
+    made = [d for d in (out, *(out / label for label in labels)) if not d.exists()]
+    written: list[Path] = []
+    try:
+        for (spec, params), label in zip(specs, labels, strict=True):
+            for seq in seqs:
+                dets = public.get(seq.name)
+                mt = MultiTargetTracker(
+                    generator=torch.Generator().manual_seed(args.seed), **params
                 )
-            write_mot(Path(args.out) / label / f"{seq.name}.txt", rows)
-            print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
-    summary = evaluate_mot(
-        seqs,
-        [Path(args.out) / label for label in labels],
-        args.out,
-        labels=labels,
-        command=_mot_command_line(args),
-    )
+                with seq.open() as src:
+                    rows = track_sequence(
+                        mt,
+                        src,
+                        dets,
+                        max_frames=seq.n_frames,
+                        # a GPU scans in this process, next to the filter
+                        scan_workers=default_scan_workers() if device.type == "cpu" else 0,
+                        device=device,
+                    )
+                written.append(out / label / f"{seq.name}.txt")
+                write_mot(written[-1], rows)
+                print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
+        summary = evaluate_mot(
+            seqs,
+            [out / label for label in labels],
+            args.out,
+            labels=labels,
+            command=_mot_command_line(args),
+        )
+    except BaseException:
+        import contextlib
+
+        for f in written:
+            f.unlink(missing_ok=True)
+        for d in reversed(made):  # the label folders first, then the output folder
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
     print(mot_table(summary))
     print(f"results: {args.out}/results.json, {args.out}/results.md")
     return 0
