@@ -48,6 +48,12 @@ def test_unknown_keys_named(tmp_path):
         ("[learn]\ncalibration = 'beta'\n", "learn.calibration"),
         ("[mining]\nrounds = 2\n", "negative_images"),
         ("[data]\n", "not valid TOML"),
+        # each value of its key's type (these reached the training as strings or NaN)
+        ("[mining]\nrounds = '1'\n", r"\[mining\]: 'rounds' must be an integer, got '1'"),
+        ("[learn]\nsvm_c = 'big'\n", "'svm_c' must be a number"),
+        ("[learn]\nsvm_c = nan\n", "learn.svm_c must be a finite number > 0"),
+        ("[learn]\ncascade_threshold = 1e308\n", "cascade_threshold must be a running margin"),
+        ("[learn]\nn_features = 4.5\n", "'n_features' must be an integer"),
     ],
 )
 def test_bad_values(tmp_path, extra, match):
@@ -91,3 +97,18 @@ def test_object_region_to_window_fractions(tmp_path):
     cfg.data.object = [0, 0, 96, 160]  # the whole crop is larger than the window region
     with pytest.raises(ConfigError, match=r"data\.object"):
         cfg.validate()
+
+
+@pytest.mark.parametrize(
+    "line, match",
+    [
+        ("random_negatives = 9223372036854775807", r"random_negatives must be in \[0, 10000000\]"),
+        ("random_negatives = '100'", "'random_negatives' must be an integer"),
+        ("exclude = '/etc/passwd'", "'exclude' must be a list"),
+        ("crop_size = 'x'", "'crop_size' must be a list"),
+    ],
+)
+def test_bad_data_values(tmp_path, line, match):
+    text = BASE.replace("[data]\n", f"[data]\n{line}\n")
+    with pytest.raises(ConfigError, match=match):
+        load_train_config(write(tmp_path, text))

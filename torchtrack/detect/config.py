@@ -28,6 +28,9 @@ __all__ = [
 ]
 
 
+#: the most random negative windows a training run may draw (each is a crop held in memory)
+MAX_RANDOM_NEGATIVES = 10_000_000
+
 @dataclass
 class DataConfig:
     """Where the crops come from.
@@ -279,8 +282,11 @@ class TrainConfig:
         d = self.data
         if not d.positives:
             raise ConfigError("data.positives must name at least one folder of positive crops")
-        if d.random_negatives < 0:
-            raise ConfigError(f"data.random_negatives must be >= 0, got {d.random_negatives}")
+        if not 0 <= d.random_negatives <= MAX_RANDOM_NEGATIVES:
+            raise ConfigError(
+                f"data.random_negatives must be in [0, {MAX_RANDOM_NEGATIVES}] (windows held in "
+                f"memory), got {d.random_negatives}"
+            )
         if not d.negatives and not (d.negative_images and d.random_negatives > 0):
             raise ConfigError(
                 "no negatives: give data.negatives (crop folders) or data.negative_images with "
@@ -372,9 +378,10 @@ class TrainConfig:
             raise ConfigError(
                 f"learn.tracking_trees must be a non-negative integer, got {lr.tracking_trees!r}"
             )
-        if not _isnum(lr.cascade_threshold):
+        if not (_isnum(lr.cascade_threshold) and abs(lr.cascade_threshold) <= 1e6):
             raise ConfigError(
-                f"learn.cascade_threshold must be a number, got {lr.cascade_threshold!r}"
+                f"learn.cascade_threshold must be a running margin within +-1e6, got "
+                f"{lr.cascade_threshold!r}"
             )
         if not (_isnum(lr.cascade_miss) and 0 <= lr.cascade_miss < 0.5):
             raise ConfigError(f"learn.cascade_miss must be in [0, 0.5), got {lr.cascade_miss!r}")
@@ -382,6 +389,8 @@ class TrainConfig:
             raise ConfigError(
                 f"learn.cascade_probability must be in [0, 1), got {lr.cascade_probability!r}"
             )
+        if not (_isnum(lr.svm_c) and lr.svm_c > 0):
+            raise ConfigError(f"learn.svm_c must be a finite number > 0, got {lr.svm_c!r}")
         if lr.svm_kernel not in ("rbf", "linear"):
             raise ConfigError(f"learn.svm_kernel must be 'rbf' or 'linear', got {lr.svm_kernel!r}")
         if lr.calibration not in ("platt", "isotonic"):
@@ -491,6 +500,11 @@ def _fill(cls: type, values: dict[str, Any], where: str) -> Any:
     unknown = sorted(set(values) - set(known))
     if unknown:
         raise ConfigError(f"unknown key(s) {unknown} in [{where}]; known keys: {sorted(known)}")
+    import typing
+
+    from torchtrack.track.config import coerce_value  # the tracker configs' typed check
+
+    hints = typing.get_type_hints(cls)
     kwargs = {}
     for name, v in values.items():
         sub = {
@@ -501,8 +515,8 @@ def _fill(cls: type, values: dict[str, Any], where: str) -> Any:
         }
         if cls is TrainConfig and name in sub:
             kwargs[name] = _fill(sub[name], v, name)
-        else:
-            kwargs[name] = v
+        else:  # each value of the type its key says (a string where a count goes: named)
+            kwargs[name] = coerce_value(v, hints[name], name, f"[{where}]", 2**63 - 1)
     return cls(**kwargs)
 
 

@@ -519,8 +519,13 @@ MAX_PARTICLES = 10_000_000
 _INT_LIMIT = 2**31 - 1
 
 
-def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
-    """Check ``value`` against the annotation ``tp`` (int, float, str, bool, list[float])."""
+def _coerce(value: Any, tp: Any, key: str, where: str, int_limit: int = _INT_LIMIT) -> Any:
+    """Check ``value`` against the annotation ``tp`` (int, float, str, bool, list[float]);
+    integers within ``+-int_limit``.
+
+    Raises:
+        ConfigError: ``where: 'key' must be ...``.
+    """
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         errors = []
@@ -530,7 +535,7 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
                     return None
                 continue
             try:
-                return _coerce(value, arg, key, where)
+                return _coerce(value, arg, key, where, int_limit)
             except ConfigError as e:
                 errors.append(str(e))
         raise ConfigError(errors[0] if errors else f"{where}: bad value for {key!r}")
@@ -538,7 +543,7 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
         (item,) = typing.get_args(tp)
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: {key!r} must be a list, got {value!r}")
-        return [_coerce(v, item, key, where) for v in value]
+        return [_coerce(v, item, key, where, int_limit) for v in value]
     if tp is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: {key!r} must be true or false, got {value!r}")
@@ -546,9 +551,9 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{where}: {key!r} must be an integer, got {value!r}")
-        if not -_INT_LIMIT <= value <= _INT_LIMIT:  # counts of frames, particles, targets
+        if not -int_limit <= value <= int_limit:  # counts of frames, particles, targets
             raise ConfigError(
-                f"{where}: {key!r} must be an integer within +-{_INT_LIMIT}, got {value!r}"
+                f"{where}: {key!r} must be an integer within +-{int_limit}, got {value!r}"
             )
         return value
     if tp is float:
@@ -560,6 +565,10 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
             raise ConfigError(f"{where}: {key!r} must be a string, got {value!r}")
         return os.fspath(value)
     return value  # pragma: no cover - no other annotation is used
+
+
+#: the typed check of one config value, shared with the detector training config
+coerce_value = _coerce
 
 
 def config_from_dict(cls: type[C], data: dict[str, Any], where: str = "config") -> C:
