@@ -726,7 +726,7 @@ CASES += [
     E(
         "train-random-neg",
         "train --pos {c}/crops/pos --neg-images {c}/frames --random-negatives -5 --window 16 16 -o {o}/m.safetensors",
-        "data.random_negatives must be >= 0, got -5",
+        "data.random_negatives must be in \\[0, 10000000\\] .*got -5",
     ),
     E(
         "train-exclude-missing",
@@ -1080,6 +1080,17 @@ CASES += [
 # ------------------------------------------------------------------------------ sign
 CASES += [
     E("sign-nothing", "sign", "exactly one of"),
+    # the signed model must never land on a key: a private key overwritten is lost for good
+    E(
+        "sign-out-is-the-key",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {c}/alice.pem",
+        "--out .* is the input --key",
+    ),
+    E(
+        "train-out-is-an-exclude-list",
+        f"{TR} --exclude {{c}}/toy.safetensors -o {{c}}/toy.safetensors",
+        "--out .* is the input --exclude",
+    ),
     E("sign-no-model", "sign --key {c}/alice.pem", "give the MODEL"),
     E(
         "sign-key-missing",

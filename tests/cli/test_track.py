@@ -168,6 +168,12 @@ def test_box_sticking_out_is_clipped_with_a_warning(frames, tmp_path, capsys):
     assert "clipped" in capsys.readouterr().err
     _, rows = read_csv(out)
     assert [float(v) for v in rows[0][1:5]] == [350.0, 150.0, 10.0, 50.0]
+    # a fractional box inside the frame is taken as it is, without a false warning
+    argv = ["track", str(frames), "--box=10.3,20.7,30.1,40.9", "--out", str(out)]
+    assert main([*argv, "--max-frames", "2", "--no-progress"]) == 0
+    assert "clipped" not in capsys.readouterr().err
+    _, rows = read_csv(out)
+    assert [float(v) for v in rows[0][1:5]] == [10.3, 20.7, 30.1, 40.9]
 
 
 @pytest.mark.parametrize(

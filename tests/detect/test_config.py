@@ -106,9 +106,15 @@ def test_object_region_to_window_fractions(tmp_path):
         ("random_negatives = '100'", "'random_negatives' must be an integer"),
         ("exclude = '/etc/passwd'", "'exclude' must be a list"),
         ("crop_size = 'x'", "'crop_size' must be a list"),
+        ("negative_max_scale = -1", "negative_max_scale must be a finite number >= "),
+        ("negative_max_scale = nan", "negative_max_scale must be a finite number >= "),
+        ('positives = ["p", "p"]', "data.positives names '.*/p' twice"),
     ],
 )
 def test_bad_data_values(tmp_path, line, match):
-    text = BASE.replace("[data]\n", f"[data]\n{line}\n")
+    if line.startswith("positives"):  # in place of BASE's own
+        text = BASE.replace('positives = ["p"]', line)
+    else:
+        text = BASE.replace("[data]\n", f"[data]\n{line}\n")
     with pytest.raises(ConfigError, match=match):
         load_train_config(write(tmp_path, text))

@@ -134,11 +134,14 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
         raise DataError(f"cannot read score file {str(p)!r}: {exc}") from None
     except UnicodeDecodeError:
         raise DataError(f"score file {str(p)!r} is not UTF-8 text") from None
-    rows = [
-        (i, r)
-        for i, r in enumerate(csv.reader(text.splitlines()), start=1)
-        if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
-    ]
+    try:
+        rows = [
+            (i, r)
+            for i, r in enumerate(csv.reader(text.splitlines()), start=1)
+            if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
+        ]
+    except csv.Error as exc:  # e.g. a field past the csv module's size limit
+        raise DataError(f"score file {str(p)!r} is not a CSV of scores: {exc}") from None
     if not rows:
         raise DataError(f"score file {str(p)!r} has no rows")
     si, li = 0, 1

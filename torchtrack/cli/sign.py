@@ -61,12 +61,15 @@ def register(subparsers) -> None:
 
 
 def check_outputs(args: argparse.Namespace) -> None:
-    from torchtrack.cli._common import check_output_file
+    from torchtrack.cli._common import check_output_file, check_spares_inputs
 
     if args.new_key:
         check_output_file(args.new_key, "--new-key")
     if args.out:
         check_output_file(args.out, "--out")
+    # the signed model never lands on a key (a private key overwritten is lost for good)
+    keys = {"--key": args.key, "--trusted-key": getattr(args, "trusted_key", None) or []}
+    check_spares_inputs({"--out": args.out, "--new-key": args.new_key}, keys)
 
 
 def run(args: argparse.Namespace) -> int:

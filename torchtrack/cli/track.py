@@ -723,6 +723,10 @@ def _checked_box(box, frame):
 
     h, w = int(frame.shape[-2]), int(frame.shape[-1])
     check_boxes(box[None], (h, w), name="--box")
+    x, y, bw, bh = box.tolist()
+    eps = 1e-6  # a fractional box inside the frame is not clipped (its corners re-add inexactly)
+    if x >= -eps and y >= -eps and x + bw <= w + eps and y + bh <= h + eps:
+        return box
     clipped = clip_boxes(box[None], (h, w))[0]
     if not bool((clipped == box).all()):
         check_boxes(clipped[None], (h, w), name="--box (clipped to the frame)")

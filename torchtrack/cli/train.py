@@ -126,6 +126,18 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.errors import ConfigError
 
     check_output_file(args.out, "--out", (".safetensors",))  # before the training, not after
+    from torchtrack.cli._common import check_spares_inputs
+
+    check_spares_inputs(
+        {"--out": args.out},
+        {
+            "--exclude": args.exclude or [],
+            "--config": args.config,
+            "--pos": args.pos or [],
+            "--neg": args.neg or [],
+            "--neg-images": args.neg_images or [],
+        },
+    )
     overrides = _overrides(args)
     if args.config:
         cfg = load_train_config(args.config, overrides)

@@ -287,6 +287,13 @@ class TrainConfig:
                 f"data.random_negatives must be in [0, {MAX_RANDOM_NEGATIVES}] (windows held in "
                 f"memory), got {d.random_negatives}"
             )
+        for key in ("positives", "negatives", "negative_images"):
+            seen: set[str] = set()
+            for x in getattr(d, key):
+                k = os.path.normcase(os.path.realpath(os.fspath(x)))
+                if k in seen:  # its crops would count twice: copies in the hold-out too
+                    raise ConfigError(f"data.{key} names {x!r} twice")
+                seen.add(k)
         if not d.negatives and not (d.negative_images and d.random_negatives > 0):
             raise ConfigError(
                 "no negatives: give data.negatives (crop folders) or data.negative_images with "
@@ -335,6 +342,15 @@ class TrainConfig:
                     )
         if not (d.negative_min_scale > 0 and math.isfinite(d.negative_min_scale)):
             raise ConfigError("data.negative_min_scale must be a positive number")
+        top = d.negative_max_scale
+        if top is not None and not (math.isfinite(top) and top >= d.negative_min_scale):
+            raise ConfigError(
+                f"data.negative_max_scale must be a finite number >= data.negative_min_scale "
+                f"({d.negative_min_scale:g}), got {top!r}"
+            )
+        top = self.mining.max_scale
+        if top is not None and not (math.isfinite(top) and top > 0):
+            raise ConfigError(f"mining.max_scale must be a finite number > 0, got {top!r}")
         lr = self.learn
         if lr.classifier not in ("auto", "adaboost", "trees", "svm"):
             raise ConfigError(
