@@ -1080,6 +1080,27 @@ CASES += [
 # ------------------------------------------------------------------------------ sign
 CASES += [
     E("sign-nothing", "sign", "exactly one of"),
+    # single-target settings that overflowed OpenCV or the search region, or did nothing
+    E(
+        "track-camshift-bins-huge",
+        f"{T} --tracker camshift:bins=99999999999999999999 --box 10,14,14,20",
+        r"camshift bins must be an integer in \[2, 256\]",
+    ),
+    E(
+        "track-camshift-confidence-nan",
+        f"{T} --tracker camshift:min_confidence=nan --box 10,14,14,20",
+        "camshift min_confidence must be in",
+    ),
+    E(
+        "track-camshift-iterations-huge",
+        f"{T} --tracker camshift:max_iter=99999999999999 --box 10,14,14,20",
+        "camshift max_iter must be an integer",
+    ),
+    E(
+        "track-cotrain-search-huge",
+        f"{T} --tracker cotrain:search_scale=1e308 --box 10,14,14,20",
+        "search_scale",
+    ),
     # the signed model must never land on a key: a private key overwritten is lost for good
     E(
         "sign-out-is-the-key",

@@ -191,7 +191,7 @@ def test_camshift_reports_a_vanished_target():
     _, visible = _run(t, frames, gt[0])
     assert visible[:5].all() and not visible[5:].any()
     assert t.failures == 3
-    with pytest.raises(ConfigError, match="bins must be >= 2"):
+    with pytest.raises(ConfigError, match=r"bins must be an integer in \[2, 256\]"):
         CamShiftTracker(bins=1)
 
 

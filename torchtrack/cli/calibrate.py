@@ -159,6 +159,8 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
             bad.append(f"line {line}: expected at least {max(si, li) + 1} columns, got {len(r)}")
             continue
         try:
+            if "_" in r[si] or "_" in r[li]:  # Python reads 1_000 as 1000; a CSV does not
+                raise ValueError
             s, lab = float(r[si]), float(r[li])
         except ValueError:
             bad.append(f"line {line}: not numbers: {','.join(r)[:60]!r}")

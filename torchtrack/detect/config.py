@@ -31,6 +31,7 @@ __all__ = [
 #: the most random negative windows a training run may draw (each is a crop held in memory)
 MAX_RANDOM_NEGATIVES = 10_000_000
 
+
 @dataclass
 class DataConfig:
     """Where the crops come from.

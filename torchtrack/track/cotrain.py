@@ -138,8 +138,15 @@ class CoTrainConfig:
             raise ConfigError(
                 f"cotrain: unknown positives {self.positives!r}; valid: {', '.join(POSITIVES)}"
             )
-        if self.search_scale < 1:
-            raise ConfigError(f"cotrain: search_scale must be >= 1, got {self.search_scale}")
+        if not 1 <= self.search_scale <= 100:
+            raise ConfigError(
+                f"cotrain: search_scale (x the box) must be in [1, 100], got {self.search_scale}"
+            )
+        if not self.max_search_scale <= 100:
+            raise ConfigError(
+                f"cotrain: max_search_scale (x the box) must be at most 100, got "
+                f"{self.max_search_scale}"
+            )
         if not 0 <= self.velocity <= 1:
             raise ConfigError(f"cotrain: velocity must be in [0, 1], got {self.velocity}")
         for name in ("lost_growth", "scale_step"):

@@ -125,8 +125,10 @@ class FusedTrackerConfig:
         for k in ("det_floor", "cot_floor", "gate_scale"):
             if not getattr(self, k) > 0:
                 raise ConfigError(f"{k} must be > 0, got {getattr(self, k)}")
-        if not self.search_scale >= 1:
-            raise ConfigError(f"search_scale must be >= 1, got {self.search_scale}")
+        if not 1 <= self.search_scale <= 100:
+            raise ConfigError(
+                f"search_scale (x the box) must be in [1, 100], got {self.search_scale}"
+            )
         if not 0 <= self.visible_threshold <= 1:
             raise ConfigError(f"visible_threshold must be in [0, 1], got {self.visible_threshold}")
         if self.context != 0 and not self.context > 0:

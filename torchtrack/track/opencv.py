@@ -188,8 +188,17 @@ class CamShiftTracker(Tracker):
 
     def __init__(self, bins: int = 16, min_confidence: float = 0.05, max_iter: int = 10) -> None:
         super().__init__()
-        if bins < 2:
-            raise ConfigError(f"camshift bins must be >= 2, got {bins}")
+        if isinstance(bins, bool) or not isinstance(bins, int) or not 2 <= bins <= 256:
+            raise ConfigError(f"camshift bins must be an integer in [2, 256], got {bins!r}")
+        if not (isinstance(min_confidence, (int, float)) and 0 <= min_confidence <= 1):
+            raise ConfigError(
+                f"camshift min_confidence must be in [0, 1] (a mean back-projection share), "
+                f"got {min_confidence!r}"
+            )
+        if isinstance(max_iter, bool) or not isinstance(max_iter, int) or not 1 <= max_iter <= 1000:
+            raise ConfigError(
+                f"camshift max_iter must be an integer in [1, 1000], got {max_iter!r}"
+            )
         self.bins = bins
         self.min_confidence = min_confidence
         self.max_iter = max_iter
