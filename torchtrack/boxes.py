@@ -134,7 +134,8 @@ def check_boxes(
 
 def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clip xywh boxes ``(..., 4)`` to a frame of size ``(H, W)``; boxes fully outside get
-    zero size at the nearest border."""
+    zero size at the nearest border. Boxes already inside come back exactly as they are (the
+    corners' round trip would change a fractional box in its last bits)."""
     _check_last4(boxes)
     h_img, w_img = frame_size
     xyxy = xywh_to_xyxy(boxes)
@@ -142,7 +143,10 @@ def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor
     y1 = xyxy[..., 1].clamp(0, h_img)
     x2 = xyxy[..., 2].clamp(0, w_img)
     y2 = xyxy[..., 3].clamp(0, h_img)
-    return xyxy_to_xywh(torch.stack((x1, y1, x2, y2), dim=-1))
+    clipped = xyxy_to_xywh(torch.stack((x1, y1, x2, y2), dim=-1))
+    inside = (xyxy[..., 0] >= 0) & (xyxy[..., 1] >= 0)
+    inside &= (xyxy[..., 2] <= w_img) & (xyxy[..., 3] <= h_img)
+    return torch.where(inside[..., None], boxes, clipped)
 
 
 def inside_fraction(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:

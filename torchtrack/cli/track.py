@@ -674,7 +674,7 @@ def _check_detections_fit(path: str, boxes, frame) -> None:
 
     fh, fw = (int(v) for v in frame.shape[-2:])
     inside = inside_fraction(boxes, (fh, fw))
-    n = int((inside == 0).sum())
+    n, mostly = int((inside == 0).sum()), int((inside < 0.5).sum())
     if n > OFF_FRAME_SHARE * len(boxes):
         warnings.warn(
             f"{n} of the {len(boxes)} boxes of --detections {path!r} lie wholly outside the "
@@ -682,9 +682,9 @@ def _check_detections_fit(path: str, boxes, frame) -> None:
             UserWarning,
             stacklevel=2,
         )
-    elif int((inside < 0.5).sum()) > OFF_FRAME_SHARE * len(boxes):
+    elif mostly > OFF_FRAME_SHARE * len(boxes):
         warnings.warn(
-            f"{int((inside < 0.5).sum())} of the {len(boxes)} boxes of --detections {path!r} "
+            f"{mostly} of the {len(boxes)} boxes of --detections {path!r} "
             f"lie mostly outside the {fw}x{fh} frames (less than half of each inside): "
             "detections of another video, or at another scale?",
             UserWarning,
@@ -723,10 +723,6 @@ def _checked_box(box, frame):
 
     h, w = int(frame.shape[-2]), int(frame.shape[-1])
     check_boxes(box[None], (h, w), name="--box")
-    x, y, bw, bh = box.tolist()
-    eps = 1e-6  # a fractional box inside the frame is not clipped (its corners re-add inexactly)
-    if x >= -eps and y >= -eps and x + bw <= w + eps and y + bh <= h + eps:
-        return box
     clipped = clip_boxes(box[None], (h, w))[0]
     if not bool((clipped == box).all()):
         check_boxes(clipped[None], (h, w), name="--box (clipped to the frame)")

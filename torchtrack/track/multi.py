@@ -514,8 +514,9 @@ class MultiTargetTracker:
             raise ShapeError(
                 f"detection {k}: box {boxes[k].tolist()} must be finite with width and height > 0"
             )
-        if not bool(((p >= 0) & (p <= 1)).all()):  # NaN fails too
-            k = int((~((p >= 0) & (p <= 1))).nonzero()[0])
+        out = ~((p >= 0) & (p <= 1))  # NaN is out too
+        if bool(out.any()):
+            k = int(out.nonzero()[0])
             raise ShapeError(
                 f"detection {k}: probability {float(p[k])} is not in [0, 1] (map other "
                 "detectors' scores first: torchtrack.track.multi.score_probabilities)"
