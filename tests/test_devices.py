@@ -207,3 +207,35 @@ def test_track_sequence_moves_frames_to_the_device(device):
     finally:
         src.close()
     assert mt.frame_index == 5 and len(rows) > 0
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_scans_run_on_the_device_a_batch_of_frames_at_a_time(device, monkeypatch):
+    """``track_sequence(device=...)`` without scan workers (``torchtrack track --device cuda``):
+    the scans run on the frames' device, a GPU's 8 frames at a time (one batched call each),
+    the CPU's one at a time; the people found are the CPU run's."""
+    from torchtrack.track.multi import MultiTargetTracker, track_sequence
+
+    seen = []
+    batch = MultiTargetTracker.detect_batch
+
+    def spy(self, frames, lines):
+        seen.append((frames.device.type, frames.shape[0]))
+        return batch(self, frames, lines)
+
+    def run(dev):
+        mt = MultiTargetTracker("pedestrian", generator=_gen("cpu"))
+        with open_source(demo_clip_path()) as src:
+            return track_sequence(mt, src, max_frames=17, device=dev, scan_workers=0)
+
+    ref = run("cpu")
+    monkeypatch.setattr(MultiTargetTracker, "detect_batch", spy)
+    got = run(device)
+    assert seen == (
+        [("cuda", 8), ("cuda", 8), ("cuda", 1)] if device == "cuda" else [("cpu", 1)] * 17
+    )
+    last = int(ref.frames.max())
+    a, b = ref.boxes[ref.frames == last], got.boxes[got.frames == last]
+    assert len(a) > 0 and len(b) == len(a)
+    iou = box_iou_matrix(torch.as_tensor(a).double(), torch.as_tensor(b).double())
+    assert bool((iou.max(1).values > 0.5).all())

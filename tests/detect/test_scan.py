@@ -173,3 +173,39 @@ def test_a_scale_step_just_above_one_is_refused():
     with pytest.raises(ConfigError, match=r">= 1\.01"):
         scan_scales((480, 640), (128, 64), scale_step=float("inf"))
     assert len(scan_scales((480, 640), (128, 64), scale_step=1.01, min_scale=0.3)) < 300
+
+
+def test_a_keep_function_per_frame_gives_each_frame_its_own_scan():
+    """``scan_batch(keep_windows=[k_0, ..., k_B-1])`` (the multi-target tracker's batched scans,
+    each frame with its own ground line): every frame gets exactly what :func:`scan` with its
+    own function gives, raw windows and margins as well as the NMS'd and voted detections."""
+    import itertools
+
+    from torchtrack.data import demo_clip_path
+    from torchtrack.detect.scan import scan_batch
+    from torchtrack.io.video import open_source
+
+    with open_source(demo_clip_path()) as src:
+        got = [f for _, f in itertools.islice(src.items(), 12)]
+    frames = torch.stack([got[0], got[11], got[5]])
+    det = load_model("pedestrian")
+
+    def band(lo, hi):  # window bottoms in a band, as a ground line keeps them
+        return lambda w: ((w[:, 1] + w[:, 3]) > lo) & ((w[:, 1] + w[:, 3]) < hi)
+
+    keeps = [band(150, 300), None, band(200, 360)]
+    raw = {"threshold": None, "margin": True, "nms_iou": None, "min_scale": 0.5, "pad": 0.1}
+    # the multi-target tracker's scan (its people are small)
+    final = {"threshold": 0.1, "nms_iou": 0.3, "nms_on": "object", "vote_iou": 0.5}
+    final |= {"min_scale": 0.35, "stride": 0.08, "scale_step": 1.15, "cascade_threshold": -3.0}
+    for kw in (raw, final):
+        batched = scan_batch(det, frames, keep_windows=keeps, **kw)
+        for b, (wb, sb) in enumerate(batched):
+            wa, sa = scan(det, frames[b], keep_windows=keeps[b], **kw)
+            assert wa.shape[0] > 0
+            if kw is raw:  # order windows the same way before comparing
+                oa, ob = (torch.argsort(w[:, 0] * 1e6 + w[:, 1] * 1e3 + w[:, 2]) for w in (wa, wb))
+                wa, sa, wb, sb = wa[oa], sa[oa], wb[ob], sb[ob]
+            assert torch.equal(wa, wb) and torch.equal(sa, sb)
+    with pytest.raises(ConfigError, match="one per frame"):
+        scan_batch(det, frames, keep_windows=keeps[:2])

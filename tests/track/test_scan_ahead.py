@@ -106,6 +106,9 @@ def test_bad_settings_and_misplaced_scans(clip):
     with pytest.raises(ConfigError, match="at most 16 frames"):
         ScanAhead(mt, 1, depth=17)  # beyond the ground plane's lag
     assert ScanAhead(mt, 12).depth == 16  # many workers: capped, not refused
+    for bad in (0, 17, 2.0, True):
+        with pytest.raises(ConfigError, match="scan batch"):
+            ScanAhead(mt, 0, batch=bad)
     frame = clip[0][1]
     none = (torch.zeros(0, 4), torch.zeros(0))
     mt.update(frame, scan=none)  # frame 1: scanned
@@ -149,3 +152,55 @@ def test_track_sequence_with_scan_workers_gives_the_same_rows(clip, one_thread):
     b = track_sequence(make(), Frames(), scan_workers=2)
     assert len(a) > 0
     assert (a.frames == b.frames).all() and (a.ids == b.ids).all() and (a.boxes == b.boxes).all()
+
+
+def test_frames_scanned_together_come_back_in_order(clip, monkeypatch):
+    """``batch=4``: the frames to scan go to ``detect_batch`` four at a time (readable frames
+    0, 1, 2, 4, 5, 6, 7 of the clip: calls of 4 and 3), each with its own ground line, and come
+    back in order with their own scans; frames of another size start a new batch."""
+    mt = make()
+    calls = []
+
+    def fake(frames, lines):
+        calls.append((frames.shape[0], len(lines)))
+        return [(torch.full((1, 4), float(f.float().mean())), torch.ones(1)) for f in frames]
+
+    monkeypatch.setattr(mt, "detect_batch", fake)
+    with ScanAhead(mt, 0, batch=4) as ahead:
+        got = list(ahead.frames(clip))
+    assert [i for i, _, _ in got] == list(range(8)) and calls == [(4, 4), (3, 3)]
+    for _, f, s in got:
+        assert (s is None) == (f is None)
+        if f is not None:
+            assert float(s[0][0, 0]) == float(f.float().mean())  # its own frame's scan
+    small = [(i, f[:, :200, :300] if i >= 6 and f is not None else f) for i, f in clip]
+    calls.clear()
+    with ScanAhead(mt, 0, batch=8) as ahead:
+        list(ahead.frames(small))
+    assert calls == [(5, 5), (2, 2)]  # frames 0, 1, 2, 4, 5 | the smaller 6, 7
+
+
+def test_batched_scans_give_the_tracks_of_the_tracker_alone(one_thread):
+    """Scans of up to 16 frames together (the ground plane's lag), each with the ground line of
+    its own frame, give the tracks of the tracker scanning frame by frame, to the bit; also
+    when only every other frame is scanned and one frame is unreadable."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+    from torchtrack.track.multi import GROUND_LAG
+
+    with open_source(demo_clip_path()) as src:
+        frames = list(itertools.islice(src.items(), GROUND_LAG + 14))
+    frames[20] = (20, None)
+    for every in (1, 2):
+        alone = make(scan_every=every)
+        ref = [alone.update(f) for _, f in frames if f is not None]
+        if every == 1:  # the last scans were restricted to the ground plane's windows
+            assert alone.scan_ground(len(frames) - 2) is not None
+        for batch in (5, GROUND_LAG):
+            mt = make(scan_every=every)
+            out = []
+            with ScanAhead(mt, 0, batch=batch) as ahead:
+                for _, frame, scan in ahead.frames(frames):
+                    if frame is not None:
+                        out.append(mt.update(frame, scan=scan))
+            same_tracks(ref, out)

@@ -584,7 +584,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         draw_multi,
     )
     from torchtrack.errors import TrackerError
-    from torchtrack.track.scan_ahead import ScanAhead, default_scan_workers
+    from torchtrack.track.scan_ahead import ScanAhead, default_scan_batch, default_scan_workers
 
     device = device_of(args)
     dets, det_boxes = (
@@ -602,7 +602,10 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     n_max = args.max_frames
     items = itertools.takewhile(lambda p: n_max is None or p[0] < n_max, src.items())
     with (
-        ScanAhead(mt, workers if dets is None else 0) as ahead,
+        # without workers the scans run here, on the device, a batch of frames at a time
+        ScanAhead(
+            mt, workers if dets is None else 0, batch=default_scan_batch(device), device=device
+        ) as ahead,
         _Outputs(src, _progress(src, args), (csv, motw, vid)) as run,
     ):
         # With outside detections the tracker does not scan: the frames pass on without one.

@@ -26,7 +26,7 @@ uses both (0.1 and 0.5).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -350,7 +350,7 @@ def _combine_corners(v: torch.Tensor, coef: torch.Tensor | None) -> torch.Tensor
 #: lattice values (float64) scored together in one cascade call: scales are grouped up to this
 #: many, so that one call serves most of a frame's scales (the cascade's per-call work is then
 #: paid once per group instead of once per scale) while a batch of large frames stays bounded
-#: (~64 MiB of lattice per group)
+#: (~64 MiB of lattice per group and frame: a batch of frames groups the same scales as one)
 _GROUP_VALUES = 1 << 23
 
 
@@ -364,9 +364,14 @@ def _scan_lattice(
     pad: float = 0.0,
     cascade_threshold: float | None = None,
     keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    frame_keep: Sequence[Callable[[torch.Tensor], torch.Tensor] | None] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
     margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``).
+
+    ``frame_keep[b]`` (None: all) then keeps frame ``b``'s windows it accepts, judged on the
+    same float64 boxes ``keep_windows`` sees (so a window a single-frame scan with that
+    function would skip is dropped here exactly).
 
     The windows of consecutive scales (lattices of up to :data:`_GROUP_VALUES` values in all)
     are scored by one cascade call; each scale's windows read their own lattice with that
@@ -462,7 +467,7 @@ def _scan_lattice(
             continue
         # without a cascade every window reads every tree: one scale per call keeps each
         # call's tables small (grouping only saves the cascade's per-call work)
-        if group and (not cascade or size + lat.values.numel() > _GROUP_VALUES):
+        if group and (not cascade or size + lat.values.numel() > _GROUP_VALUES * nb):
             score_group(group)
             group, size = [], 0
         group.append(lat)
@@ -472,7 +477,31 @@ def _scan_lattice(
     if not out_f:
         z = torch.zeros(0, device=dev)
         return z.long(), torch.zeros((0, 4), device=dev), z
-    return torch.cat(out_f), torch.cat(out_b).to(torch.float32), torch.cat(out_m)
+    fidx, boxes, marg = torch.cat(out_f), torch.cat(out_b), torch.cat(out_m)
+    if frame_keep is not None and any(fk is not None for fk in frame_keep):
+        keep = torch.ones(fidx.shape[0], dtype=torch.bool, device=dev)
+        for f, fk in enumerate(frame_keep):
+            if fk is not None:
+                sel = fidx == f
+                keep[sel] = fk(boxes[sel]).to(dev)
+        fidx, boxes, marg = fidx[keep], boxes[keep], marg[keep]
+    return fidx, boxes.to(torch.float32), marg
+
+
+def _any_keeps(
+    keeps: list[Callable[[torch.Tensor], torch.Tensor] | None],
+) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """The windows any of ``keeps`` keeps (None when one of them keeps all)."""
+    if any(k is None for k in keeps):
+        return None
+
+    def keep(boxes: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros(boxes.shape[0], dtype=torch.bool, device=boxes.device)
+        for k in keeps:
+            out |= k(boxes).to(boxes.device)
+        return out
+
+    return keep
 
 
 def scan(
@@ -583,7 +612,9 @@ def scan_batch(
     vote_iou: float | None = None,
     pad: float = 0.0,
     cascade_threshold: float | None = None,
-    keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    keep_windows: Callable[[torch.Tensor], torch.Tensor]
+    | Sequence[Callable[[torch.Tensor], torch.Tensor] | None]
+    | None = None,
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """:func:`scan` over a batch of same-size frames: batched integral images, the same
     windows scored on every frame, then threshold and NMS per frame.
@@ -591,6 +622,12 @@ def scan_batch(
     Args:
         frames: ``(B, C, H, W)``, 0..255. Other arguments as in :func:`scan`; ``batch`` bounds
             the windows scored per call over all frames (``B x N_chunk``).
+        keep_windows: as in :func:`scan` (one function for every frame), or a sequence of B,
+            one per frame (None: all of that frame's windows): the windows any of them keeps
+            are scored on every frame, and each frame then keeps those of its own function, before
+            the threshold and the NMS. Each frame's result is then the one of :func:`scan` with
+            its own function (e.g. each frame's own ground plane,
+            :meth:`~torchtrack.track.multi.MultiTargetTracker.detect_batch`).
 
     Returns:
         B pairs ``(boxes (K_b, 4), scores (K_b,))``, by decreasing score.
@@ -630,6 +667,17 @@ def scan_batch(
             )
         )
     nb = frames.shape[0]
+    # the threshold, the NMS and the voting are loops of small reads per frame: off the CPU
+    # they run on the host (one copy of the windows there and one of the results back)
+    host = frames.device.type != "cpu"
+    frame_keep = None
+    if keep_windows is not None and not callable(keep_windows):
+        frame_keep = list(keep_windows)
+        if len(frame_keep) != nb:
+            raise ConfigError(
+                f"keep_windows gives {len(frame_keep)} functions for {nb} frames: one per frame"
+            )
+        keep_windows = _any_keeps(frame_keep)
     if _lattice_capable(detector):
         scales = scan_scales(
             (fh, fw),
@@ -639,9 +687,20 @@ def scan_batch(
             max_scale=max_scale,
         )
         fidx, boxes, marg = _scan_lattice(
-            detector, frames, scales, stride, cascade, batch, pad, cascade_threshold, keep_windows
+            detector,
+            frames,
+            scales,
+            stride,
+            cascade,
+            batch,
+            pad,
+            cascade_threshold,
+            keep_windows,
+            frame_keep,
         )
         scores = marg if margin else detector.proba_from_margin(marg)
+        if host:
+            fidx, boxes, scores = fidx.cpu(), boxes.cpu(), scores.cpu()
         per_frame = [(boxes[fidx == f], scores[fidx == f]) for f in range(nb)]
     else:
         boxes = sliding_windows(
@@ -670,7 +729,14 @@ def scan_batch(
         all_scores = (
             torch.cat(parts, 1) if parts else torch.zeros((nb, 0), device=frames.device)
         )  # (B, N)
+        if host:
+            boxes, all_scores = boxes.cpu(), all_scores.cpu()
         per_frame = [(boxes, all_scores[f]) for f in range(nb)]
+        if frame_keep is not None:
+            for f, fk in enumerate(frame_keep):
+                if fk is not None:
+                    k = fk(boxes).to(boxes.device)
+                    per_frame[f] = (boxes[k], all_scores[f][k])
     out = []
     for bx, sc in per_frame:
         if threshold is not None:
@@ -687,4 +753,6 @@ def scan_batch(
         else:
             keep = sc.argsort(descending=True)
         out.append((bx[keep], sc[keep]))
+    if host:
+        out = [(bx.to(frames.device), sc.to(frames.device)) for bx, sc in out]
     return out

@@ -41,7 +41,7 @@ import torch
 
 from torchtrack.errors import ConfigError, TrackerError
 
-__all__ = ["Ahead", "ScanAhead", "default_scan_workers", "fork_available"]
+__all__ = ["Ahead", "ScanAhead", "default_scan_batch", "default_scan_workers", "fork_available"]
 
 # The function the forked workers call (inherited through fork, never pickled): one pool at a
 # time per process.
@@ -67,6 +67,17 @@ def default_scan_workers() -> int:
     """Workers for this machine: 2 where there are at least two cores and fork works, else 0
     (measured on 2 cores: 2 workers beat 1 and 3, ``docs/multi_target.md``)."""
     return 2 if fork_available() and _cpus() >= 2 else 0
+
+
+#: frames a GPU scans together (``ScanAhead(batch=...)``): a frame's scan is thousands of small
+#: tensor operations, so a GPU is bound by launching them; 8 frames share each launch
+GPU_SCAN_BATCH = 8
+
+
+def default_scan_batch(device: torch.device | str | None) -> int:
+    """Frames scanned together in this process: :data:`GPU_SCAN_BATCH` on a GPU, 1 elsewhere
+    (the CPU scans ahead in worker processes instead)."""
+    return GPU_SCAN_BATCH if device is not None and torch.device(device).type == "cuda" else 1
 
 
 def _die_with_parent(parent: int) -> None:
@@ -226,14 +237,38 @@ class ScanAhead(Ahead):
         depth: frames in flight at most (default ``2 * workers``, capped at ``GROUND_LAG``;
             a larger one is an error); memory stays bounded.
 
+        batch: with no workers, frames scanned together in one batched call
+            (:meth:`~torchtrack.track.multi.MultiTargetTracker.detect_batch`, each with its own
+            ground line; the same scans): a GPU scans a batch of frames for about the cost of
+            one, since a frame's scan is many small operations (default 1; at most
+            ``GROUND_LAG``). Ignored with workers.
+        device: with no workers, where the frames are scanned (None: where they are); the
+            frames handed back stay where they were.
+
     Raises:
-        ConfigError: ``workers < 0``, ``depth < 1`` or ``depth > GROUND_LAG``.
+        ConfigError: ``workers < 0``, ``depth < 1``, ``depth > GROUND_LAG``, or ``batch``
+            outside ``[1, GROUND_LAG]``.
     """
 
-    def __init__(self, tracker: Any, workers: int, depth: int | None = None) -> None:
+    def __init__(
+        self,
+        tracker: Any,
+        workers: int,
+        depth: int | None = None,
+        *,
+        batch: int = 1,
+        device: torch.device | str | None = None,
+    ) -> None:
         from torchtrack.track.multi import GROUND_LAG
 
         super().__init__(_scan_with(tracker), workers, depth)
+        if isinstance(batch, bool) or not isinstance(batch, int) or not 1 <= batch <= GROUND_LAG:
+            raise ConfigError(
+                f"scan batch must be an integer in [1, {GROUND_LAG}] (frames scanned together "
+                f"use the ground plane of {GROUND_LAG} frames before), got {batch!r}"
+            )
+        self.batch = batch
+        self.device = None if device is None else torch.device(device)
         if depth is None:  # many workers: no more in flight than the ground plane allows
             self.depth = min(self.depth, GROUND_LAG)
         if self.depth > GROUND_LAG:
@@ -255,9 +290,13 @@ class ScanAhead(Ahead):
 
         Raises:
             TrackerError: a worker died (e.g. killed for memory); an error raised by a scan
-                (e.g. :class:`~torchtrack.errors.ShapeError`) comes back as it was raised.
+                (e.g. :class:`~torchtrack.errors.ShapeError`) comes back as it was raised
+                (with ``batch > 1``, when the first frame of its batch is reached).
         """
         every = int(self.tracker.config.scan_every)
+        if not self.workers:
+            yield from self._here(items, every)
+            return
 
         def scans():
             k = 0
@@ -271,3 +310,57 @@ class ScanAhead(Ahead):
 
         for (i, frame), scan in self.map(scans(), where=lambda key: f"frame {key[0] + 1}"):
             yield i, frame, scan
+
+    def _here(
+        self, items: Iterable[tuple[int, torch.Tensor | None]], every: int
+    ) -> Iterator[tuple[int, torch.Tensor | None, tuple[torch.Tensor, torch.Tensor] | None]]:
+        """:meth:`frames` without workers: the frames to scan go through ``detect_batch``
+        ``batch`` at a time on ``device``. A batch is scanned when the tracker has taken every
+        frame before it, and spans fewer than ``GROUND_LAG`` of the tracker's frames, so each
+        frame's ground line (``scan_ground``) is known; frames of another size than the
+        batch's start a new one."""
+        from torchtrack.track.multi import GROUND_LAG
+
+        buf: list[tuple[int, torch.Tensor | None, int | None]] = []  # (index, frame, k)
+        k = 0  # the tracker's count of the next readable frame
+        k0 = 0  # ... of the buffer's first frame
+
+        def flush():
+            todo = [(n, kk) for n, (_, _, kk) in enumerate(buf) if kk is not None]
+            found: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+            if todo:
+                t0 = time.perf_counter()
+                try:
+                    frames = torch.stack([buf[n][1] for n, _ in todo])
+                    if self.device is not None:
+                        frames = frames.to(self.device)
+                    lines = [self.tracker.scan_ground(kk) for _, kk in todo]
+                    if len(todo) == 1:  # one frame: the tracker's own detect, as update runs it
+                        found[todo[0][0]] = self.tracker.detect(frames[0], lines[0])
+                    else:
+                        got = self.tracker.detect_batch(frames, lines)
+                        found.update((n, r) for (n, _), r in zip(todo, got, strict=True))
+                finally:
+                    self.seconds += time.perf_counter() - t0
+            out = [(i, f, found.get(n)) for n, (i, f, _) in enumerate(buf)]
+            buf.clear()
+            return out
+
+        for i, frame in items:
+            scanned = frame is not None and k % every == 0
+            if scanned and buf:
+                first = next((f for _, f, kk in buf if kk is not None), None)
+                n_scans = sum(kk is not None for _, _, kk in buf)
+                if (
+                    n_scans >= self.batch
+                    or k - k0 >= GROUND_LAG
+                    or (first is not None and first.shape != frame.shape)
+                ):
+                    yield from flush()
+            if not buf:
+                k0 = k
+            buf.append((i, frame, k if scanned else None))
+            k += frame is not None
+            if self.batch == 1:  # nothing to gather: each frame goes on as it comes
+                yield from flush()
+        yield from flush()
