@@ -124,44 +124,59 @@ def test_padded_frames_keep_their_dtype_and_continue_the_edges():
     assert _pad_frames(x, 0, 0) is x
 
 
-def test_box_corners_combine_as_the_weighted_sum_bit_for_bit():
-    """The scan's shortcut for one-rectangle features gives the values of the general
-    ``(v * coef).sum(-1)``, to the last bit (the cascade's splits see the same numbers)."""
-    from torchtrack.detect.scan import _box_features, _combine_corners
+def test_box_corners_combine_as_the_weighted_sum():
+    """The scan's shortcut for one-rectangle features: with weights of 1 the values of the
+    general ``(v * coef).sum(-1)`` to the last bit; with a box mean's weight ``w`` (applied
+    after the sum, among the per-feature factors) the same values up to rounding."""
+    from torchtrack.detect.scan import _combine_corners, _rectangle_weights
 
     g = torch.Generator().manual_seed(1)
     v = torch.rand(5000, 3, 4, dtype=torch.float64, generator=g) * 1e6
     coef = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64).expand(3, 4)
-    assert _box_features(coef) and torch.equal(_combine_corners(v, None), (v * coef).sum(-1))
-    assert not _box_features(torch.tensor([[1.0, -1.0, -1.0, 1.0, 0.0, 0.0]]))
-    assert not _box_features(torch.tensor([[1.0, -1.0, 1.0, -1.0]]))
+    assert torch.equal(_rectangle_weights(coef), torch.ones(3, dtype=torch.float64))
+    assert torch.equal(_combine_corners(v, None), (v * coef).sum(-1))
+    w = torch.tensor([0.25, 1 / 3, 0.0123], dtype=torch.float64)
+    scaled = w[:, None] * coef
+    assert torch.equal(_rectangle_weights(scaled), w)
+    torch.testing.assert_close(_combine_corners(v, None) * w, (v * scaled).sum(-1))
+    assert _rectangle_weights(torch.tensor([[1.0, -1.0, -1.0, 1.0, 0.0, 0.0]])) is None
+    assert _rectangle_weights(torch.tensor([[1.0, -1.0, 1.0, -1.0]])) is None
+    assert _rectangle_weights(torch.tensor([[0.5, -0.5, -0.5, 1.0]])) is None
     other = torch.tensor([[0.5, -2.0, 1.0, 1.0]], dtype=torch.float64)
     assert torch.equal(_combine_corners(v[:, :1], other), (v[:, :1] * other).sum(-1))
 
 
 def test_bundled_model_scan_is_the_same_with_and_without_the_box_shortcut(data_dir, monkeypatch):
-    """The bundled pedestrian model (one-rectangle features) scans a real frame through the
-    shortcut; the general path gives the same windows and margins, bit for bit, with and
-    without the cascade."""
+    """Both bundled models' features are box means (one rectangle, weight 1 / area): the scan
+    takes the shortcut, and the general path gives the same windows, margins equal up to
+    rounding (float32), and the same detections, with and without the cascade."""
     from torchtrack.detect import scan as scan_module
     from torchtrack.io.video import open_source
 
     with open_source(data_dir / "videos" / "pets2009_s2l1_vtest" / "vtest.avi") as src:
         frame = next(f for _, f in src.items() if f is not None)
     det = load_model("pedestrian")
-    kw = {"min_scale": 0.5, "max_scale": 0.9, "stride": 0.1, "pad": 0.1, "threshold": None,
-          "margin": True, "nms_iou": None}  # fmt: skip
+    for name in ("pedestrian", "vehicle"):
+        m = load_model(name)
+        coef = m.bank.padded_points(m.feature_index, torch.device("cpu"))[3]
+        assert scan_module._rectangle_weights(coef) is not None, name
+    raw = {"min_scale": 0.5, "max_scale": 0.9, "stride": 0.1, "pad": 0.1, "threshold": None,
+           "margin": True, "nms_iou": None}  # fmt: skip
+    final = {"min_scale": 0.35, "threshold": 0.1, "nms_iou": 0.3, "nms_on": "object",
+             "vote_iou": 0.5, "cascade_threshold": -3.0}  # fmt: skip
     runs = {}
     for shortcut in (True, False):
         if not shortcut:
-            monkeypatch.setattr(scan_module, "_box_features", lambda coef: False)
+            monkeypatch.setattr(scan_module, "_rectangle_weights", lambda coef: None)
         runs[shortcut] = [
-            scan_module.scan_batch(det, frame[None], cascade=c, cascade_threshold=t, **kw)[0]
+            scan_module.scan_batch(det, frame[None], cascade=c, cascade_threshold=t, **raw)[0]
             for c, t in ((False, None), (True, None), (True, -3.0))
-        ]
+        ] + [scan_module.scan(det, frame, **final)]
     assert runs[True][0][0].shape[0] > 5000  # every window, no cascade
+    assert runs[True][3][0].shape[0] > 0  # people detected
     for (wa, ma), (wb, mb) in zip(runs[True], runs[False], strict=True):
-        assert torch.equal(wa, wb) and torch.equal(ma, mb)
+        assert torch.equal(wa, wb)
+        torch.testing.assert_close(ma, mb, rtol=1e-5, atol=1e-6)
 
 
 def test_a_scale_step_just_above_one_is_refused():

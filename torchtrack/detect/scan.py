@@ -330,17 +330,22 @@ def _lattice_capable(detector) -> bool:
     return isinstance(detector.bank, ChannelBank) and hasattr(detector.classifier, "cascade")
 
 
-def _box_features(coef: torch.Tensor) -> bool:
-    """Whether every feature of ``coef (K, P)`` (:meth:`ChannelBank.padded_points`) is one
-    rectangle: four corners weighted +1, -1, -1, +1 (the bundled models' features)."""
-    return coef.shape[1] == 4 and bool((coef == coef.new_tensor([1, -1, -1, 1])).all())
+def _rectangle_weights(coef: torch.Tensor) -> torch.Tensor | None:
+    """``(K,)`` weights ``w`` when every feature of ``coef (K, P)`` is one rectangle whose four
+    corners are weighted ``w * (1, -1, -1, 1)`` (a box mean: ``w`` is one over its area in
+    cells; every feature of both bundled models), else None."""
+    if coef.shape[1] != 4:
+        return None
+    w = coef[:, 0]
+    return w if bool((coef == w[:, None] * coef.new_tensor([1, -1, -1, 1])).all()) else None
 
 
 def _combine_corners(v: torch.Tensor, coef: torch.Tensor | None) -> torch.Tensor:
     """Corner values ``v (..., P)`` -> features ``(...)``: ``(v * coef).sum(-1)``, or with
-    ``coef = None`` (every feature one rectangle, :func:`_box_features`) ``((a - b) - c) + d``,
-    the order in which the CPU's sum adds ``v * (1, -1, -1, 1)`` (the same values), without
-    reading a coefficient per window and tree: ~25% of a cascade read's time."""
+    ``coef = None`` (every feature one rectangle, :func:`_rectangle_weights`) ``((a - b) - c)
+    + d``, the rectangle's sum, whose weight the caller applies with its other per-feature
+    factors: no coefficient gathered per window and tree (the order in which the CPU's sum adds
+    ``v * (1, -1, -1, 1)``, so with weights of 1 the values are the same, bit for bit)."""
     if coef is None:
         a, b, c, d = v.unbind(-1)
         return ((a - b) - c) + d
@@ -386,7 +391,10 @@ def _scan_lattice(
     ints = bank.integrals(_pad_frames(frames, py, px))
     dev = frames.device
     pc, pi, pj, coef, lam = bank.padded_points(detector.feature_index, dev)
-    box_only = _box_features(coef)
+    # one-rectangle features: their weights join the per-feature factors (same values up to
+    # rounding: a weight applied after the corners' sum rather than to each corner)
+    rect_w = _rectangle_weights(coef)
+    box_only = rect_w is not None
     wh, ww = bank.window
     step = (max(1, round(stride * wh / bank.cell)), max(1, round(stride * ww / bank.cell)))
     nb = frames.shape[0]
@@ -399,7 +407,8 @@ def _scan_lattice(
             li, lj = lat.shape
             m = lat.origins.shape[0]
             offs.append((pi * lj + pj) * nc + pc)  # (K, P) offsets of every feature's points
-            factors.append(lat.norm * torch.exp(lat.logr * lam))  # (K,)
+            fac = lat.norm * torch.exp(lat.logr * lam)  # (K,)
+            factors.append(fac if rect_w is None else fac * rect_w)
             bases.append(
                 (
                     torch.arange(nb, device=dev)[:, None] * (li * lj * nc)
