@@ -369,6 +369,33 @@ def test_a_lattice_with_no_kept_window_computes_no_channels():
     assert lat is not None and set(ints._levels) == {1}
 
 
+def test_a_keep_function_by_row_is_asked_one_window_a_row():
+    """``keep_windows.by_row`` (an answer that depends on a window's y and height only, as a
+    ground plane's): asked about the first window of each lattice row, it gives the lattice of
+    the same function asked about every window, windows and values alike."""
+    x = frames(2, 150, 170)
+    bank = small_bank()
+    ints = bank.integrals(x)
+
+    def band(b):  # window bottoms in a band
+        return ((b[:, 1] + b[:, 3]) > 60) & ((b[:, 1] + b[:, 3]) < 120)
+
+    asked = []
+
+    def by_row(b):
+        asked.append(b.shape[0])
+        return band(b)
+
+    by_row.by_row = True
+    for scale in (1.0, 1.5):
+        whole = scale_lattice(ints, bank, scale, 2, keep_windows=band)
+        rows = scale_lattice(ints, bank, scale, 2, keep_windows=by_row)
+        assert torch.equal(whole.boxes, rows.boxes) and torch.equal(whole.origins, rows.origins)
+        assert torch.equal(whole.values, rows.values) and whole.shape == rows.shape
+        n_i = len(scale_lattice(ints, bank, scale, 2).boxes[:, 1].unique())
+        assert asked[-1] == n_i < whole.boxes.shape[0]
+
+
 @pytest.mark.parametrize("names", [None, ("gray", "grad", "orient")])
 def test_channels_last_layout_holds_the_same_values(names):
     """``memory_format=torch.channels_last`` (the layout the integral images are summed in)

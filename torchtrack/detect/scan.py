@@ -510,6 +510,7 @@ def _any_keeps(
             out |= k(boxes).to(boxes.device)
         return out
 
+    keep.by_row = all(getattr(k, "by_row", False) for k in keeps)  # see scale_lattice
     return keep
 
 

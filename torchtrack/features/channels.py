@@ -1270,7 +1270,9 @@ def scale_lattice(
 
     ``keep_windows(boxes (M, 4)) -> (M,) bool`` keeps only some of the windows (frame pixels, as
     the lattice's ``boxes``): the lattice then covers the rows and columns those windows read,
-    and nothing else is sampled.
+    and nothing else is sampled. A function whose attribute ``by_row`` is true says that its
+    answer depends on a window's y and height only (a ground plane's sizes): it is asked about
+    the first window of each lattice row, and the answer holds for the whole row.
 
     Returns:
         a :class:`Lattice` (boxes in the coordinates of the frame without its padding), or
@@ -1321,7 +1323,11 @@ def scale_lattice(
     )
     i0 = j0 = 0
     if keep_windows is not None:
-        keep = keep_windows(boxes).to(dev)
+        if getattr(keep_windows, "by_row", False):  # one window per row answers for the row
+            row = keep_windows(boxes.view(n_i, n_j, 4)[:, 0]).to(dev)
+            keep = row[:, None].expand(n_i, n_j).reshape(-1)
+        else:
+            keep = keep_windows(boxes).to(dev)
         if not bool(keep.any()):
             return None
         origins, boxes = origins[keep], boxes[keep]

@@ -56,7 +56,6 @@ Example::
 from __future__ import annotations
 
 import collections
-import functools
 import math
 import os
 import warnings
@@ -325,9 +324,7 @@ class MultiTargetTracker:
                 f"{frames.shape[0]} frames"
             )
         keeps = [
-            None
-            if line is None or cfg.ground_gate <= 0
-            else functools.partial(self._keep_window, line=line, height=fh)
+            None if line is None or cfg.ground_gate <= 0 else self._ground_keep(line, fh)
             for line in grounds
         ]
         found = scan_batch(
@@ -351,9 +348,16 @@ class MultiTargetTracker:
             (self.detector.window_to_object(w.double()).cpu(), p.double().cpu()) for w, p in found
         ]
 
-    def _keep_window(self, w: torch.Tensor, line: GroundLine, height: int) -> torch.Tensor:
-        """``ground_gate``: the windows ``w (M, 4)`` whose object box fits ``line``."""
-        return self._on_line(self.detector.window_to_object(w.double()), line, height)
+    def _ground_keep(self, line: GroundLine, height: int):
+        """``ground_gate``: ``keep(windows (M, 4)) -> (M,) bool``, the windows whose object box
+        fits ``line`` in a frame ``height`` pixels tall. It reads a window's y and height only
+        (``by_row``: the scan asks one window per lattice row)."""
+
+        def keep(w: torch.Tensor) -> torch.Tensor:
+            return self._on_line(self.detector.window_to_object(w.double()), line, height)
+
+        keep.by_row = True
+        return keep
 
     def _on_line(self, boxes: torch.Tensor, line: GroundLine | None, height: int) -> torch.Tensor:
         """``(M,)`` bool: object boxes ``(M, 4)`` whose height fits ``line`` (``ground_gate``),
