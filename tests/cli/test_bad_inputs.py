@@ -1101,6 +1101,48 @@ CASES += [
         f"{T} --tracker cotrain:search_scale=1e308 --box 10,14,14,20",
         "search_scale",
     ),
+    # absurd finite settings ran on as nonsense, overflowed to +inf weights, or raised a bare
+    # ValueError inside the filter (cotrain motion_std)
+    E(
+        "track-haar-surround-huge",
+        f"{T} --tracker adaptive-haar:n_particles=50,surround=1e308 --box 10,14,14,20",
+        r"surround must be in \(1, 10\] \(times the centre side\), got 1e\+308",
+    ),
+    E(
+        "track-detector-context-huge",
+        f"{T} --tracker detector:context=1e308 --box 10,14,14,20",
+        r"context \(window over box height\) must be in \(0, 10\]",
+    ),
+    E(
+        "track-detector-power-huge",
+        f"{T} --tracker detector:likelihood_power=1e308 --box 10,14,14,20",
+        r"likelihood_power must be in \(0, 100\], got 1e\+308",
+    ),
+    E(
+        "track-fused-det-weight-huge",
+        f"{T} --tracker fused:det_weight=1e308 --box 10,14,14,20",
+        r"det_weight must be in \[0, 100\], got 1e\+308",
+    ),
+    E(
+        "track-fused-cotrain-weight-huge",
+        f"{T} --tracker fused:cotrain_weight=1e308 --box 10,14,14,20",
+        r"cotrain_weight must be in \[0, 100\]",
+    ),
+    E(
+        "track-cotrain-motion-huge",
+        f"{T} --tracker cotrain:motion_std=1e308 --box 10,14,14,20",
+        r"motion_std must be a finite number within \+-1e\+06, got 1e\+308",
+    ),
+    E(
+        "track-histogram-lam-huge",
+        f"{T} --tracker histogram:lam=1e308 --box 10,14,14,20",
+        r"lam must be a finite number within \+-1e\+06",
+    ),
+    E(
+        "track-template-sharpness-nan",
+        f"{T} --tracker template:sharpness=nan --box 10,14,14,20",
+        "sharpness must be",
+    ),
     # the signed model must never land on a key: a private key overwritten is lost for good
     E(
         "sign-out-is-the-key",
