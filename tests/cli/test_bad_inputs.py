@@ -697,6 +697,11 @@ CASES += [
     ),
     E("train-features-0", f"{TR} --features 0 -o {{o}}/m.safetensors", "n_features"),
     E(
+        "train-mining-rounds-huge",  # ran for ever: each round scans and retrains
+        f"{TR} --neg-images {{c}}/frames --mining-rounds 2000000000 -o {{o}}/m.safetensors",
+        r"mining.rounds must be in \[0, 100\]",
+    ),
+    E(
         "train-features-with-channels",
         f"{TR} --bank channels -o {{o}}/m.safetensors",
         "--features 4 sets how many features AdaBoost selects",
