@@ -1144,6 +1144,17 @@ CASES += [
         r"lam must be a finite number within \+-1e\+06",
     ),
     E(
+        "track-multi-confirm-hits-huge",  # no target was ever reported, silently
+        "track {c}/frames --tracker multi:confirm_hits=2000000000 -o {o}/b.csv",
+        r"confirm_hits must be in \[1, 1000\]",
+    ),
+    E(
+        "track-mil-box-spans-the-frame",  # OpenCV's assertion leaked through
+        "track {c}/frames --no-progress --tracker mil --box 0,0,30,48 -o {o}/b.csv",
+        "no room around the box to sample positives",
+    ),
+    E("sign-check-device", "sign --check /dev/null", "is not a regular file"),
+    E(
         "track-template-sharpness-nan",
         f"{T} --tracker template:sharpness=nan --box 10,14,14,20",
         "sharpness must be",

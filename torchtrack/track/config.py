@@ -218,7 +218,7 @@ class MultiTrackerConfig:
         external_birth_threshold: the same for detections given from outside (``--detections``:
             another detector's scores, mapped to [0, 1]).
         confirm_hits: a new target is reported once it was matched on this many scans in a row
-            (counting the one that started it); a miss before that ends it.
+            (counting the one that started it; at most 1000); a miss before that ends it.
         max_lost: a target unmatched for more than this many frames ends.
         max_coast: an unmatched confirmed target is still reported for up to this many frames
             while the filter's evidence (the mean calibrated probability of its particles) is
@@ -362,6 +362,11 @@ class MultiTrackerConfig:
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
+        if self.confirm_hits > MAX_CONFIRM_HITS:  # 2e9: no target was ever reported, silently
+            raise ConfigError(
+                f"confirm_hits must be in [1, {MAX_CONFIRM_HITS}] (scans in a row), got "
+                f"{self.confirm_hits}"
+            )
         for k in ("max_lost", "max_coast"):
             if getattr(self, k) < 0:
                 raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
@@ -484,6 +489,9 @@ class MultiTrackerConfig:
             raise ConfigError(f"likelihood must be 'head' or 'full', got {self.likelihood!r}")
         _estimator_and_scheme(self)
 
+
+#: the most scans in a row a new target must be matched on before it is reported
+MAX_CONFIRM_HITS = 1000
 
 #: the largest detector window over object box height (``context``): the pedestrian windows'
 #: margin is about 1.33; a window ten times the object's height no longer looks at it
