@@ -204,6 +204,9 @@ def corpus(tmp_path_factory, forge_model):
     (c / "huge.csv").write_text(  # the same ranking at magnitudes whose squares overflow
         "score,label\n" + "".join(f"{float(a) * 1e300!r},{b}\n" for a, b in zip(m, y, strict=True))
     )
+    (c / "tiny.csv").write_text(  # the same ranking at magnitudes whose squares underflow
+        "score,label\n" + "".join(f"{float(a) * 1e-300!r},{b}\n" for a, b in zip(m, y, strict=True))
+    )
     (c / "binary.toml").write_bytes(b"\xff\xfe\x00")  # not UTF-8: no TOML, JSON or name list
     for name, a in (("cal_inverted", 1.43), ("cal_flat", 0.0), ("cal_good", -1.2)):
         doc = {"format": "torchtrack-calibration", "format_version": 1, "tensors": {}}
@@ -1339,6 +1342,12 @@ CASES += [
         "cal-scores-huge",
         "calibrate --scores {c}/huge.csv --json {o}/p.json",
         "did not move from A = 0.*isotonic",
+        ("p.json",),
+    ),
+    A(
+        "cal-scores-tiny",  # was silent: a fit blind to the scores
+        "calibrate --scores {c}/tiny.csv --json {o}/p.json",
+        "did not move from A = 0.*too small for .*underflow",
         ("p.json",),
     ),
     # calibrate MODEL -o OUT --json J writes both
