@@ -126,6 +126,14 @@ def test_platt_fit_that_cannot_leave_zero_warns():
     assert abs(cal.a_) * 1e-300 < 1e-9
 
 
+def test_isotonic_scores_whose_range_overflows_are_refused():
+    # +-1.8e308: the fit's interpolation gave NaN probabilities ("p contains 99 non-finite")
+    y = np.array([0, 1] * 10)
+    s = np.where(y == 1, 1.7e308, -1.7e308)
+    with pytest.raises(errors.DataError, match="a range beyond the float range: rescale them"):
+        IsotonicCalibrator().fit(s, y)
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
 def test_non_finite_scores_rejected_with_index(bad, cls):

@@ -276,11 +276,17 @@ class IsotonicCalibrator(BaseEstimator):
         """Fit on ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
 
         Raises:
-            DataError: NaN / inf scores (index named) or a single class.
+            DataError: NaN / inf scores (index named), scores whose range overflows, or a
+                single class.
         """
         from sklearn.isotonic import IsotonicRegression
 
         s = _scores(scores)
+        lo, hi = float(s.min()), float(s.max())
+        if not math.isfinite(hi - lo):  # interpolation between them gave NaN probabilities
+            raise errors.DataError(
+                f"scores span {lo:.3g} to {hi:.3g}, a range beyond the float range: rescale them"
+            )
         y01, _ = as_binary_labels(y, s.shape[0])
         sw = None
         if sample_weight is not None:
