@@ -204,6 +204,9 @@ def corpus(tmp_path_factory, forge_model):
     (c / "huge.csv").write_text(  # the same ranking at magnitudes whose squares overflow
         "score,label\n" + "".join(f"{float(a) * 1e300!r},{b}\n" for a, b in zip(m, y, strict=True))
     )
+    (c / "tiny.csv").write_text(  # the same ranking at magnitudes whose squares underflow
+        "score,label\n" + "".join(f"{float(a) * 1e-300!r},{b}\n" for a, b in zip(m, y, strict=True))
+    )
     (c / "binary.toml").write_bytes(b"\xff\xfe\x00")  # not UTF-8: no TOML, JSON or name list
     for name, a in (("cal_inverted", 1.43), ("cal_flat", 0.0), ("cal_good", -1.2)):
         doc = {"format": "torchtrack-calibration", "format_version": 1, "tensors": {}}
@@ -697,6 +700,11 @@ CASES += [
     ),
     E("train-features-0", f"{TR} --features 0 -o {{o}}/m.safetensors", "n_features"),
     E(
+        "train-mining-rounds-huge",  # ran for ever: each round scans and retrains
+        f"{TR} --neg-images {{c}}/frames --mining-rounds 2000000000 -o {{o}}/m.safetensors",
+        r"mining.rounds must be in \[0, 100\]",
+    ),
+    E(
         "train-features-with-channels",
         f"{TR} --bank channels -o {{o}}/m.safetensors",
         "--features 4 sets how many features AdaBoost selects",
@@ -1101,6 +1109,59 @@ CASES += [
         f"{T} --tracker cotrain:search_scale=1e308 --box 10,14,14,20",
         "search_scale",
     ),
+    # absurd finite settings ran on as nonsense, overflowed to +inf weights, or raised a bare
+    # ValueError inside the filter (cotrain motion_std)
+    E(
+        "track-haar-surround-huge",
+        f"{T} --tracker adaptive-haar:n_particles=50,surround=1e308 --box 10,14,14,20",
+        r"surround must be in \(1, 10\] \(times the centre side\), got 1e\+308",
+    ),
+    E(
+        "track-detector-context-huge",
+        f"{T} --tracker detector:context=1e308 --box 10,14,14,20",
+        r"context \(window over box height\) must be in \(0, 10\]",
+    ),
+    E(
+        "track-detector-power-huge",
+        f"{T} --tracker detector:likelihood_power=1e308 --box 10,14,14,20",
+        r"likelihood_power must be in \(0, 100\], got 1e\+308",
+    ),
+    E(
+        "track-fused-det-weight-huge",
+        f"{T} --tracker fused:det_weight=1e308 --box 10,14,14,20",
+        r"det_weight must be in \[0, 100\], got 1e\+308",
+    ),
+    E(
+        "track-fused-cotrain-weight-huge",
+        f"{T} --tracker fused:cotrain_weight=1e308 --box 10,14,14,20",
+        r"cotrain_weight must be in \[0, 100\]",
+    ),
+    E(
+        "track-cotrain-motion-huge",
+        f"{T} --tracker cotrain:motion_std=1e308 --box 10,14,14,20",
+        r"motion_std must be a finite number within \+-1e\+06, got 1e\+308",
+    ),
+    E(
+        "track-histogram-lam-huge",
+        f"{T} --tracker histogram:lam=1e308 --box 10,14,14,20",
+        r"lam must be a finite number within \+-1e\+06",
+    ),
+    E(
+        "track-multi-confirm-hits-huge",  # no target was ever reported, silently
+        "track {c}/frames --tracker multi:confirm_hits=2000000000 -o {o}/b.csv",
+        r"confirm_hits must be in \[1, 1000\]",
+    ),
+    E(
+        "track-mil-box-spans-the-frame",  # OpenCV's assertion leaked through
+        "track {c}/frames --no-progress --tracker mil --box 0,0,30,48 -o {o}/b.csv",
+        "no room around the box to sample positives",
+    ),
+    E("sign-check-device", "sign --check /dev/null", "is not a regular file"),
+    E(
+        "track-template-sharpness-nan",
+        f"{T} --tracker template:sharpness=nan --box 10,14,14,20",
+        "sharpness must be",
+    ),
     # the signed model must never land on a key: a private key overwritten is lost for good
     E(
         "sign-out-is-the-key",
@@ -1281,6 +1342,12 @@ CASES += [
         "cal-scores-huge",
         "calibrate --scores {c}/huge.csv --json {o}/p.json",
         "did not move from A = 0.*isotonic",
+        ("p.json",),
+    ),
+    A(
+        "cal-scores-tiny",  # was silent: a fit blind to the scores
+        "calibrate --scores {c}/tiny.csv --json {o}/p.json",
+        "did not move from A = 0.*too small for .*underflow",
         ("p.json",),
     ),
     # calibrate MODEL -o OUT --json J writes both

@@ -54,11 +54,35 @@ def test_unknown_keys_named(tmp_path):
         ("[learn]\nsvm_c = nan\n", "learn.svm_c must be a finite number > 0"),
         ("[learn]\ncascade_threshold = 1e308\n", "cascade_threshold must be a running margin"),
         ("[learn]\nn_features = 4.5\n", "'n_features' must be an integer"),
+        # counts bounded before any work (these ran for hours, out of memory, or failed only
+        # when the model was written); an empty size list was silently the default sizes
+        ("[mining]\nrounds = 2000000000\n", r"mining.rounds must be in \[0, 100\]"),
+        (
+            "[learn]\nn_estimators = 2000000000\n",
+            r"n_estimators must be an integer in \[1, 100000\]",
+        ),
+        ("[learn]\nn_trees = 2000000000\n", r"n_trees must be an integer in \[1, 100000\]"),
+        ("[features]\nsizes = []\n", r"features.sizes = \[\] names no filter size"),
+        ("[features]\nn_scales = 2000000000\n", r"n_scales must be an integer in \[1, 8\]"),
+        (
+            "[features]\nkind = 'channels'\nboxes = 2000000000\n",
+            r"features.boxes must be an integer in \[0, 1000000\]",
+        ),
+        (
+            "[features]\nkind = 'channels'\nhaar = 2000000000\n",
+            r"features.haar must be an integer in \[0, 1000000\]",
+        ),
     ],
 )
 def test_bad_values(tmp_path, extra, match):
     with pytest.raises(ConfigError, match=match):
         load_train_config(write(tmp_path, BASE + extra))
+
+
+def test_bounds_admit_their_limits(tmp_path):
+    extra = "[features]\nn_scales = 4\n[learn]\nn_estimators = 100000\n"
+    cfg = load_train_config(write(tmp_path, BASE + extra))
+    assert cfg.features.n_scales == 4 and cfg.learn.n_estimators == 100000
 
 
 def test_no_negatives_and_missing_file(tmp_path):

@@ -169,8 +169,9 @@ def test_pool_config_roundtrip_and_errors():
         CentreSurroundPool.from_dict({"grid": [3]})
     with pytest.raises(ConfigError, match="equal length"):
         CentreSurroundPool(grids=(3, 4), sizes=(0.2,))
-    with pytest.raises(ConfigError, match="surround must be > 1"):
-        CentreSurroundPool(surround=1.0)
+    for bad in (1.0, 1e308):  # 1e308 overflowed the surround's area to inf
+        with pytest.raises(ConfigError, match=r"surround must be in \(1, 10\]"):
+            CentreSurroundPool(surround=bad)
     with pytest.raises(ConfigError, match=r"centre sizes must be in \(0, 1\]"):
         CentreSurroundPool(grids=(3,), sizes=(1.5,))
     with pytest.raises(ConfigError, match=r"gradients must be an integer in \[0, 19\]"):

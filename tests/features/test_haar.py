@@ -181,6 +181,16 @@ def test_bad_bank(kwargs, match):
         HaarBank(**kwargs)
 
 
+def test_n_scales_bounded_by_the_window():
+    # a huge n_scales built a list of that many sizes and printed it in the error
+    assert haar_bank((64, 40), n_scales=4).sizes == (32, 16, 8, 4)
+    for bad in (0, 5, 2**62):
+        with pytest.raises(
+            ConfigError, match=r"n_scales must be an integer in \[1, 4\] for a 64x40"
+        ):
+            haar_bank((64, 40), n_scales=bad)
+
+
 def test_bank_from_bad_dict():
     with pytest.raises(ConfigError, match="unknown Haar bank key"):
         HaarBank.from_dict({"window": [8, 8], "sizes": [4], "colour": 1})

@@ -119,6 +119,19 @@ def test_platt_fit_that_cannot_leave_zero_warns():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert PlattCalibrator().fit(s * 1e150, y).a_ < 0  # large but fine: no warning
+    # magnitudes whose squares underflow: the fit stopped at A ~ 1e-287, as blind to the scores
+    # (was silent; the message said "overflows" where A stayed exactly 0)
+    with pytest.warns(UserWarning, match="is too small for .*underflow.* the fit"):
+        cal = PlattCalibrator().fit(s * 1e-300, y)
+    assert abs(cal.a_) * 1e-300 < 1e-9
+
+
+def test_isotonic_scores_whose_range_overflows_are_refused():
+    # +-1.8e308: the fit's interpolation gave NaN probabilities ("p contains 99 non-finite")
+    y = np.array([0, 1] * 10)
+    s = np.where(y == 1, 1.7e308, -1.7e308)
+    with pytest.raises(errors.DataError, match="a range beyond the float range: rescale them"):
+        IsotonicCalibrator().fit(s, y)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])

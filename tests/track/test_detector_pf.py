@@ -162,5 +162,27 @@ def test_likelihood_power_scales_the_log_weights(crossing):
         torch.testing.assert_close(st.log_weights, torch.log_softmax(k * logp, 1))
         out[k] = st.particles
     assert torch.equal(out[1.0], out[2.5])
-    with pytest.raises(ConfigError, match="likelihood_power must be > 0"):
-        DetectorTracker(likelihood_power=0.0)
+    for bad in (0.0, 1e308):
+        with pytest.raises(ConfigError, match=r"likelihood_power must be in \(0, 100\]"):
+            DetectorTracker(likelihood_power=bad)
+
+
+def test_settings_beyond_their_range_are_refused_from_any_source(tmp_path):
+    # absurd finite values ran on (or overflowed later); a config object, a TOML file and
+    # keyword overrides are checked alike
+    from torchtrack.track.config import (
+        DetectorTrackerConfig,
+        HistogramTrackerConfig,
+        resolve_tracker_config,
+    )
+
+    with pytest.raises(ConfigError, match=r"context \(window over box height\) must be in"):
+        resolve_tracker_config(DetectorTrackerConfig, DetectorTrackerConfig(context=1e308))
+    with pytest.raises(ConfigError, match=r"context_candidates must be numbers in \(0, 10\]"):
+        resolve_tracker_config(DetectorTrackerConfig, None, {"context_candidates": [1.0, 50.0]})
+    toml = tmp_path / "h.toml"
+    toml.write_text("lam = 1e308\n")
+    with pytest.raises(ConfigError, match=r"lam must be a finite number within \+-1e\+06"):
+        resolve_tracker_config(HistogramTrackerConfig, toml)
+    with pytest.raises(ConfigError, match="sigma_xy must be a finite number within"):
+        resolve_tracker_config(HistogramTrackerConfig, HistogramTrackerConfig(sigma_xy=10**400))

@@ -42,6 +42,10 @@ def test_config_errors():
         FusedTracker(calibration="isotonic")
     with pytest.raises(ConfigError, match="unknown key"):
         FusedTracker(particles=3)
+    with pytest.raises(ConfigError, match=r"det_weight must be in \[0, 100\], got 1e\+308"):
+        FusedTracker(det_weight=1e308)  # overflowed the weights later
+    with pytest.raises(ConfigError, match=r"context \(window over box height\)"):
+        FusedTracker(context=1e308)
 
 
 def test_raw_margins_are_an_increasing_map_of_probabilities():

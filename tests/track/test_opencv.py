@@ -169,6 +169,15 @@ def test_opencv_exception_becomes_a_tracker_error(monkeypatch):
         t.init(frame, torch.tensor([25.0, -16.0, 75.0, 186.0]))
 
 
+def test_mil_box_without_room_to_sample_says_so():
+    # a box spanning the frame's height: MIL's assertion '!posSamples.empty()' leaked through
+    # with OpenCV's banner and source path
+    frame = torch.zeros((3, 96, 128), dtype=torch.uint8)
+    with pytest.raises(TrackerError, match="no room around the box to sample positives") as e:
+        create_tracker("mil").init(frame, torch.tensor([0.0, 0.0, 60.0, 96.0]))
+    assert "Assertion" not in str(e.value) and ".cpp" not in str(e.value)
+
+
 def test_camshift_follows_a_coloured_target():
     frames, gt = _square_frames()
     t = CamShiftTracker()

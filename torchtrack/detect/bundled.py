@@ -61,6 +61,11 @@ def resolve_model(name_or_path: str | os.PathLike) -> Path:
             f"model {s!r} is a folder, not a model file (give a .safetensors file or a bundled "
             f"name: {', '.join(names) or 'none installed'})"
         )
+    if p.exists():  # a device, a pipe, a socket: "does not exist" was wrong
+        raise ModelFormatError(
+            f"model {s!r} is not a regular file (a device or a pipe?); give a .safetensors file "
+            f"or a bundled name: {', '.join(names) or 'none installed'}"
+        )
     if isinstance(name_or_path, os.PathLike) or _looks_like_path(s):
         raise ModelFormatError(
             f"model file {s!r} does not exist (bundled models, usable by name: "

@@ -31,6 +31,10 @@ __all__ = [
 #: the most random negative windows a training run may draw (each is a crop held in memory)
 MAX_RANDOM_NEGATIVES = 10_000_000
 
+#: the most hard-negative mining rounds (each scans every negative image and retrains; the
+#: shipped models use 3)
+MAX_MINING_ROUNDS = 100
+
 
 @dataclass
 class DataConfig:
@@ -96,13 +100,16 @@ class FeatureConfig:
         kind: ``"haar"``: Chateau et al.'s grey Haar bank with AdaBoost feature selection (the
             paper setting, see :func:`torchtrack.features.haar.haar_bank`); ``"channels"``:
             integral channel features (:func:`torchtrack.features.channels.channel_bank`).
-        n_scales, sizes, stride, min_std: the Haar bank.
+        n_scales, sizes, stride, min_std: the Haar bank (``n_scales`` at most 8, and at most
+            the halvings of the window's largest power of two down to 4 pixels; ``sizes`` left
+            out or non-empty).
         channels: channel names (``L``, ``U``, ``V``, ``gray``, ``grad``, ``orient``).
         orientations, norm_radius, norm_const, gradient_lambda: see
             :class:`~torchtrack.features.channels.ChannelSet`.
         cell: lattice step in window pixels (ACF's shrink).
         cells: include every single cell of every channel.
-        boxes, haar: random rectangles and random Haar filters over channels in the pool.
+        boxes, haar: random rectangles and random Haar filters over channels in the pool
+            (each at most 1,000,000, what a channel bank holds).
     """
 
     kind: str = "haar"
@@ -151,9 +158,9 @@ class LearnConfig:
         variant: boosting variant, ``"discrete"`` (paper eq. 9), ``"real"`` or ``"gentle"``;
             ``None``: discrete for stumps, real for trees (Dollár's ACF).
         n_estimators: boosting rounds of stumps on the selected features (default:
-            ``n_features``).
+            ``n_features``; at most 100,000, what a model file holds).
         n_trees, tree_depth: trees of the final round (mining rounds train fewer, see
-            :class:`MiningConfig`) and their depth.
+            :class:`MiningConfig`; at most 100,000) and their depth.
         feature_fraction, weight_trimming: share of the pool searched per tree, and share of
             the weight left out of the split search (see :class:`torchtrack.learn.BoostedTrees`).
         cascade: the soft cascade stored in the model (used by scans; scoring boxes always
@@ -227,7 +234,7 @@ class MiningConfig:
     training warns (:class:`~torchtrack.errors.TrainingWarning`).
 
     Attributes:
-        rounds: number of mining rounds (0: off).
+        rounds: number of mining rounds (0: off; at most :data:`MAX_MINING_ROUNDS`, 100).
         per_round: hard negatives added per round.
         scale_step: ratio between successive scan scales.
         stride: scan step as a fraction of the window width at each scale.
@@ -324,15 +331,25 @@ class TrainConfig:
         f = self.features
         if f.kind not in ("haar", "channels"):
             raise ConfigError(f"features.kind must be 'haar' or 'channels', got {f.kind!r}")
+        if f.sizes is not None and not f.sizes:  # was taken as "not given": n_scales sizes
+            raise ConfigError(
+                "features.sizes = [] names no filter size; give sizes or leave the key out (the "
+                "bank then takes features.n_scales sizes)"
+            )
         if f.kind == "channels":
             f.channel_set()  # unknown channel names and bad values raise here
             from torchtrack.features.channels import _check_geometry
 
             _check_geometry(tuple(w), f.cell)
-            for name in ("boxes", "haar"):
+            from torchtrack.features.channels import _MAX_FEATURES
+
+            for name in ("boxes", "haar"):  # random features: 2e9 ran out of memory
                 v = getattr(f, name)
-                if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-                    raise ConfigError(f"features.{name} must be a non-negative integer, got {v!r}")
+                if not isinstance(v, int) or isinstance(v, bool) or not 0 <= v <= _MAX_FEATURES:
+                    raise ConfigError(
+                        f"features.{name} must be an integer in [0, {_MAX_FEATURES}] (the most "
+                        f"features a channel bank holds), got {v!r}"
+                    )
             if not isinstance(f.cells, bool):
                 raise ConfigError(f"features.cells must be true or false, got {f.cells!r}")
             for q in d.positive_scales:
@@ -373,6 +390,14 @@ class TrainConfig:
             if not _posint(getattr(lr, name)):
                 raise ConfigError(
                     f"learn.{name} must be a positive integer, got {getattr(lr, name)!r}"
+                )
+        # what a model file may hold: refused here, not after the training
+        for name in ("n_trees", "n_estimators"):
+            v = getattr(lr, name)
+            if v is not None and not (_posint(v) and v <= LIMITS.stumps):
+                raise ConfigError(
+                    f"learn.{name} must be an integer in [1, {LIMITS.stumps}] (what a model file "
+                    f"holds), got {v!r}"
                 )
         if lr.tree_depth > 4:
             raise ConfigError(f"learn.tree_depth must be at most 4, got {lr.tree_depth}")
@@ -424,13 +449,14 @@ class TrainConfig:
             v = getattr(lr, k)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
                 raise ConfigError(f"learn.{k} must be an integer >= 1, got {v!r}")
-        if lr.n_estimators is not None and not _posint(lr.n_estimators):
-            raise ConfigError(
-                f"learn.n_estimators must be a positive integer, got {lr.n_estimators!r}"
-            )
         m = self.mining
-        if m.rounds < 0 or m.per_round < 1:
-            raise ConfigError("mining.rounds must be >= 0 and mining.per_round >= 1")
+        if not 0 <= m.rounds <= MAX_MINING_ROUNDS:
+            raise ConfigError(
+                f"mining.rounds must be in [0, {MAX_MINING_ROUNDS}] (each scans every negative "
+                f"image and retrains), got {m.rounds}"
+            )
+        if m.per_round < 1:
+            raise ConfigError(f"mining.per_round must be >= 1, got {m.per_round}")
         from torchtrack.detect.scan import MIN_SCALE_STEP
 
         if not MIN_SCALE_STEP <= m.scale_step < math.inf:
@@ -448,6 +474,13 @@ class TrainConfig:
             raise ConfigError(f"mining.margin must be a number, got {m.margin!r}")
         if not (_isnum(m.target_fpr) and 0 <= m.target_fpr < 1):
             raise ConfigError(f"mining.target_fpr must be in [0, 1), got {m.target_fpr!r}")
+        # a huge n_scales built a list of that many sizes; whether they fit the window is the
+        # bank's check (haar_bank), once the data is known to be there
+        if f.kind == "haar" and not (_posint(f.n_scales) and f.n_scales <= LIMITS.bank_sizes):
+            raise ConfigError(
+                f"features.n_scales must be an integer in [1, {LIMITS.bank_sizes}] (the most "
+                f"filter sizes a bank holds), got {f.n_scales!r}"
+            )
         return self
 
     def classifier(self) -> str:

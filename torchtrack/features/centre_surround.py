@@ -46,6 +46,7 @@ from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
     "CHANNEL_SUBSETS",
+    "MAX_SURROUND",
     "CentreSurroundFeatures",
     "CentreSurroundPool",
     "ChannelIntegrals",
@@ -60,6 +61,11 @@ CHANNEL_SUBSETS: tuple[tuple[int, ...], ...] = tuple(
 )
 
 
+#: the largest surround side over centre side (Klein et al.: 2): a surround ten times the centre
+#: already reaches well beyond the box; 1e308 overflowed the areas to inf
+MAX_SURROUND = 10.0
+
+
 @dataclass(frozen=True)
 class CentreSurroundPool:
     """A pool of centre-surround features in object coordinates.
@@ -67,7 +73,7 @@ class CentreSurroundPool:
     Args:
         grids: positions per axis of each centre size (a ``g x g`` grid of centres).
         sizes: centre side per grid, as a fraction of the box width / height, in (0, 1].
-        surround: surround side / centre side (> 1).
+        surround: surround side / centre side, in (1, :data:`MAX_SURROUND`].
 
     Feature ``i`` is row ``i`` of :attr:`table`: ``(channel subset, cx, cy, half side of centre,
     half side of surround)`` in object coordinates; rows are ordered by channel subset
@@ -93,9 +99,10 @@ class CentreSurroundPool:
         for s in self.sizes:
             if not (isinstance(s, (int, float)) and 0 < s <= 1):
                 raise ConfigError(f"centre sizes must be in (0, 1], got {s!r}")
-        if not (isinstance(self.surround, (int, float)) and self.surround > 1):
+        if not (isinstance(self.surround, (int, float)) and 1 < self.surround <= MAX_SURROUND):
             raise ConfigError(
-                f"surround must be > 1 (times the centre side), got {self.surround!r}"
+                f"surround must be in (1, {MAX_SURROUND:g}] (times the centre side), got "
+                f"{self.surround!r}"
             )
         object.__setattr__(self, "_gradient_set", _gradient_set(self.gradients))
         rows = []

@@ -66,6 +66,7 @@ __all__ = [
     "haar_features_at",
     "haar_features_dense",
     "integrals",
+    "max_scales",
     "paper_pedestrian_count",
 ]
 
@@ -106,6 +107,12 @@ def paper_pedestrian_count(window: tuple[int, int] = (128, 64)) -> int:
     h, w = window
     sizes = _default_sizes(window, 3)
     return 5 * sum(max(h - t, 1) * max(w - t, 1) for t in sizes)
+
+
+def max_scales(window: tuple[int, int]) -> int:
+    """The most ``n_scales`` of a ``(H, W)`` window: its largest power of two and the halves of
+    it down to 4 pixels (filter sides are multiples of 4)."""
+    return max(int(min(window)).bit_length() - 2, 0)
 
 
 def _default_sizes(window: tuple[int, int], n_scales: int) -> tuple[int, ...]:
@@ -272,8 +279,14 @@ def haar_bank(
         17455
     """
     if sizes is None:
-        if not isinstance(n_scales, int) or n_scales < 1:
-            raise ConfigError(f"n_scales must be a positive integer, got {n_scales!r}")
+        most = max_scales(window)
+        if isinstance(n_scales, bool) or not isinstance(n_scales, int) or not 1 <= n_scales <= most:
+            # a huge n_scales built a list of that many sizes, then printed it in the error
+            raise ConfigError(
+                f"n_scales must be an integer in [1, {most}] for a {window[0]}x{window[1]} window "
+                f"(filter sides halve from the largest power of two that fits down to 4 pixels), "
+                f"got {n_scales!r}"
+            )
         sizes = _default_sizes(window, n_scales)
     return HaarBank(window=tuple(window), sizes=tuple(sizes), stride=stride, min_std=min_std)
 

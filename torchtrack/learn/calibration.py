@@ -147,7 +147,8 @@ class PlattCalibrator(BaseEstimator):
 
     All-identical scores carry no ranking information; then ``A = 0`` and ``B`` gives the
     (smoothed) base rate of the positive class, with a ``UserWarning``. A fit that cannot leave
-    ``A = 0`` (scores so large that their squares overflow) warns the same way.
+    ``A = 0`` (scores so large that their squares overflow, or so small that they underflow)
+    warns the same way.
 
     Attributes:
         a_, b_: the fitted ``A`` and ``B``.
@@ -199,14 +200,16 @@ class PlattCalibrator(BaseEstimator):
                 f"the Platt fit is not finite (A = {self.a_}, B = {self.b_}) on scores up to "
                 f"{float(s.abs().max()):.3g} in magnitude; rescale the scores"
             )
-        if self.a_ == 0.0:
-            # Newton could not take a single step from its start: the scores carry a ranking,
-            # but their products overflow (e.g. magnitudes near 1e300)
+        top = float(s.abs().max())
+        if abs(self.a_) * top < 1e-9:
+            # Newton could not leave A = 0 (or left it by nothing): the scores carry a ranking,
+            # but their products overflow (magnitudes near 1e300) or underflow (near 1e-300)
+            why = "overflows" if top >= 1 else "is too small for (their squares underflow)"
             warnings.warn(
-                "the Platt fit did not move from A = 0: the calibrator ignores the scores and "
-                "returns the positive rate for every score; their magnitude (up to "
-                f"{float(s.abs().max()):.3g}) overflows the fit: rescale them, or calibrate "
-                "with the isotonic method",
+                f"the Platt fit did not move from A = 0 (A = {self.a_:.3g}): the calibrator "
+                "ignores the scores and returns the positive rate for every score; their "
+                f"magnitude (up to {top:.3g}) {why} the fit: rescale them, or calibrate with the "
+                "isotonic method",
                 UserWarning,
                 stacklevel=2,
             )
@@ -273,11 +276,17 @@ class IsotonicCalibrator(BaseEstimator):
         """Fit on ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
 
         Raises:
-            DataError: NaN / inf scores (index named) or a single class.
+            DataError: NaN / inf scores (index named), scores whose range overflows, or a
+                single class.
         """
         from sklearn.isotonic import IsotonicRegression
 
         s = _scores(scores)
+        lo, hi = float(s.min()), float(s.max())
+        if not math.isfinite(hi - lo):  # interpolation between them gave NaN probabilities
+            raise errors.DataError(
+                f"scores span {lo:.3g} to {hi:.3g}, a range beyond the float range: rescale them"
+            )
         y01, _ = as_binary_labels(y, s.shape[0])
         sw = None
         if sample_weight is not None:

@@ -351,9 +351,11 @@ class AdaptiveHaarConfig:
             if not getattr(self, k) > 0:
                 raise ConfigError(f"{k} must be > 0, got {getattr(self, k)}")
         for k in ("sigma_xy", "sigma_wh", "sigma_rel", "min_sigma", "sigma_scale", "aspect",
-                  "speed_gain", "lost_growth", "cotrain_weight"):  # fmt: skip
+                  "speed_gain", "lost_growth"):  # fmt: skip
             if not getattr(self, k) >= 0:
                 raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
+        if not 0 <= self.cotrain_weight <= 100:  # b log m: 1e308 overflowed the weights
+            raise ConfigError(f"cotrain_weight must be in [0, 100], got {self.cotrain_weight}")
         if not self.max_noise_scale >= 1:
             raise ConfigError(f"max_noise_scale must be >= 1, got {self.max_noise_scale}")
         if not self.scale_factor > 1:

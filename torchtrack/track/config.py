@@ -104,16 +104,17 @@ class DetectorTrackerConfig:
             raise ConfigError(f"likelihood_floor must be in [0, 1), got {self.likelihood_floor}")
         if self.likelihood not in ("head", "full"):
             raise ConfigError(f"likelihood must be 'head' or 'full', got {self.likelihood!r}")
-        if not (math.isfinite(self.likelihood_power) and self.likelihood_power > 0):
-            raise ConfigError(f"likelihood_power must be > 0, got {self.likelihood_power}")
-        if self.context != 0 and not self.context > 0:
-            raise ConfigError(f"context must be > 0 (or 0 to choose it), got {self.context}")
-        if not self.context_candidates or any(not c > 0 for c in self.context_candidates):
+        if not 0 < self.likelihood_power <= MAX_LIKELIHOOD_POWER:
             raise ConfigError(
-                f"context_candidates must be positive numbers, got {self.context_candidates}"
+                f"likelihood_power must be in (0, {MAX_LIKELIHOOD_POWER:g}], got "
+                f"{self.likelihood_power}"
             )
-        if not self.scan_context > 0:
-            raise ConfigError(f"scan_context must be > 0, got {self.scan_context}")
+        check_context(self)
+        if not 0 < self.scan_context <= MAX_CONTEXT:
+            raise ConfigError(
+                f"scan_context (window over box height) must be in (0, {MAX_CONTEXT:g}], got "
+                f"{self.scan_context}"
+            )
         if not self.scan_min_scale > 0:
             raise ConfigError(f"scan_min_scale must be > 0, got {self.scan_min_scale}")
         _estimator_and_scheme(self)
@@ -217,7 +218,7 @@ class MultiTrackerConfig:
         external_birth_threshold: the same for detections given from outside (``--detections``:
             another detector's scores, mapped to [0, 1]).
         confirm_hits: a new target is reported once it was matched on this many scans in a row
-            (counting the one that started it); a miss before that ends it.
+            (counting the one that started it; at most 1000); a miss before that ends it.
         max_lost: a target unmatched for more than this many frames ends.
         max_coast: an unmatched confirmed target is still reported for up to this many frames
             while the filter's evidence (the mean calibrated probability of its particles) is
@@ -361,6 +362,11 @@ class MultiTrackerConfig:
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
+        if self.confirm_hits > MAX_CONFIRM_HITS:  # 2e9: no target was ever reported, silently
+            raise ConfigError(
+                f"confirm_hits must be in [1, {MAX_CONFIRM_HITS}] (scans in a row), got "
+                f"{self.confirm_hits}"
+            )
         for k in ("max_lost", "max_coast"):
             if getattr(self, k) < 0:
                 raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
@@ -484,6 +490,32 @@ class MultiTrackerConfig:
         _estimator_and_scheme(self)
 
 
+#: the most scans in a row a new target must be matched on before it is reported
+MAX_CONFIRM_HITS = 1000
+
+#: the largest detector window over object box height (``context``): the pedestrian windows'
+#: margin is about 1.33; a window ten times the object's height no longer looks at it
+MAX_CONTEXT = 10.0
+
+#: the largest ``likelihood_power``: the weights ``p ** 100`` of a 1e-6 floor are already 1e-600
+MAX_LIKELIHOOD_POWER = 100.0
+
+
+def check_context(cfg: Any) -> None:
+    """``cfg.context`` 0 (chosen) or in (0, MAX_CONTEXT], ``cfg.context_candidates`` a
+    non-empty list in (0, MAX_CONTEXT] (the detector and fused trackers)."""
+    if cfg.context != 0 and not 0 < cfg.context <= MAX_CONTEXT:
+        raise ConfigError(
+            f"context (window over box height) must be in (0, {MAX_CONTEXT:g}] (or 0 to choose "
+            f"it), got {cfg.context}"
+        )
+    if not cfg.context_candidates or any(not 0 < c <= MAX_CONTEXT for c in cfg.context_candidates):
+        raise ConfigError(
+            f"context_candidates must be numbers in (0, {MAX_CONTEXT:g}], got "
+            f"{cfg.context_candidates}"
+        )
+
+
 def _positive_int(cfg: Any, *names: str) -> None:
     for n in names:
         if getattr(cfg, n) < 1:
@@ -494,6 +526,29 @@ def _in_unit(cfg: Any, *names: str) -> None:
     for n in names:
         if not 0.0 <= getattr(cfg, n) <= 1.0:
             raise ConfigError(f"{n} must be in [0, 1], got {getattr(cfg, n)}")
+
+
+def check_float_limits(cfg: Any) -> None:
+    """Every float (and list of floats) field of the dataclass ``cfg`` finite and within
+    ``+-FLOAT_LIMIT``.
+
+    Raises:
+        ConfigError: ``key must be a finite number within +-1e+06, got value``.
+    """
+    for f in dataclasses.fields(cfg):
+        if "float" not in str(f.type):  # float, list[float], float | None, ...
+            continue
+        v = getattr(cfg, f.name)
+        for x in v if isinstance(v, (list, tuple)) else (v,):
+            if isinstance(x, (int, float)) and not abs(x) <= FLOAT_LIMIT:
+                raise ConfigError(
+                    f"{f.name} must be a finite number within +-{FLOAT_LIMIT:g}, got {v}"
+                )
+
+
+def _validate(cfg: Any) -> None:
+    cfg.validate()  # the keys' own ranges first: their messages say more
+    check_float_limits(cfg)
 
 
 def _estimator_and_scheme(cfg: Any) -> None:
@@ -513,6 +568,11 @@ def _estimator_and_scheme(cfg: Any) -> None:
 #: the most particles the multi-target tracker may hold (n_particles x max_targets): 10^7
 #: states of 6 float64 are 0.45 GiB, before the per-particle work of every frame
 MAX_PARTICLES = 10_000_000
+
+#: the largest magnitude of a number a tracker setting takes: far beyond any real setting (pixels,
+#: weights, rates, factors), small enough that the products, powers and areas made of it stay
+#: finite (1e308 overflowed to inf and NaN inside the trackers, or ran on as nonsense)
+FLOAT_LIMIT = 1e6
 
 #: the largest integer a tracker setting takes (counts of frames, particles, targets, scans):
 #: 2^31 - 1, far beyond any real setting, and safe in every tensor and C call it reaches
@@ -590,7 +650,7 @@ def apply_overrides(cfg: C, overrides: dict[str, Any], where: str = "parameters"
     values = {k: _coerce(v, hints[k], k, where) for k, v in overrides.items()}
     out = dataclasses.replace(cfg, **values)
     try:
-        out.validate()
+        _validate(out)
     except ConfigError as e:
         raise ConfigError(f"{where}: {e}") from None
     return out
@@ -642,5 +702,5 @@ def resolve_tracker_config(
         cfg = load_tracker_config(config, cls)
     if overrides:
         return apply_overrides(cfg, overrides, where=where)
-    cfg.validate()
+    _validate(cfg)
     return cfg

@@ -36,6 +36,7 @@ from torchtrack.filter.sir import StepResult, sir_step
 from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
 from torchtrack.track.base import Tracker, TrackState, register_tracker
+from torchtrack.track.config import check_float_limits
 
 __all__ = ["CoTrainConfig", "CoTrainTracker", "load_cotrain_config"]
 
@@ -159,6 +160,10 @@ class CoTrainConfig:
             )
         if not self.scale_ring > 1:
             raise ConfigError(f"cotrain: scale_ring must be > 1, got {self.scale_ring}")
+        try:  # 1e308 overflowed: a motion_std of it raised ValueError from inside the filter
+            check_float_limits(self)
+        except ConfigError as e:
+            raise ConfigError(f"cotrain: {e}") from None
 
 
 def load_cotrain_config(path: str | Path, **overrides: Any) -> CoTrainConfig:

@@ -49,12 +49,16 @@ from torchtrack.filter.sir import sir_step
 from torchtrack.learn.cotrain import CoTrainer
 from torchtrack.observe.cotrain import CoTrainCue
 from torchtrack.track.base import TrackState, register_tracker
-from torchtrack.track.config import apply_overrides, resolve_tracker_config
+from torchtrack.track.config import apply_overrides, check_context, resolve_tracker_config
 from torchtrack.track.detector_pf import DetectorTracker
 
 __all__ = ["FusedTracker", "FusedTrackerConfig", "fused_log_weights", "minmax_rescale"]
 
 CALIBRATIONS = ("platt", "raw", "naive")
+
+#: the largest det_weight / cotrain_weight: a log-likelihood term 100 times over is already a
+#: likelihood raised to the 100th power (1e308 overflowed the weights to +inf)
+MAX_WEIGHT = 100.0
 
 
 @dataclass
@@ -111,8 +115,8 @@ class FusedTrackerConfig:
         from torchtrack.filter.sir import ESTIMATORS
 
         for k in ("det_weight", "cotrain_weight"):
-            if not getattr(self, k) >= 0:
-                raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
+            if not 0 <= getattr(self, k) <= MAX_WEIGHT:
+                raise ConfigError(f"{k} must be in [0, {MAX_WEIGHT:g}], got {getattr(self, k)}")
         if self.det_weight == 0 and self.cotrain_weight == 0:
             raise ConfigError("det_weight and cotrain_weight are both 0: no likelihood left")
         if self.calibration not in CALIBRATIONS:
@@ -131,8 +135,7 @@ class FusedTrackerConfig:
             )
         if not 0 <= self.visible_threshold <= 1:
             raise ConfigError(f"visible_threshold must be in [0, 1], got {self.visible_threshold}")
-        if self.context != 0 and not self.context > 0:
-            raise ConfigError(f"context must be > 0 (or 0 to choose it), got {self.context}")
+        check_context(self)
         if self.estimator not in ESTIMATORS:
             raise ConfigError(f"unknown estimator {self.estimator!r}")
         if self.resample not in RESAMPLERS:

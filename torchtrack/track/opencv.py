@@ -145,9 +145,17 @@ class OpenCVTracker(Tracker):
         try:
             ok = self._cv.init(img, rect)
         except cv2.error as exc:
+            if self.kind == "mil" and "posSamples.empty()" in str(exc):
+                why = (
+                    "no room around the box to sample positives (MIL shifts it by a few pixels "
+                    "and keeps only the shifts inside the frame); leave a few pixels between the "
+                    "box and the frame's edges, or use another tracker"
+                )
+            else:
+                why = _cv_error(exc)
             raise TrackerError(
                 f"OpenCV {self.kind} failed to initialise on box {rect} in a "
-                f"{img.shape[1]}x{img.shape[0]} frame: {str(exc).strip()}"
+                f"{img.shape[1]}x{img.shape[0]} frame: {why}"
             ) from None
         if ok is False:
             raise TrackerError(f"OpenCV {self.kind} failed to initialise on box {rect}")
@@ -159,9 +167,7 @@ class OpenCVTracker(Tracker):
         try:
             ok, b = self._cv.update(to_numpy_bgr(frame))
         except cv2.error as exc:
-            raise TrackerError(
-                f"OpenCV {self.kind} failed on a frame: {str(exc).strip()}"
-            ) from None
+            raise TrackerError(f"OpenCV {self.kind} failed on a frame: {_cv_error(exc)}") from None
         if ok and b is not None and b[2] > 0 and b[3] > 0:
             box = _box_from_cv(b, self.frame_size)
             if box[0, 2] > 0 and box[0, 3] > 0:
@@ -169,6 +175,14 @@ class OpenCVTracker(Tracker):
                 return TrackState.single(box[0], confidence=1.0, visible=True)
         self.failures += 1
         return TrackState.single(self._last[0], confidence=0.0, visible=False)
+
+
+def _cv_error(exc: cv2.error) -> str:
+    """What failed in ``exc``, without OpenCV's version banner and source path."""
+    err, func = getattr(exc, "err", None), getattr(exc, "func", None)
+    if err and func:
+        return f"{err} (in OpenCV's {func})"
+    return str(exc).strip()
 
 
 class CamShiftTracker(Tracker):
