@@ -204,3 +204,29 @@ def test_batched_scans_give_the_tracks_of_the_tracker_alone(one_thread):
                     if frame is not None:
                         out.append(mt.update(frame, scan=scan))
             same_tracks(ref, out)
+
+
+def test_detect_batch_gives_each_frame_the_scan_of_its_own_ground_line(one_thread):
+    """``detect_batch(frames, lines)`` is ``[detect(f, line) for ...]`` with each frame's own
+    line, for lines that keep different windows: one for people 1.6x as tall as the clip's, the
+    clip's fitted line, and none."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+    from torchtrack.track.multi import GROUND_LAG
+
+    with open_source(demo_clip_path()) as src:
+        frames = [f for _, f in itertools.islice(src.items(), GROUND_LAG + 4)]
+    mt = make()
+    for f in frames:
+        mt.update(f)
+    fitted = mt.ground.line_
+    assert fitted is not None
+    tall = fitted._replace(a=1.6 * fitted.a, b=1.6 * fitted.b)
+    batch = torch.stack([frames[-1], frames[-2], frames[-3]])
+    lines = [tall, fitted, None]
+    got = mt.detect_batch(batch, lines)
+    alone = [mt.detect(f, line) for f, line in zip(batch, lines, strict=True)]
+    for (a, pa), (b, pb) in zip(alone, got, strict=True):
+        assert torch.equal(a, b) and torch.equal(pa, pb)
+    # the lines matter: the tall people's line keeps other detections than none on that frame
+    assert not torch.equal(alone[0][0], mt.detect(frames[-1], None)[0])
