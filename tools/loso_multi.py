@@ -313,6 +313,7 @@ SCAN_KEYS = (
     "scan_scale_step",
     "scan_stride",
     "scan_nms",
+    "min_frame_height",
     "scan_vote",
     "scan_pad",
     "scan_cascade",

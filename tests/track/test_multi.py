@@ -20,6 +20,9 @@ def people(t, n=3):
 
 
 def make(**kw):
+    """A tracker at its defaults, but on these small synthetic frames in their own pixels (no
+    upsampling below ``min_frame_height``: its own tests say what it does)."""
+    kw = {"min_frame_height": 0} | kw
     return MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(0), **kw)
 
 
@@ -145,7 +148,7 @@ def test_duplicate_heading_keeps_a_person_hidden_while_two_people_cross(seed):
     for heading in (False, True):
         mt = MultiTargetTracker(
             "pedestrian", generator=torch.Generator().manual_seed(seed),
-            duplicate_heading=heading,
+            duplicate_heading=heading, min_frame_height=0,
         )  # fmt: skip
         for t in range(28):
             out = mt.update(blank(), _crossers(t))
@@ -244,6 +247,7 @@ def _coast_iou(seed, **kw):
     """A walker (48 px tall, 3 px / frame) detected with 1 px jitter for 20 frames, then not
     for 6: the IoU of the coasting estimate with the truth."""
     g = torch.Generator().manual_seed(seed + 10)
+    kw = {"min_frame_height": 0} | kw  # these small frames in their own pixels
     mt = MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(seed), **kw)
     none = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
     jitter = torch.tensor([1.0, 1.0, 0.5, 1.0], dtype=torch.float64)
@@ -278,6 +282,7 @@ DEFAULT = MultiTrackerConfig()
 def _follow_runners(seed, speed=12.0, **kw):
     """Track :func:`_runners` for 22 frames: ``(births, largest box error from frame 2 on)``,
     the error 1e9 on a frame that does not report exactly two targets."""
+    kw = {"min_frame_height": 0} | kw  # these small frames in their own pixels
     mt = MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(seed), **kw)
     err = []
     for t in range(22):
@@ -466,7 +471,9 @@ def test_reset_forgets_outside_detections():
     """After a video tracked on outside detections, reset() scans the next video again."""
     mt = make()
     calls = []
-    mt.detect = lambda frame, ground=None: calls.append(1) or (torch.zeros((0, 4)), torch.zeros(0))
+    mt._scan = lambda frames, grounds, up=1: (
+        calls.append(1) or [(torch.zeros((0, 4)), torch.zeros(0))]
+    )
     mt.update(blank(), (people(0), torch.ones(3)))
     mt.update(blank())
     assert calls == []  # outside detections given: no scan
@@ -821,3 +828,59 @@ def test_jogging1_low_level_video_is_tracked_real_data(data_dir, one_thread):
     assert hit >= 50, hit
     assert mt.birth_summary() is not None
     assert covered(birth_floor=0.9999)[0] == 0
+
+
+@pytest.fixture(scope="module")
+def half_clip():
+    """The first 14 frames of the bundled clip at half size (240x180): its people ~25 px tall,
+    below the scan's smallest window (~45 px)."""
+    import itertools
+
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+
+    with open_source(demo_clip_path()) as src:
+        full = [f for _, f in itertools.islice(src.items(), 14)]
+    pool = torch.nn.functional.avg_pool2d
+    return [pool(f[None].float(), 2)[0].round().to(torch.uint8) for f in full]
+
+
+def test_small_frames_are_upsampled_and_boxes_come_back_in_their_pixels(half_clip):
+    """``min_frame_height`` (default 360): frames 180 px tall are tracked upsampled 2x, as a
+    tracker in its own pixels tracks the upsampled frames, with every box (reported, scanned,
+    particles) halved back; without it the half-size people are hardly found."""
+    small = MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(0))
+    big = make()  # min_frame_height = 0, fed the frames upsampled
+    plain = make()  # min_frame_height = 0, fed the small frames
+    found = {"up": 0, "plain": 0}
+    for f in half_clip:
+        a = small.update(f)
+        b = big.update(MultiTargetTracker._upsampled(f, 2))
+        found["up"] += len(a)
+        found["plain"] += len(plain.update(f))
+        assert torch.equal(a.ids, b.ids)
+        # the same arithmetic on other memory: float32 sums may round differently (~1e-6)
+        torch.testing.assert_close(a.boxes * 2, b.boxes, rtol=0, atol=0.05)
+        assert bool((a.boxes[:, 0] + a.boxes[:, 2] <= 240 + 1).all())
+    assert small.upsample == 2 and small.input_size == (180, 240) and small.frame_size == (360, 480)
+    assert big.upsample == plain.upsample == 1
+    assert found["up"] >= 20 and found["plain"] * 2 <= found["up"], found  # 33 against 11
+    torch.testing.assert_close(small.particle_boxes() * 2, big.particle_boxes(), rtol=0, atol=0.05)
+    f = half_clip[-1]
+    (db, dp), (ub, up_) = small.detect(f), big.detect(MultiTargetTracker._upsampled(f, 2))
+    assert len(dp) > 0 and torch.equal(db * 2, ub) and torch.equal(dp, up_)  # the same scan
+    # outside detections are given, and come back, in the frame's own pixels
+    ext = MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(0))
+    ref = make()
+    for t in range(6):
+        out = ext.update(half_clip[t], (people(t) / 2, torch.ones(3)))
+        big = ref.update(MultiTargetTracker._upsampled(half_clip[t], 2), (people(t), torch.ones(3)))
+        torch.testing.assert_close(out.boxes * 2, big.boxes, rtol=0, atol=0.05)
+    assert ext.upsample == 2 and len(out) == 3
+
+
+def test_a_frame_too_small_even_upsampled_says_so():
+    with pytest.raises(ShapeError, match=r"frame 20x320 \(HxW\), upsampled 2x to 40x640"):
+        MultiTargetTracker("pedestrian").update(blank(20, 320))
+    with pytest.raises(ConfigError, match="min_frame_height"):
+        MultiTargetTracker("pedestrian", min_frame_height=-1)

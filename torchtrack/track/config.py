@@ -192,6 +192,12 @@ class MultiTrackerConfig:
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
             each detection moves to the probability-weighted mean position and scale of the
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.
+        min_frame_height: frames shorter than this many pixels are upsampled 2x (bilinear)
+            before the tracker sees them, so that people below the scan's smallest window
+            (``scan_min_scale`` x the model window: ~45 px) are found there; boxes in and out
+            stay in the frame's own pixels. At half size PETS's people are ~25 px tall: HOTA
+            20.3 as it is, 45.3 upsampled, with TUD's half-size copy unchanged (41.3 / 40.4;
+            ``docs/multi_target.md``). 0: off.
         scan_cascade: the scan's soft cascade loosened to at most this (negative) running
             margin: every tree's threshold is the lower of the model's and this (lower: more
             people found, more false ones, slower scans; the bundled pedestrian model's own is
@@ -324,6 +330,7 @@ class MultiTrackerConfig:
     scan_vote: float = 0.0
     scan_pad: float = 0.0
     scan_cascade: float = -3.0
+    min_frame_height: int = 360
     detection_threshold: float = 0.1
     birth_threshold: float = 0.9999
     birth_floor: float = 0.995
@@ -403,6 +410,11 @@ class MultiTrackerConfig:
             )
         if not self.scan_min_scale > 0:
             raise ConfigError(f"scan_min_scale must be > 0, got {self.scan_min_scale}")
+        if not 0 <= self.min_frame_height <= 4320:
+            raise ConfigError(
+                f"min_frame_height must be in [0, 4320] pixels (0: never upsample), got "
+                f"{self.min_frame_height}"
+            )
         if not math.isfinite(self.scan_max_scale):
             raise ConfigError(
                 f"scan_max_scale must be a finite number (0: no upper bound), got "

@@ -195,7 +195,10 @@ class MultiTargetTracker:
         f64 = torch.float64
         n = self.config.n_particles
         self.frame_index = -1
+        # the frames' size as given, and inside the tracker (min_frame_height: upsampled)
+        self.input_size: tuple[int, int] | None = None
         self.frame_size: tuple[int, int] | None = None
+        self.upsample = 1
         self._external = False  # detections come from outside (no scan, their own thresholds)
         self.states = torch.zeros((0, n, 6), dtype=f64)
         self.log_weights = torch.zeros((0, n), dtype=f64)
@@ -261,7 +264,7 @@ class MultiTargetTracker:
 
     def particle_boxes(self) -> torch.Tensor:
         """Object boxes ``(T, N, 4)`` of every live target's particles (for drawing)."""
-        return self.detector.window_to_object(self._windows(self.states, self.ref))
+        return self.detector.window_to_object(self._windows(self.states, self.ref)) / self.upsample
 
     # -- detections ----------------------------------------------------------------------------
     def detect(
@@ -296,6 +299,33 @@ class MultiTargetTracker:
             ShapeError: frames smaller than the detector window at ``scan_min_scale``.
             ConfigError: not one line per frame.
         """
+        up = self._upsampling(frames.shape[-2])
+        found = self._scan(self._upsampled(frames, up), grounds, up)
+        return found if up == 1 else [(b / up, p) for b, p in found]
+
+    def _upsampling(self, height: int) -> int:
+        """The factor frames ``height`` pixels tall are upsampled by (``min_frame_height``)."""
+        return 2 if int(height) < self.config.min_frame_height else 1
+
+    @staticmethod
+    def _upsampled(frames: torch.Tensor, up: int) -> torch.Tensor:
+        """``frames (..., C, H, W)`` uint8 upsampled ``up`` times (bilinear, pixel centres at
+        ``(i + 0.5) * up``, so a box's pixels scale by ``up`` exactly), still uint8."""
+        if up == 1:
+            return frames
+        from kornia.geometry.transform import rescale
+
+        x = frames.float()
+        flat = x.reshape(-1, *x.shape[-3:])
+        big = rescale(flat, float(up), interpolation="bilinear", align_corners=False)
+        big = big.round_().clamp_(0, 255).to(torch.uint8)
+        return big.reshape(*x.shape[:-2], *big.shape[-2:])
+
+    def _scan(
+        self, frames: torch.Tensor, grounds: Sequence[GroundLine | None], up: int = 1
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """:meth:`detect_batch` of frames already upsampled ``up`` times: boxes in their
+        pixels."""
         from torchtrack.detect.scan import scan_batch
 
         cfg = self.config
@@ -313,8 +343,11 @@ class MultiTargetTracker:
                 if fits * wh >= MIN_WINDOW_PX
                 else f"frames this small hold no window of at least {MIN_WINDOW_PX} px"
             )
+            size = f"{fh // up}x{fw // up} (HxW)"
+            if up > 1:
+                size += f", upsampled {up}x to {fh}x{fw} (min_frame_height),"
             raise ShapeError(
-                f"frame {fh}x{fw} (HxW) is smaller than the detector window {wh}x{ww} at the "
+                f"frame {size} is smaller than the detector window {wh}x{ww} at the "
                 f"smallest scan scale {least:g} ({wh * least:g}x{ww * least:g}): no target "
                 f"can be detected; {advice}"
             )
@@ -414,8 +447,16 @@ class MultiTargetTracker:
                 has no area).
             TrackerError: ``scan`` given with ``detections``, or on a frame not scanned.
         """
+        out = self._update(frame, detections, scan)
+        if self.upsample == 1:
+            return out
+        return MultiState(out.ids, out.boxes / self.upsample, out.confidence, out.detected)
+
+    def _update(self, frame, detections, scan) -> MultiState:
+        """:meth:`update` in the tracker's pixels (the frame upsampled by ``upsample``)."""
         cfg = self.config
         self._check_frame(frame)
+        frame = self._upsampled(frame, self.upsample)
         t = self.frame_index + 1
         if scan is not None and (
             detections is not None or self._external or t % cfg.scan_every != 0
@@ -431,11 +472,13 @@ class MultiTargetTracker:
             self._grays.append(gray)
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
+            det_boxes = det_boxes * self.upsample
             self._external = True
         elif scan is not None:
             det_boxes, det_p = self._check_detections(scan)
+            det_boxes = det_boxes * self.upsample
         elif not self._external and t % cfg.scan_every == 0:
-            det_boxes, det_p = self.detect(frame, self.scan_ground(t))
+            det_boxes, det_p = self._scan(frame[None], [self.scan_ground(t)], self.upsample)[0]
         else:
             det_boxes = det_p = None
         scan = det_boxes is not None
@@ -519,11 +562,13 @@ class MultiTargetTracker:
             got = tuple(frame.shape) if isinstance(frame, torch.Tensor) else type(frame).__name__
             raise ShapeError(f"frame must be (C, H, W) uint8 with C = 1 or 3, got {got}")
         size = (int(frame.shape[-2]), int(frame.shape[-1]))
-        if self.frame_size is None:
-            self.frame_size = size
-        elif size != self.frame_size:
+        if self.input_size is None:
+            self.input_size = size
+            self.upsample = self._upsampling(size[0])
+            self.frame_size = (size[0] * self.upsample, size[1] * self.upsample)
+        elif size != self.input_size:
             raise ShapeError(
-                f"frame size changed from {self.frame_size} to {size} (H, W) at frame "
+                f"frame size changed from {self.input_size} to {size} (H, W) at frame "
                 f"{self.frame_index + 1}"
             )
 
@@ -579,8 +624,9 @@ class MultiTargetTracker:
         now = (
             "no line at the end (its boxes no longer agreed on one)"
             if line is None
-            else f"h = {line.a:.3f} y {'+' if line.b >= 0 else '-'} {abs(line.b):.1f} px at foot "
-            f"row y ({line.n} boxes, log-height sd {line.sd:.3f})"
+            else f"h = {line.a:.3f} y {'+' if line.b >= 0 else '-'} "
+            f"{abs(line.b) / self.upsample:.1f} px at foot row y ({line.n} boxes, log-height sd "
+            f"{line.sd:.3f})"
         )
         return (
             f"ground plane: {now}; a line on {used} of {self.frame_index + 1} frames, "
