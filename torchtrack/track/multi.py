@@ -275,7 +275,10 @@ class MultiTargetTracker:
 
         ``ground`` (:meth:`scan_ground`, with ``ground_gate`` on): only the windows whose
         object box fits that line (or that the frame's top or bottom edge cuts) are scored;
-        the rest of the frame's windows would be dropped before association anyway.
+        the rest of the frame's windows would be dropped before association anyway. A frame
+        shorter than ``min_frame_height`` is scanned upsampled 2x, as :meth:`update` tracks
+        it (``ground`` is then in the upsampled pixels, as :meth:`scan_ground` gives it); the
+        boxes are in the frame's own pixels.
 
         Raises:
             ShapeError: a frame smaller than the detector window at ``scan_min_scale``.
@@ -427,6 +430,10 @@ class MultiTargetTracker:
         scan: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> MultiState:
         """Track into the next frame.
+
+        Frames shorter than ``min_frame_height`` are upsampled 2x inside (``upsample``;
+        ``frame_size`` is then the upsampled size, ``input_size`` the frame's own): boxes in
+        and out stay in the frame's own pixels.
 
         Args:
             frame: ``(C, H, W)`` uint8 RGB or gray.
