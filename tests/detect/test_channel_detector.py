@@ -214,13 +214,13 @@ def test_scan_is_box_scoring_with_a_cascade_and_reports_object_boxes(trained, fr
     torch.testing.assert_close(
         mk, det.decision_function(frame[None], kept[None])[0], atol=2e-4, rtol=1e-5
     )
-    # Detector.scan reports object boxes; windows on request
+    # Detector.scan reports object boxes (NMS on them); windows on request, and with the same
+    # NMS the same detections, each object box inside its window
     obj, p = det.scan(frame, threshold=0.0, **kw)
-    win, p2 = det.scan(frame, threshold=0.0, windows=True, **kw)
-    if obj.shape[0]:
-        assert torch.equal(p, p2) or obj.shape[0] != win.shape[0]
-        inner = det.window_to_object(win)
-        assert inner.shape == win.shape
+    win, p2 = det.scan(frame, threshold=0.0, windows=True, nms_on="object", **kw)
+    assert obj.shape[0] > 0
+    assert torch.equal(p, p2) and torch.equal(obj, det.window_to_object(win))
+    assert not torch.equal(obj, win)
 
 
 def test_cropped_tracker_scoring_equals_the_whole_frame(trained, frame):
