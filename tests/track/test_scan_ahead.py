@@ -30,9 +30,9 @@ def make(**kw):
     return MultiTargetTracker("pedestrian", generator=torch.Generator().manual_seed(0), **kw)
 
 
-def run(mt, items, workers):
+def run(mt, items, workers, **kw):
     out = []
-    with ScanAhead(mt, workers) as ahead:
+    with ScanAhead(mt, workers, **kw) as ahead:
         for _, frame, scan in ahead.frames(items):
             if frame is not None:
                 out.append(mt.update(frame, scan=scan))
@@ -197,13 +197,7 @@ def test_batched_scans_give_the_tracks_of_the_tracker_alone(one_thread):
         if every == 1:  # the last scans were restricted to the ground plane's windows
             assert alone.scan_ground(len(frames) - 2) is not None
         for batch in (5, GROUND_LAG):
-            mt = make(scan_every=every)
-            out = []
-            with ScanAhead(mt, 0, batch=batch) as ahead:
-                for _, frame, scan in ahead.frames(frames):
-                    if frame is not None:
-                        out.append(mt.update(frame, scan=scan))
-            same_tracks(ref, out)
+            same_tracks(ref, run(make(scan_every=every), frames, 0, batch=batch)[0])
 
 
 def test_detect_batch_gives_each_frame_the_scan_of_its_own_ground_line(one_thread):

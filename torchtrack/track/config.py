@@ -196,8 +196,8 @@ class MultiTrackerConfig:
             before the tracker sees them, so that people below the scan's smallest window
             (``scan_min_scale`` x the model window: ~45 px) are found there; boxes in and out
             stay in the frame's own pixels. At half size PETS's people are ~25 px tall: HOTA
-            20.3 as it is, 45.3 upsampled, with TUD's half-size copy unchanged (41.3 / 40.4;
-            ``docs/multi_target.md``). 0: off.
+            19.5 as it is, 46.1 upsampled; TUD's half-size copy 40.4 / 42.8 (seeds 0-2; chosen
+            by leave one sequence out, ``docs/multi_target.md``). 0: off.
         scan_cascade: the scan's soft cascade loosened to at most this (negative) running
             margin: every tree's threshold is the lower of the model's and this (lower: more
             people found, more false ones, slower scans; the bundled pedestrian model's own is
