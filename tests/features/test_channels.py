@@ -357,6 +357,34 @@ def test_gpu_arithmetic_of_the_channels_equals_kornias_cpu_path():
     )
 
 
+@pytest.mark.parametrize("band_bytes", [1, 700, 1 << 30])
+def test_lattice_reads_in_bands_of_rows_are_the_bilinear_reads(monkeypatch, band_bytes):
+    """The lattice's bilinear reads, done a band of rows at a time over the columns they need
+    (one row per band, a few rows, the whole table at once): each value is the bilinear
+    interpolation of the table's four neighbours, clamped at its edges, bit for bit the same
+    whatever the band."""
+    from torchtrack.features import channels as C
+
+    monkeypatch.setattr(C, "_SAMPLE_CHUNK_BYTES", band_bytes)
+    g = torch.Generator().manual_seed(3)
+    tab = torch.rand((2, 23, 31, 3), generator=g, dtype=torch.float64).cumsum(1).cumsum(2)
+    ys = torch.tensor([-0.5, 0.0, 2.3, 7.75, 21.9, 22.0, 25.0], dtype=torch.float64)
+    xs = torch.tensor([4.2, 5.0, 11.6, 19.99, 29.5], dtype=torch.float64)  # columns 4-30 only
+    got = C._sample_product(tab, ys, xs)
+    y = ys.clamp(0, 22)
+    x = xs.clamp(0, 30)
+    y0, x0 = y.floor().clamp(max=21).long(), x.floor().clamp(max=29).long()
+    fy, fx = (y - y0)[:, None, None], (x - x0)[None, :, None]
+    for b in range(2):
+        t = tab[b]
+        top = t[y0][:, x0] * (1 - fx) + t[y0][:, x0 + 1] * fx
+        bot = t[y0 + 1][:, x0] * (1 - fx) + t[y0 + 1][:, x0 + 1] * fx
+        torch.testing.assert_close(got[b], top * (1 - fy) + bot * fy, atol=1e-9, rtol=0)
+    monkeypatch.setattr(C, "_SAMPLE_CHUNK_BYTES", 1 << 30)
+    assert torch.equal(got, C._sample_product(tab, ys, xs))
+    assert C._sample_product(tab, ys[:0], xs).shape == (2, 0, 5, 3)
+
+
 def test_a_lattice_with_no_kept_window_computes_no_channels():
     """``keep_windows`` is asked before the octave's channels are computed: a scale none of whose
     windows is kept costs nothing (the ground plane's sizes skip whole octaves)."""
