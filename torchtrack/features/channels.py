@@ -1234,10 +1234,11 @@ def _sample_product(tab: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> to
     (table indices, clamped to the table): rows first, then columns ->
     ``(B, len(ys), len(xs), C)``.
 
-    Frame by frame, on ``(H1, W * C)`` views of the columns the reads need: whole rows are
-    copied (the first pass) and C-value runs (the second), which is 1.2-2.5x faster than
+    Frame by frame, on ``(H1, W * C)`` views of the table: rows are copied (the first pass)
+    and C-value runs (the second), which is 1.2-2.5x faster than
     indexing the 4-d table. On the CPU both passes go a band of rows at a time
-    (:data:`_SAMPLE_CHUNK_BYTES`); the arithmetic is the same, so are the values."""
+    (:data:`_SAMPLE_CHUNK_BYTES`) over the columns the reads need; the arithmetic is the same,
+    so are the values. On a GPU one pass reads whole rows (no host synchronisation)."""
     b, h1, w1, c = tab.shape
     ys = ys.clamp(0, h1 - 1)
     xs = xs.clamp(0, w1 - 1)
@@ -1251,12 +1252,12 @@ def _sample_product(tab: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> to
     out = torch.empty((b, n_y, n_x, c), dtype=tab.dtype, device=tab.device)
     if n_y == 0 or n_x == 0:
         return out
-    lo, hi = int(x0.min()), int(x1.max()) + 1  # the columns read
+    lo, hi, band = 0, w1, n_y  # off the CPU: one pass, no host read of the columns
+    if tab.device.type == "cpu":
+        lo, hi = int(x0.min()), int(x1.max()) + 1  # the columns read
+        band = max(1, _SAMPLE_CHUNK_BYTES // ((hi - lo) * c * tab.element_size()))
     w = hi - lo
     x0, x1 = x0 - lo, x1 - lo
-    band = n_y
-    if tab.device.type == "cpu":
-        band = max(1, _SAMPLE_CHUNK_BYTES // (w * c * tab.element_size()))
     for i in range(b):
         t2 = tab[i, :, lo:hi].reshape(h1, w * c)
         for r0 in range(0, n_y, band):
