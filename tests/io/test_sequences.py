@@ -218,6 +218,19 @@ def test_missing_frame_in_numbering(tmp_path):
         load_otb(seq)
 
 
+def test_frame_number_given_twice(tmp_path):
+    """Two files with one number (a .jpg and a .png, img1 and img01) said 'frame number(s)
+    2..0 missing'."""
+    seq = tmp_path / "G"
+    _frames(seq / "img", 3)
+    (seq / "img" / "0001.jpg").write_bytes((seq / "img" / "0001.png").read_bytes())
+    (seq / "groundtruth_rect.txt").write_text("1,1,4,4\n" * 4)
+    with pytest.raises(
+        SequenceError, match=r"0001.jpg and 0001.png both carry frame number 1 \(two frames"
+    ):
+        load_otb(seq)
+
+
 def test_empty_folders_and_non_sequences(tmp_path):
     seq = tmp_path / "E"
     (seq / "img").mkdir(parents=True)

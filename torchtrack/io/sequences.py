@@ -316,7 +316,12 @@ def _list_frames(folder: Path) -> tuple[list[Path], int]:
         raise SequenceError(str(exc)) from None
     nums = [_frame_number(f) for f in files]
     if all(n is not None for n in nums):
-        for prev, cur, f in zip(nums, nums[1:], files[1:], strict=False):
+        for prev, cur, before, f in zip(nums, nums[1:], files, files[1:], strict=False):
+            if cur == prev:  # natural order keeps numbers ascending: only a repeat is left
+                raise SequenceError(
+                    f"frame folder {folder}: {before.name} and {f.name} both carry frame number "
+                    f"{cur} (two frames for one box); keep one of them"
+                )
             if cur != prev + 1:
                 missing = f"{prev + 1}" if cur == prev + 2 else f"{prev + 1}..{cur - 1}"
                 raise SequenceError(
