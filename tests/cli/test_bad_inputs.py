@@ -821,7 +821,10 @@ CASES += [
         "wrote",
         ("p.json", "r.png"),
     ),
-    E("cal-bins-0", f"{CS} --json {{o}}/p.json --bins 0", "--bins must be >= 1"),
+    E("cal-bins-0", f"{CS} --json {{o}}/p.json --bins 0", r"--bins must be in \[1, 1000\]"),
+    # 2e9 bins: a 16 GB allocation failed as a RuntimeError traceback; 1e20 an OverflowError
+    E("cal-bins-huge", f"{CS} --json {{o}}/p.json --bins 2000000000", "--bins must be in"),
+    E("cal-bins-huger", f"{CS} --json {{o}}/p.json --bins 99999999999999999999", "--bins must"),
     E("cal-min-0", f"{CS} --json {{o}}/p.json --min-per-class 0", "--min-per-class must be >= 1"),
     E("cal-method-bad", f"{CS} --json {{o}}/p.json --method beta", "invalid choice", 2),
     E("cal-scores-with-pos", f"{CS} --json {{o}}/p.json --pos {{c}}/crops/pos", "need a MODEL"),
