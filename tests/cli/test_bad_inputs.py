@@ -536,6 +536,9 @@ CASES += [
     E("detect-threshold-2", f"{D} --threshold 2", "--threshold is a probability"),
     E("detect-threshold-nan", f"{D} --threshold nan", "--threshold is a probability"),
     E("detect-min-scale-0", f"{D} --min-scale 0", "--min-scale must be > 0"),
+    # frames upsampled 100x asked for lattices of tens of GB; 1e-308 was an OverflowError
+    E("detect-min-scale-tiny", f"{D} --min-scale 1e-308", r"at most 16x: --min-scale 0.0625"),
+    E("detect-min-height-tiny", f"{D} --min-height 0.5", r"--min-height 0.5 px .* at most 16x"),
     E("detect-max-below-min", f"{D} --min-scale 2 --max-scale 1", "below --min-scale"),
     E("detect-nms-0", f"{D} --nms-iou 0", "--nms-iou"),
     E("detect-batch-0", f"{D} --batch 0", "--batch must be >= 1"),

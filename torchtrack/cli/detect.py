@@ -96,7 +96,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--min-scale",
         type=float,
-        help="smallest window / model window (overrides --min-height)",
+        help="smallest window / model window, at least 0.0625 (overrides --min-height)",
     )
     p.add_argument("--max-scale", type=float, help="largest window / model window")
     p.add_argument(
@@ -188,8 +188,10 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
     (the benchmarks that score the command's scan call this too).
 
     Raises:
-        ConfigError: ``--max-scale`` below the scale of ``--min-height``.
+        ConfigError: ``--max-scale`` below the scale of ``--min-height``; ``--min-scale`` or
+            ``--min-height`` below the scan's ``MIN_SCALE``.
     """
+    from torchtrack.detect.scan import MIN_SCALE
     from torchtrack.errors import ConfigError
 
     min_scale = args.min_scale
@@ -200,6 +202,17 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
                 f"--max-scale {args.max_scale} is below the scale of --min-height "
                 f"{args.min_height:g} px ({min_scale:.3g})"
             )
+    if min_scale < MIN_SCALE:  # 0.01 asked for a lattice of tens of GB (a traceback or OOM)
+        raise ConfigError(
+            (
+                f"--min-scale {args.min_scale:g}"
+                if args.min_scale is not None
+                else f"--min-height {args.min_height:g} px (scale {min_scale:.3g})"
+            )
+            + f" would upsample the frames {1 / min_scale:.3g}x for the {det.window[0]}x"
+            f"{det.window[1]} window; at most {1 / MIN_SCALE:g}x: --min-scale {MIN_SCALE:g} or "
+            f"more (--min-height {MIN_SCALE * object_height(det):.3g} px or more)"
+        )
     return {
         "threshold": args.threshold,
         "scale_step": args.scale_step,
