@@ -541,7 +541,9 @@ CASES += [
     E("detect-min-height-tiny", f"{D} --min-height 0.5", r"--min-height 0.5 px .* at most 16x"),
     E("detect-max-below-min", f"{D} --min-scale 2 --max-scale 1", "below --min-scale"),
     E("detect-nms-0", f"{D} --nms-iou 0", "--nms-iou"),
-    E("detect-batch-0", f"{D} --batch 0", "--batch must be >= 1"),
+    E("detect-batch-0", f"{D} --batch 0", r"--batch must be in \[1, 64\], got 0"),
+    # 300 frames at once asked for gigabytes in one allocation (a RuntimeError traceback)
+    E("detect-batch-huge", f"{D} --batch 100000", r"--batch must be in \[1, 64\]"),
     E("detect-max-frames-0", f"{D} --max-frames 0", "--max-frames must be >= 1"),
     E("detect-threads-0", f"{D} --threads 0", "--threads must be >= 1"),
     E(

@@ -55,6 +55,10 @@ Unreadable images in a folder are skipped and listed on stderr (--strict: fail i
 """
 
 
+#: the most frames --batch scores together (each holds its channels and window lattice)
+MAX_BATCH = 64
+
+
 def register(subparsers) -> None:
     from torchtrack.cli._common import add_out, add_progress, add_threads, add_trust
 
@@ -146,7 +150,11 @@ def register(subparsers) -> None:
         "docs/benchmarks/scan.md; default: the model's own)",
     )
     p.add_argument(
-        "--batch", type=int, default=4, metavar="B", help="frames scored together (default 4)"
+        "--batch",
+        type=int,
+        default=4,
+        metavar="B",
+        help=f"frames scored together, 1 to {MAX_BATCH} (default 4)",
     )
     p.add_argument(
         "--scan-workers",
@@ -271,8 +279,10 @@ def _check_args(args: argparse.Namespace) -> None:
             raise ConfigError(
                 "--cascade loosens the soft cascade and --no-cascade turns it off: give one"
             )
-    if args.batch < 1:
-        raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    if not 1 <= args.batch <= MAX_BATCH:
+        # every frame of a batch holds its channels and lattice at once: 300 PETS frames
+        # asked for 2.6 GB in one allocation (a RuntimeError traceback, or out of memory)
+        raise ConfigError(f"--batch must be in [1, {MAX_BATCH}], got {args.batch}")
     check_scan_workers(args.scan_workers)
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
