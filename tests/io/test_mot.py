@@ -167,6 +167,8 @@ def test_write_rejects_nan(tmp_path):
     ("text", "kind", "match"),
     [
         ("1,1,1,1,5,5,1\n2,1,1,1,5,5,x\n", "results", r"line 2: not a row of numbers"),
+        # float() reads 1_0 as 10: a typo became frame 10
+        ("1_0,-1,1,1,5,5,1\n", "det", r"line 1: not a row of numbers"),
         ("1,1,1,1,5\n", "results", r"line 1: 5 columns; a results file has 6 to 10"),
         ("1,1,1,1,5,5\n", "gt", r"line 1: 6 columns; a ground-truth file has 7 to 10"),
         ("1,1,1,1,5,5,1,2,3,4,5\n", "det", r"line 1: 11 columns"),

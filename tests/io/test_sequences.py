@@ -199,6 +199,9 @@ def test_non_numeric_blank_and_wrong_width_lines(otb3):
     gt.write_text("1,1,4,4\n\n1,1,4,4\n")
     with pytest.raises(SequenceError, match="line 2 is blank"):
         load_otb(otb3)
+    gt.write_text("1,1,4,4\n2_1,1,4,4\n1,1,4,4\n")  # float() read 2_1 as 21
+    with pytest.raises(SequenceError, match="line 2 is not numeric: '2_1,1,4,4'"):
+        load_otb(otb3)
     gt.write_text("1,1,4\n1,1,4,4\n1,1,4,4\n")
     with pytest.raises(SequenceError, match="line 1 has 3 values, expected 4"):
         load_otb(otb3)

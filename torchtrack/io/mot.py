@@ -266,6 +266,8 @@ def read_mot(
             continue
         parts = _SPLIT.split(s)
         try:
+            if "_" in s:  # Python reads 1_0 as 10; no MOT tool does
+                raise ValueError
             vals = [float(v) for v in parts]
         except ValueError:
             raise _fail(p, no, f"not a row of numbers ({word} file)", line) from None

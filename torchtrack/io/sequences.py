@@ -144,6 +144,8 @@ def _parse_rows(path: Path, allowed: tuple[int, ...]) -> list[list[float]]:
             raise SequenceError(f"{path} line {no} is blank (blank lines only allowed at the end)")
         parts = [p for p in _SPLIT.split(s) if p]
         try:
+            if "_" in s:  # Python reads 2_05 as 205; a box file does not
+                raise ValueError
             vals = [float(p) for p in parts]
         except ValueError:
             raise SequenceError(
