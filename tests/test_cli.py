@@ -61,3 +61,26 @@ def test_detect_accepts_the_demo_clip(tmp_path):
     assert code == 0
     rec = json.loads(out.read_text().splitlines()[0])
     assert rec["frame"] == 0 and rec["width"] == 480 and rec["height"] == 360
+
+
+def test_opencv_warnings_stay_off_the_terminal(tmp_path):
+    """OPENCV_LOG_LEVEL is set before the parser is built: building it imports OpenCV (the
+    corpus options of track), after which OpenCV no longer reads the variable, so a camera
+    that cannot be opened printed two '[ WARN:0@...] global cap_v4l.cpp' lines before the
+    error. A fresh interpreter, as from the shell; no camera 97 on any test machine."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_LOG_LEVEL"}
+    argv = ["track", "97", "--box", "1,1,9,9", "--tracker", "camshift", "-o", "b.csv"]
+    out = subprocess.run(
+        [sys.executable, "-m", "torchtrack", *argv],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+    )
+    assert out.returncode == 1
+    assert out.stderr.splitlines() == [
+        "torchtrack track: error: camera index 97 cannot be opened"
+    ], out.stderr
+    assert list(tmp_path.iterdir()) == []

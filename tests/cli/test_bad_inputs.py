@@ -536,9 +536,14 @@ CASES += [
     E("detect-threshold-2", f"{D} --threshold 2", "--threshold is a probability"),
     E("detect-threshold-nan", f"{D} --threshold nan", "--threshold is a probability"),
     E("detect-min-scale-0", f"{D} --min-scale 0", "--min-scale must be > 0"),
+    # frames upsampled 100x asked for lattices of tens of GB; 1e-308 was an OverflowError
+    E("detect-min-scale-tiny", f"{D} --min-scale 1e-308", r"at most 16x: --min-scale 0.0625"),
+    E("detect-min-height-tiny", f"{D} --min-height 0.5", r"--min-height 0.5 px .* at most 16x"),
     E("detect-max-below-min", f"{D} --min-scale 2 --max-scale 1", "below --min-scale"),
     E("detect-nms-0", f"{D} --nms-iou 0", "--nms-iou"),
-    E("detect-batch-0", f"{D} --batch 0", "--batch must be >= 1"),
+    E("detect-batch-0", f"{D} --batch 0", r"--batch must be in \[1, 64\], got 0"),
+    # 300 frames at once asked for gigabytes in one allocation (a RuntimeError traceback)
+    E("detect-batch-huge", f"{D} --batch 100000", r"--batch must be in \[1, 64\]"),
     E("detect-max-frames-0", f"{D} --max-frames 0", "--max-frames must be >= 1"),
     E("detect-threads-0", f"{D} --threads 0", "--threads must be >= 1"),
     E(
@@ -821,7 +826,10 @@ CASES += [
         "wrote",
         ("p.json", "r.png"),
     ),
-    E("cal-bins-0", f"{CS} --json {{o}}/p.json --bins 0", "--bins must be >= 1"),
+    E("cal-bins-0", f"{CS} --json {{o}}/p.json --bins 0", r"--bins must be in \[1, 1000\]"),
+    # 2e9 bins: a 16 GB allocation failed as a RuntimeError traceback; 1e20 an OverflowError
+    E("cal-bins-huge", f"{CS} --json {{o}}/p.json --bins 2000000000", "--bins must be in"),
+    E("cal-bins-huger", f"{CS} --json {{o}}/p.json --bins 99999999999999999999", "--bins must"),
     E("cal-min-0", f"{CS} --json {{o}}/p.json --min-per-class 0", "--min-per-class must be >= 1"),
     E("cal-method-bad", f"{CS} --json {{o}}/p.json --method beta", "invalid choice", 2),
     E("cal-scores-with-pos", f"{CS} --json {{o}}/p.json --pos {{c}}/crops/pos", "need a MODEL"),

@@ -189,7 +189,12 @@ def test_eval_mot_bad_inputs(tmp_path, capsys, trackeval):
     )
     fails(
         ["--mot", str(d), "--results", str(res), "--gt-scale", "-2"],
-        "--gt-scale must be a positive",
+        "--gt-scale must be 'auto' or a number in [0.001, 1000], got '-2'",
+    )
+    # 1e308 overflowed the boxes to inf: TrackEval's ValueError escaped as a traceback
+    fails(
+        ["--mot", str(d), "--results", str(res), "--gt-scale", "1e308"],
+        "--gt-scale must be 'auto' or a number in [0.001, 1000], got '1e308'",
     )
     fails(
         ["--mot", str(d), "--results", str(res), "--gt", str(res)],

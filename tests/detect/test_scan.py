@@ -190,6 +190,18 @@ def test_a_scale_step_just_above_one_is_refused():
     assert len(scan_scales((480, 640), (128, 64), scale_step=1.01, min_scale=0.3)) < 300
 
 
+def test_a_scale_under_one_sixteenth_is_refused():
+    """min_scale 0.01 on the 128 px model asked for a 15 GB lattice, 1e-308 overflowed the count
+    of scales; frames are upsampled at most 16x (MIN_SCALE)."""
+    from torchtrack.detect.scan import scan_scales
+
+    assert scan_scales((480, 640), (128, 64), min_scale=0.0625)[0] == 0.0625
+    assert scan_scales((48, 64), (16, 8), min_scale=0.0625)[0] == 0.0625  # 1 px: allowed
+    for s in (0.06, 0.01, 1e-308):
+        with pytest.raises(ConfigError, match=r"min_scale must be >= 0.0625 .* 16x"):
+            scan_scales((480, 640), (128, 64), min_scale=s)
+
+
 def test_a_keep_function_per_frame_gives_each_frame_its_own_scan():
     """``scan_batch(keep_windows=[k_0, ..., k_B-1])`` (the multi-target tracker's batched scans,
     each frame with its own ground line): every frame gets exactly what :func:`scan` with its

@@ -72,6 +72,7 @@ def test_find_sources_folders_globs_lists_and_duplicates(videos, tmp_path):
     [
         ("missing.mp4", "source .*missing.mp4' does not exist"),
         ("0", "'0' is a camera index"),
+        ("²", "source .*²' does not exist"),  # a Unicode digit: no camera (it said one)
         ("empty", "holds no video .* and no image"),
         ("*.zzz", r"pattern '\*.zzz' matches nothing"),
         ("v/*.txt", "matches 1 path.* but no video file and no frame folder"),

@@ -139,6 +139,7 @@ def test_write_refuses_what_read_refuses(tmp_path):
     for ids, boxes, match in (
         ([-1], [[0, 0, 5, 5]], "identities must be >= 0"),
         ([1], [[0, 0, 0, 5]], "widths and heights must be > 0"),
+        ([1], [[0, 0, 5, 2e6]], r"within \+-1e\+06 pixels"),
     ):
         with pytest.raises(ValueError, match=match):
             write_mot(tmp_path / "x.txt", MotRows.from_arrays([0], ids, boxes))
@@ -166,6 +167,8 @@ def test_write_rejects_nan(tmp_path):
     ("text", "kind", "match"),
     [
         ("1,1,1,1,5,5,1\n2,1,1,1,5,5,x\n", "results", r"line 2: not a row of numbers"),
+        # float() reads 1_0 as 10: a typo became frame 10
+        ("1_0,-1,1,1,5,5,1\n", "det", r"line 1: not a row of numbers"),
         ("1,1,1,1,5\n", "results", r"line 1: 5 columns; a results file has 6 to 10"),
         ("1,1,1,1,5,5\n", "gt", r"line 1: 6 columns; a ground-truth file has 7 to 10"),
         ("1,1,1,1,5,5,1,2,3,4,5\n", "det", r"line 1: 11 columns"),
@@ -187,6 +190,9 @@ def test_write_rejects_nan(tmp_path):
         ("1,1e19,1,1,5,5,1\n", "results", r"line 1: id 1e\+19 is out of range"),
         ("1,1e19,1,1,5,5,1\n", "gt", r"line 1: id 1e\+19 is out of range"),
         ("1e19,1,1,1,5,5,1\n", "results", r"line 1: frame 1e\+19 is beyond any sequence"),
+        # finite but absurd: the scoring's areas overflowed (numpy warnings, inf IoU terms)
+        ("1,1,1,1,1e308,1e308,1\n", "results", r"line 1: box 1, 1, 1e\+308, 1e\+308 .* beyond"),
+        ("1,-1,-2e6,1,5,5,1\n", "det", r"line 1: box -2e\+06, 1, 5, 5 .* beyond \+-1e\+06"),
     ],
 )
 def test_malformed_rows(tmp_path, text, kind, match):
@@ -218,6 +224,8 @@ def test_missing_and_binary_files(tmp_path):
         read_mot(tmp_path / "bin.txt")
     with pytest.raises(ValueError, match="scale"):
         read_mot(tmp_path / "bin.txt", scale=0.0)
+    with pytest.raises(SequenceError, match=r"scale must be a number in \[0.001, 1000\]"):
+        read_mot(tmp_path / "bin.txt", scale=1e-300)  # boxes of 1e-298 px passed as > 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -310,8 +318,10 @@ def test_video_plus_gt(tmp_path):
     beyond = _write(tmp_path / "long.txt", "1,1,1,1,5,5,1\n5,1,2,2,5,5,1\n")
     with pytest.raises(MotFormatError, match=r"long.txt line 2: frame 5 is beyond .* 4 frames"):
         load_mot_sequence(video, gt=beyond)
-    with pytest.raises(SequenceError, match="positive number"):
+    with pytest.raises(SequenceError, match=r"must be a number in \[0.001, 1000\], got -1.0"):
         load_mot_sequence(video, gt=gt, scale=-1.0)
+    with pytest.raises(SequenceError, match=r"must be a number in \[0.001, 1000\], got 1e\+308"):
+        load_mot_sequence(video, gt=gt, scale=1e308)  # overflowed the boxes to inf
 
 
 def test_video_gt_from_another_sequence(tmp_path):

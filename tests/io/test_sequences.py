@@ -199,6 +199,9 @@ def test_non_numeric_blank_and_wrong_width_lines(otb3):
     gt.write_text("1,1,4,4\n\n1,1,4,4\n")
     with pytest.raises(SequenceError, match="line 2 is blank"):
         load_otb(otb3)
+    gt.write_text("1,1,4,4\n2_1,1,4,4\n1,1,4,4\n")  # float() read 2_1 as 21
+    with pytest.raises(SequenceError, match="line 2 is not numeric: '2_1,1,4,4'"):
+        load_otb(otb3)
     gt.write_text("1,1,4\n1,1,4,4\n1,1,4,4\n")
     with pytest.raises(SequenceError, match="line 1 has 3 values, expected 4"):
         load_otb(otb3)
@@ -215,6 +218,19 @@ def test_missing_frame_in_numbering(tmp_path):
     _frames(seq / "img", 5, skip={3})
     (seq / "groundtruth_rect.txt").write_text("1,1,4,4\n" * 4)
     with pytest.raises(SequenceError, match=r"frame number\(s\) 3 missing before 0004.png"):
+        load_otb(seq)
+
+
+def test_frame_number_given_twice(tmp_path):
+    """Two files with one number (a .jpg and a .png, img1 and img01) said 'frame number(s)
+    2..0 missing'."""
+    seq = tmp_path / "G"
+    _frames(seq / "img", 3)
+    (seq / "img" / "0001.jpg").write_bytes((seq / "img" / "0001.png").read_bytes())
+    (seq / "groundtruth_rect.txt").write_text("1,1,4,4\n" * 4)
+    with pytest.raises(
+        SequenceError, match=r"0001.jpg and 0001.png both carry frame number 1 \(two frames"
+    ):
         load_otb(seq)
 
 

@@ -118,6 +118,22 @@ def test_sources_that_cannot_be_opened(tmp_path):
         FrameSource("98")
 
 
+def test_camera_indices_and_folders_named_by_digits(tmp_path, monkeypatch):
+    """A string of digits is a camera only where no file or folder has that name (a frame
+    folder '2024' was opened as camera 2024); indices beyond a C int and Unicode digits
+    ('²': int() refuses it) were a ValueError or cv2.error traceback."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "2024").mkdir()
+    cv2.imwrite(str(tmp_path / "2024" / "0001.png"), np.zeros((8, 8, 3), np.uint8))
+    src = FrameSource("2024")
+    assert src.kind == "folder" and len(src) == 1
+    for index in ("2147483648", "99999999999999999999"):
+        with pytest.raises(VideoError, match=f"camera index {index} is out of range"):
+            FrameSource(index)
+    with pytest.raises(VideoError, match="video source ² does not exist"):
+        FrameSource("²")
+
+
 def test_read_image_errors_and_bgr_roundtrip(tmp_path, folder):
     with pytest.raises(DataError, match="does not exist"):
         read_image(tmp_path / "nope.png")

@@ -884,3 +884,12 @@ def test_a_frame_too_small_even_upsampled_says_so():
         MultiTargetTracker("pedestrian").update(blank(20, 320))
     with pytest.raises(ConfigError, match="min_frame_height"):
         MultiTargetTracker("pedestrian", min_frame_height=-1)
+
+
+def test_a_scan_min_scale_under_one_sixteenth_is_refused():
+    """scan_min_scale=0.001 tried to allocate a 51 GB lattice at the first scan."""
+    MultiTrackerConfig(scan_min_scale=0.0625).validate()
+    with pytest.raises(ConfigError, match=r"scan_min_scale must be .* >= 0.0625 .* got 0.001"):
+        MultiTrackerConfig(scan_min_scale=0.001).validate()
+    with pytest.raises(ConfigError, match=r"scan_min_scale must be .* >= 0.0625"):
+        MultiTargetTracker("pedestrian", scan_min_scale=0.001)

@@ -118,14 +118,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # OpenCV reads its log level once, at import: warnings it would print before our own
+    # clean error message are noise (errors still show). Set before the parser is built, as
+    # a subcommand's module may import OpenCV (track's corpus options import torchtrack.io).
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return 2
-    # OpenCV reads its log level once, at import: warnings it would print before our own
-    # clean error message are noise (errors still show).
-    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     reuse_freed_memory()
     from torchtrack.cli._common import trust_scope
 

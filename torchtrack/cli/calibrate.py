@@ -84,7 +84,9 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="OUT", help="write the calibration to this JSON file")
     add_out(p, "MODEL", "write the calibrated model here (default: MODEL itself)")
     p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
-    p.add_argument("--bins", type=int, default=15, help="ECE / diagram bins (default 15)")
+    p.add_argument(
+        "--bins", type=int, default=15, help="ECE / diagram bins, 1 to 1000 (default 15)"
+    )
     p.add_argument("--seed", type=seed_value, default=0, help="seed of the CV folds (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
     p.add_argument(
@@ -283,8 +285,10 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.model is not None and args.scores is not None:
         raise ConfigError("give either a MODEL (with --pos and --neg) or --scores CSV, not both")
-    if args.bins < 1:
-        raise ConfigError(f"--bins must be >= 1, got {args.bins}")
+    from torchtrack.learn.calibration import MAX_BINS
+
+    if not 1 <= args.bins <= MAX_BINS:
+        raise ConfigError(f"--bins must be in [1, {MAX_BINS}], got {args.bins}")
     if args.min_per_class < 1:
         raise ConfigError(f"--min-per-class must be >= 1, got {args.min_per_class}")
     from torchtrack.cli._common import check_distinct, check_output_file

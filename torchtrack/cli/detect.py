@@ -55,6 +55,10 @@ Unreadable images in a folder are skipped and listed on stderr (--strict: fail i
 """
 
 
+#: the most frames --batch scores together (each holds its channels and window lattice)
+MAX_BATCH = 64
+
+
 def register(subparsers) -> None:
     from torchtrack.cli._common import add_out, add_progress, add_threads, add_trust
 
@@ -96,7 +100,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--min-scale",
         type=float,
-        help="smallest window / model window (overrides --min-height)",
+        help="smallest window / model window, at least 0.0625 (overrides --min-height)",
     )
     p.add_argument("--max-scale", type=float, help="largest window / model window")
     p.add_argument(
@@ -146,7 +150,11 @@ def register(subparsers) -> None:
         "docs/benchmarks/scan.md; default: the model's own)",
     )
     p.add_argument(
-        "--batch", type=int, default=4, metavar="B", help="frames scored together (default 4)"
+        "--batch",
+        type=int,
+        default=4,
+        metavar="B",
+        help=f"frames scored together, 1 to {MAX_BATCH} (default 4)",
     )
     p.add_argument(
         "--scan-workers",
@@ -188,8 +196,10 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
     (the benchmarks that score the command's scan call this too).
 
     Raises:
-        ConfigError: ``--max-scale`` below the scale of ``--min-height``.
+        ConfigError: ``--max-scale`` below the scale of ``--min-height``; ``--min-scale`` or
+            ``--min-height`` below the scan's ``MIN_SCALE``.
     """
+    from torchtrack.detect.scan import MIN_SCALE
     from torchtrack.errors import ConfigError
 
     min_scale = args.min_scale
@@ -200,6 +210,17 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
                 f"--max-scale {args.max_scale} is below the scale of --min-height "
                 f"{args.min_height:g} px ({min_scale:.3g})"
             )
+    if min_scale < MIN_SCALE:  # 0.01 asked for a lattice of tens of GB (a traceback or OOM)
+        raise ConfigError(
+            (
+                f"--min-scale {args.min_scale:g}"
+                if args.min_scale is not None
+                else f"--min-height {args.min_height:g} px (scale {min_scale:.3g})"
+            )
+            + f" would upsample the frames {1 / min_scale:.3g}x for the {det.window[0]}x"
+            f"{det.window[1]} window; at most {1 / MIN_SCALE:g}x: --min-scale {MIN_SCALE:g} or "
+            f"more (--min-height {MIN_SCALE * object_height(det):.3g} px or more)"
+        )
     return {
         "threshold": args.threshold,
         "scale_step": args.scale_step,
@@ -258,8 +279,10 @@ def _check_args(args: argparse.Namespace) -> None:
             raise ConfigError(
                 "--cascade loosens the soft cascade and --no-cascade turns it off: give one"
             )
-    if args.batch < 1:
-        raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    if not 1 <= args.batch <= MAX_BATCH:
+        # every frame of a batch holds its channels and lattice at once: 300 PETS frames
+        # asked for 2.6 GB in one allocation (a RuntimeError traceback, or out of memory)
+        raise ConfigError(f"--batch must be in [1, {MAX_BATCH}], got {args.batch}")
     check_scan_workers(args.scan_workers)
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")

@@ -254,7 +254,7 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
     from pathlib import Path
 
     from torchtrack.errors import ConfigError
-    from torchtrack.io.mot import find_mot_sequences, load_mot_sequence
+    from torchtrack.io.mot import SCALE_RANGE, find_mot_sequences, load_mot_sequence
     from torchtrack.io.video import VIDEO_EXTENSIONS
 
     scale = None
@@ -263,8 +263,11 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
             scale = float(gt_scale)
         except ValueError:
             scale = math.nan
-        if not (math.isfinite(scale) and scale > 0):
-            raise ConfigError(f"--gt-scale must be a positive number or 'auto', got {gt_scale!r}")
+        lo, hi = SCALE_RANGE
+        if not (math.isfinite(scale) and lo <= scale <= hi):
+            raise ConfigError(
+                f"--gt-scale must be 'auto' or a number in [{lo:g}, {hi:g}], got {gt_scale!r}"
+            )
     videos = [p for p in paths if Path(p).suffix.lower() in VIDEO_EXTENSIONS]
     if len(gts) != len(videos):
         raise ConfigError(

@@ -92,8 +92,9 @@ def register(subparsers) -> None:
         "sources",
         nargs="+",
         metavar="SOURCE",
-        help="video file, frame folder, camera index (0, 1, ...) or 'demo' (the bundled clip); "
-        "several, a folder of videos, a glob or @list.txt: a corpus run (--out-dir)",
+        help="video file, frame folder, camera index (0, 1, ...; a file or folder of that name "
+        "comes first) or 'demo' (the bundled clip); several, a folder of videos, a glob or "
+        "@list.txt: a corpus run (--out-dir)",
     )
     p.add_argument("--box", metavar="X,Y,W,H", help="follow this one target (first-frame box)")
     p.add_argument(

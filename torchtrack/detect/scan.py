@@ -49,6 +49,10 @@ __all__ = [
 MIN_SCALE_STEP = 1.01
 #: the smallest window height (pixels) worth suggesting when frames are too small for a scan
 MIN_WINDOW_PX = 8
+#: the smallest scan scale: the frames are upsampled at most 16x for the window (a person 8 px
+#: tall for the 128 px pedestrian model); 0.01 asked for a lattice of tens of GB, 1e-308
+#: overflowed the count of scales
+MIN_SCALE = 1 / 16
 
 
 def sliding_windows(
@@ -237,7 +241,8 @@ def scan_scales(
 
     Raises:
         ConfigError: ``scale_step`` below :data:`MIN_SCALE_STEP` (a step just above 1 would
-            ask for millions of scales: a scan that never ends), or not finite.
+            ask for millions of scales: a scan that never ends), or not finite; ``min_scale``
+            below :data:`MIN_SCALE` or not finite.
     """
     if not (MIN_SCALE_STEP <= scale_step < math.inf):
         raise ConfigError(
@@ -246,6 +251,11 @@ def scan_scales(
         )
     if not (min_scale > 0 and math.isfinite(min_scale)):
         raise ConfigError(f"min_scale must be a positive number, got {min_scale}")
+    if min_scale < MIN_SCALE:
+        raise ConfigError(
+            f"min_scale must be >= {MIN_SCALE:g} (frames upsampled at most "
+            f"{1 / MIN_SCALE:g}x for the window), got {min_scale:g}"
+        )
     fh, fw = frame_size
     h, w = window
     top = min(fh / h, fw / w)

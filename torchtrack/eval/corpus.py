@@ -112,7 +112,7 @@ def _expand(spec: str, base: Path | None, from_list: str | None) -> tuple[list[P
     path = Path(spec).expanduser()
     if base is not None and not path.is_absolute():
         path = base / path
-    if spec.isdigit() and not path.exists():
+    if spec.isascii() and spec.isdigit() and not path.exists():
         raise ConfigError(
             f"source {spec!r}{where} is a camera index: a corpus run takes videos and frame "
             "folders (a camera never ends)"

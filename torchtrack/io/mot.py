@@ -31,8 +31,8 @@ Sequences (:func:`load_mot_sequence`):
 
 Every malformed row raises :class:`~torchtrack.errors.MotFormatError` naming the file and the
 line: a wrong number of columns, a non-number, a non-finite value, a frame below 1 or beyond the
-sequence, a non-integer frame or id, a box of zero or negative size, an identity given twice in
-one frame.
+sequence, a non-integer frame or id, a box of zero or negative size or with a value beyond
+``MAX_COORD`` pixels, an identity given twice in one frame. Scales lie in ``SCALE_RANGE``.
 
 Example::
 
@@ -193,6 +193,26 @@ MAX_ID = 2**31 - 1
 #: the most frames a sequence may have (about four days at 25 fps): a larger ``seqLength``
 #: or frame number is a typo that would size the scoring's per-frame tables beyond any memory
 MAX_SEQ_LENGTH = 10_000_000
+#: the largest box coordinate or size a file may give, in pixels (frames are at most some ten
+#: thousand pixels wide): beyond it a value is a typo whose areas overflow in the scoring
+MAX_COORD = 1e6
+#: the range of a ground-truth scale (PETS09-S2L1 uses 0.625): outside it the boxes are a typo
+#: away from any frame, and 1e308 overflowed them to inf
+SCALE_RANGE = (1e-3, 1e3)
+
+
+def _check_scale(scale, what: str = "scale") -> float:
+    """``scale`` as a float within :data:`SCALE_RANGE`, else :class:`SequenceError` (a
+    ``ValueError``)."""
+    lo, hi = SCALE_RANGE
+    if not (
+        isinstance(scale, (int, float))
+        and not isinstance(scale, bool)
+        and math.isfinite(scale)
+        and lo <= scale <= hi
+    ):
+        raise SequenceError(f"{what} must be a number in [{lo:g}, {hi:g}], got {scale!r}")
+    return float(scale)
 
 
 def _fail(path: Path, no: int, msg: str, line: str | None = None) -> MotFormatError:
@@ -221,12 +241,12 @@ def read_mot(
 
     Raises:
         MotFormatError: unreadable file or a malformed row (file and line in the message).
-        ValueError: ``scale`` not a positive finite number, unknown ``kind``.
+        SequenceError: ``scale`` outside :data:`SCALE_RANGE`.
+        ValueError: unknown ``kind``.
     """
     if kind not in _MIN_COLS:
         raise ValueError(f"kind must be 'gt', 'det' or 'results', got {kind!r}")
-    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
-        raise ValueError(f"scale must be a positive finite number, got {scale!r}")
+    _check_scale(scale)
     p = Path(path)
     word = _KIND_WORD[kind]
     try:
@@ -246,6 +266,8 @@ def read_mot(
             continue
         parts = _SPLIT.split(s)
         try:
+            if "_" in s:  # Python reads 1_0 as 10; no MOT tool does
+                raise ValueError
             vals = [float(v) for v in parts]
         except ValueError:
             raise _fail(p, no, f"not a row of numbers ({word} file)", line) from None
@@ -307,6 +329,13 @@ def read_mot(
         (a[:, 4] <= 0) | (a[:, 5] <= 0),
         lambda k: f"box of size {a[k, 4]:g} x {a[k, 5]:g}: width and height must be > 0",
     )
+    check(
+        (np.abs(a[:, 2:6]) > MAX_COORD).any(axis=1),
+        lambda k: (
+            f"box {', '.join(f'{v:g}' for v in a[k, 2:6])} (x, y, w, h) has a value "
+            f"beyond +-{MAX_COORD:g} pixels"
+        ),
+    )
     frames = a[:, 0].astype(np.int64) - 1
     ids = a[:, 1].astype(np.int64)
     if kind != "det":
@@ -345,8 +374,8 @@ def write_mot(path: str | os.PathLike, rows: MotRows, *, kind: Kind = "results")
 
     Raises:
         ValueError: what :func:`read_mot` would refuse in a results file: a non-finite box or
-            confidence, a box without area, a negative frame index or identity, or an
-            identity twice in one frame.
+            confidence, a box without area or beyond ``MAX_COORD`` pixels, a negative frame
+            index or identity, or an identity twice in one frame.
     """
     order = np.lexsort((rows.ids, rows.frames))
     if len(rows):
@@ -360,6 +389,8 @@ def write_mot(path: str | os.PathLike, rows: MotRows, *, kind: Kind = "results")
             raise ValueError(f"write_mot: identities must be >= 0 in a {kind} file")
         if not ((rows.boxes[:, 2] > 0) & (rows.boxes[:, 3] > 0)).all():
             raise ValueError("write_mot: box widths and heights must be > 0")
+        if (np.abs(rows.boxes) > MAX_COORD - 1).any():
+            raise ValueError(f"write_mot: box values must lie within +-{MAX_COORD:g} pixels")
         f, i = rows.frames[order], rows.ids[order]
         twice = np.nonzero((f[1:] == f[:-1]) & (i[1:] == i[:-1]))[0]
         if len(twice) and kind != "det":
@@ -530,12 +561,10 @@ def is_mot_folder(path: str | os.PathLike) -> bool:
     )
 
 
-def _resolve_scale(scale: float | None) -> float:
+def _resolve_scale(scale: float | None, what: str = "the ground-truth scale") -> float:
     if scale is None:
         return 1.0
-    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
-        raise SequenceError(f"the ground-truth scale must be a positive number, got {scale!r}")
-    return float(scale)
+    return _check_scale(scale, what)
 
 
 def load_mot_sequence(
@@ -634,6 +663,7 @@ def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
             f"{video} has {n} frames but {ini} says seqLength={info.seq_length}: the ground "
             "truth belongs to another video"
         )
+    what = "the ground-truth scale"
     if scale is None:
         scale = 1.0
         if info is not None and info.im_width and info.im_height and w > 0:
@@ -644,7 +674,8 @@ def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
                     "frames, another aspect ratio: give the ground-truth scale explicitly"
                 )
             scale = sx
-    scale = _resolve_scale(scale)
+            what = f"the ground-truth scale {w} / imWidth={info.im_width} of {ini}"
+    scale = _resolve_scale(scale, what)
     return MotSequence(
         name=info.name if info is not None else video.stem,
         gt=read_mot(gt_path, scale, n, kind="gt"),

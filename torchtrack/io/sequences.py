@@ -144,6 +144,8 @@ def _parse_rows(path: Path, allowed: tuple[int, ...]) -> list[list[float]]:
             raise SequenceError(f"{path} line {no} is blank (blank lines only allowed at the end)")
         parts = [p for p in _SPLIT.split(s) if p]
         try:
+            if "_" in s:  # Python reads 2_05 as 205; a box file does not
+                raise ValueError
             vals = [float(p) for p in parts]
         except ValueError:
             raise SequenceError(
@@ -316,7 +318,12 @@ def _list_frames(folder: Path) -> tuple[list[Path], int]:
         raise SequenceError(str(exc)) from None
     nums = [_frame_number(f) for f in files]
     if all(n is not None for n in nums):
-        for prev, cur, f in zip(nums, nums[1:], files[1:], strict=False):
+        for prev, cur, before, f in zip(nums, nums[1:], files, files[1:], strict=False):
+            if cur == prev:  # natural order keeps numbers ascending: only a repeat is left
+                raise SequenceError(
+                    f"frame folder {folder}: {before.name} and {f.name} both carry frame number "
+                    f"{cur} (two frames for one box); keep one of them"
+                )
             if cur != prev + 1:
                 missing = f"{prev + 1}" if cur == prev + 2 else f"{prev + 1}..{cur - 1}"
                 raise SequenceError(

@@ -95,6 +95,17 @@ def list_image_files(folder: str | os.PathLike) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
+def _camera_index(source) -> bool:
+    """Whether a string source names a camera: ASCII digits (``int`` refuses some other
+    Unicode digits, ``'²'``) and no file or folder of that name (a frame folder ``2024``)."""
+    return (
+        isinstance(source, str)
+        and source.isascii()
+        and source.isdigit()
+        and not os.path.exists(source)
+    )
+
+
 def _check_color(color: str) -> None:
     if color not in _COLORS:
         raise ConfigError(f"color must be one of {', '.join(_COLORS)}, got {color!r}")
@@ -258,7 +269,7 @@ class FrameSource:
 
     Args:
         source: a path to a video file or a folder of images, a list of image paths, or a camera
-            index (``int`` or a string of digits).
+            index (``int``, or a string of ASCII digits that names no file or folder).
         color: ``"rgb"`` | ``"keep"`` | ``"gray"``, see the module doc.
 
     Attributes:
@@ -285,12 +296,15 @@ class FrameSource:
             self.kind = "files"
             self._files = [Path(p) for p in source]
             self.name = str(self._files[0].parent)
-        elif isinstance(source, int) or (isinstance(source, str) and source.isdigit()):
+        elif isinstance(source, int) or _camera_index(source):
+            index = int(source)
             self.kind = "camera"
-            self.name = f"camera {int(source)}"
-            self._cap = cv2.VideoCapture(int(source))
+            self.name = f"camera {index}"
+            if not -(2**31) <= index < 2**31:  # OpenCV takes a C int (cv2.error beyond)
+                raise VideoError(f"camera index {source} is out of range (at most {2**31 - 1})")
+            self._cap = cv2.VideoCapture(index)
             if not self._cap.isOpened():
-                raise VideoError(f"camera index {int(source)} cannot be opened")
+                raise VideoError(f"camera index {index} cannot be opened")
         else:
             p = Path(source)
             self.name = str(p)

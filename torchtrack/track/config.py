@@ -115,8 +115,7 @@ class DetectorTrackerConfig:
                 f"scan_context (window over box height) must be in (0, {MAX_CONTEXT:g}], got "
                 f"{self.scan_context}"
             )
-        if not self.scan_min_scale > 0:
-            raise ConfigError(f"scan_min_scale must be > 0, got {self.scan_min_scale}")
+        _check_scan_min_scale(self.scan_min_scale)
         _estimator_and_scheme(self)
 
 
@@ -408,8 +407,7 @@ class MultiTrackerConfig:
                 f"birth_threshold ({self.birth_threshold}) must be >= detection_threshold "
                 f"({self.detection_threshold})"
             )
-        if not self.scan_min_scale > 0:
-            raise ConfigError(f"scan_min_scale must be > 0, got {self.scan_min_scale}")
+        _check_scan_min_scale(self.scan_min_scale)
         if not 0 <= self.min_frame_height <= 4320:
             raise ConfigError(
                 f"min_frame_height must be in [0, 4320] pixels (0: never upsample), got "
@@ -561,6 +559,18 @@ def check_float_limits(cfg: Any) -> None:
 def _validate(cfg: Any) -> None:
     cfg.validate()  # the keys' own ranges first: their messages say more
     check_float_limits(cfg)
+
+
+def _check_scan_min_scale(value: float) -> None:
+    """``scan_min_scale`` at least the scan's ``MIN_SCALE`` (1/16: 0.001 asked for a 51 GB
+    lattice at the first scan)."""
+    from torchtrack.detect.scan import MIN_SCALE
+
+    if not MIN_SCALE <= value < math.inf:
+        raise ConfigError(
+            f"scan_min_scale must be a finite number >= {MIN_SCALE:g} (frames upsampled at most "
+            f"{1 / MIN_SCALE:g}x for the window), got {value}"
+        )
 
 
 def _estimator_and_scheme(cfg: Any) -> None:
