@@ -132,6 +132,8 @@ def corpus(tmp_path_factory, forge_model):
     (c / "emptydir").mkdir()
     (c / "notes").mkdir()
     (c / "notes" / "readme.txt").write_text("no images here")
+    _frames(c / "motseq" / "img1", 3, ext=".jpg")  # a MOTChallenge sequence's folder
+    (c / "motseq" / "seqinfo.ini").write_text("[Sequence]\nname=motseq\nimDir=img1\n")
     _video(c / "clip.mp4")
     v = (c / "clip.mp4").read_bytes()
     (c / "cut.mp4").write_bytes(v[: len(v) // 2])  # no moov atom: cannot be opened
@@ -388,6 +390,11 @@ CASES: list[Case] = [
     E("track-source-missing", f"track {{c}}/nothing {HB} -o {{o}}/b.csv", "does not exist"),
     E("track-source-empty-dir", f"track {{c}}/emptydir {HB} -o {{o}}/b.csv", "holds no image file"),
     E("track-source-notes-only", f"track {{c}}/notes {HB} -o {{o}}/b.csv", "holds no image file"),
+    E(
+        "track-source-mot-sequence",
+        f"track {{c}}/motseq {HB} -o {{o}}/b.csv",
+        r"holds no image file .*MOTChallenge sequence: give its img1/ folder, .*motseq/img1$",
+    ),
     E(
         "track-source-corrupt",
         f"track {{c}}/corrupt {HB} -o {{o}}/b.csv --video {{o}}/v.mp4",
