@@ -487,6 +487,17 @@ CASES: list[Case] = [
     E("track-max-frames-0", f"{T} {HB} --max-frames 0", "--max-frames must be >= 1"),
     E("track-max-frames-text", f"{T} {HB} --max-frames ten", "invalid int", 2),
     E("track-threads-0", f"{T} {HB} --threads 0", "--threads must be >= 1"),
+    # one source: no backend is built, and -1 was accepted and ignored
+    E(
+        "track-max-retries-negative",
+        f"{T} {HB} -o {{o}}/b.csv --max-retries -1",
+        r"--max-retries must be >= 0, got -1",
+    ),
+    E(
+        "track-corpus-max-retries-negative",
+        f"{T} {HB} --out-dir {{o}}/runs --max-retries -1",
+        r"--max-retries must be >= 0, got -1",
+    ),
     E("track-particles-no-video", f"{T} {HB} --particles", "--particles draws into"),
     E("track-color-bad", f"{T} {HB} --color cmyk", "invalid choice", 2),
     E("track-detect-unknown", f"{T} --detect zebra", "unknown model 'zebra'"),
@@ -925,6 +936,11 @@ CASES += [
     E("eval-tracker-param", f"{EV} --trackers camshift:wings=1 -o {{o}}/r", "no parameter"),
     E("eval-max-frames-1", f"{EV} --max-frames 1 -o {{o}}/r", "--max-frames must be >= 2"),
     E("eval-jobs-0", f"{EV} --jobs 0 -o {{o}}/r", "--jobs must be >= 1"),
+    E(
+        "eval-max-retries-negative",
+        f"{EV} --max-retries -1 -o {{o}}/r",
+        "--max-retries must be >= 0",
+    ),
     E(
         "eval-import-missing",
         f"{EV} --import no_such_module_x -o {{o}}/r",
