@@ -10,6 +10,23 @@ def test_help_lists_every_command():
         assert name in text
 
 
+def test_building_the_parser_imports_neither_torch_nor_opencv():
+    """``torchtrack --help`` stays fast: building the parser (every subcommand's options and
+    help text) imports neither torch nor OpenCV, nor the corpus runner that pulls both in
+    (they took ~1.8 s of a 1.9 s ``--help``). ``import torchtrack`` alone imports neither, so
+    the whole of the check is on what the parser adds. In a fresh interpreter: the test
+    process has them imported already."""
+    code = (
+        "import sys\n"
+        "import torchtrack.cli as c\n"
+        "c.build_parser().format_help()\n"
+        "heavy = ('torch', 'cv2', 'torchtrack.eval.corpus')\n"
+        "print(' '.join(m for m in heavy if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == []
+
+
 def test_module_entry_point_runs():
     out = subprocess.run(
         [sys.executable, "-m", "torchtrack", "--version"],

@@ -132,6 +132,8 @@ def corpus(tmp_path_factory, forge_model):
     (c / "emptydir").mkdir()
     (c / "notes").mkdir()
     (c / "notes" / "readme.txt").write_text("no images here")
+    _frames(c / "motseq" / "img1", 3, ext=".jpg")  # a MOTChallenge sequence's folder
+    (c / "motseq" / "seqinfo.ini").write_text("[Sequence]\nname=motseq\nimDir=img1\n")
     _video(c / "clip.mp4")
     v = (c / "clip.mp4").read_bytes()
     (c / "cut.mp4").write_bytes(v[: len(v) // 2])  # no moov atom: cannot be opened
@@ -389,6 +391,11 @@ CASES: list[Case] = [
     E("track-source-empty-dir", f"track {{c}}/emptydir {HB} -o {{o}}/b.csv", "holds no image file"),
     E("track-source-notes-only", f"track {{c}}/notes {HB} -o {{o}}/b.csv", "holds no image file"),
     E(
+        "track-source-mot-sequence",
+        f"track {{c}}/motseq {HB} -o {{o}}/b.csv",
+        r"holds no image file .*MOTChallenge sequence: give its img1/ folder, .*motseq/img1$",
+    ),
+    E(
         "track-source-corrupt",
         f"track {{c}}/corrupt {HB} -o {{o}}/b.csv --video {{o}}/v.mp4",
         "no readable frame",
@@ -480,6 +487,17 @@ CASES: list[Case] = [
     E("track-max-frames-0", f"{T} {HB} --max-frames 0", "--max-frames must be >= 1"),
     E("track-max-frames-text", f"{T} {HB} --max-frames ten", "invalid int", 2),
     E("track-threads-0", f"{T} {HB} --threads 0", "--threads must be >= 1"),
+    # one source: no backend is built, and -1 was accepted and ignored
+    E(
+        "track-max-retries-negative",
+        f"{T} {HB} -o {{o}}/b.csv --max-retries -1",
+        r"--max-retries must be >= 0, got -1",
+    ),
+    E(
+        "track-corpus-max-retries-negative",
+        f"{T} {HB} --out-dir {{o}}/runs --max-retries -1",
+        r"--max-retries must be >= 0, got -1",
+    ),
     E("track-particles-no-video", f"{T} {HB} --particles", "--particles draws into"),
     E("track-color-bad", f"{T} {HB} --color cmyk", "invalid choice", 2),
     E("track-detect-unknown", f"{T} --detect zebra", "unknown model 'zebra'"),
@@ -918,6 +936,11 @@ CASES += [
     E("eval-tracker-param", f"{EV} --trackers camshift:wings=1 -o {{o}}/r", "no parameter"),
     E("eval-max-frames-1", f"{EV} --max-frames 1 -o {{o}}/r", "--max-frames must be >= 2"),
     E("eval-jobs-0", f"{EV} --jobs 0 -o {{o}}/r", "--jobs must be >= 1"),
+    E(
+        "eval-max-retries-negative",
+        f"{EV} --max-retries -1 -o {{o}}/r",
+        "--max-retries must be >= 0",
+    ),
     E(
         "eval-import-missing",
         f"{EV} --import no_such_module_x -o {{o}}/r",

@@ -266,6 +266,17 @@ def test_bad_csvs(tmp_path):
     p.write_text("x,y,w,h\n1,1,2,2\n1,x,2,2\n")
     with pytest.raises(SequenceError, match="line 3 is not numeric"):
         read_box_csv(p)
+    # float() reads 1_0 as 10: a typo became a box at x=10, or frame 10
+    for body, no in (
+        ("frame,x,y,w,h\n0,1,1,2,2\n1,1_0,1,2,2\n", 3),  # a box value
+        ("frame,x,y,w,h\n0,1,1,2,2\n1_0,1,1,2,2\n", 3),  # the frame column
+        ("x,y,w,h,visible\n1,1,2,2,0_0\n", 2),  # the visible column
+    ):
+        p.write_text(body)
+        with pytest.raises(SequenceError, match=rf"gt\.csv line {no} is not numeric"):
+            read_box_csv(p)
+    p.write_text("x,y,w,h,label\n1,1,2,2,car_1\n")  # columns it does not read may hold any text
+    assert read_box_csv(p).tolist() == [[1, 1, 2, 2]]
     p.write_text("")
     with pytest.raises(SequenceError, match="is empty"):
         read_box_csv(p)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -102,11 +104,31 @@ def test_video_file_roundtrip(tmp_path):
     assert max(float(f[2].float().mean()) for f in frames) < 6
 
 
+def test_a_motchallenge_sequence_folder_points_to_its_img1_folder(tmp_path):
+    """A MOTChallenge sequence keeps its frames in img1/ beside gt/ and seqinfo.ini: given the
+    sequence's folder, the error says where the frames are instead of only that there are
+    none."""
+    seq = tmp_path / "TUD-Toy"
+    (seq / "img1").mkdir(parents=True)
+    (seq / "gt").mkdir()
+    (seq / "seqinfo.ini").write_text("[Sequence]\nname=TUD-Toy\nimDir=img1\n")
+    cv2.imwrite(str(seq / "img1" / "000001.jpg"), np.zeros((8, 8, 3), np.uint8))
+    img1 = re.escape(str(seq / "img1"))
+    with pytest.raises(
+        VideoError,
+        match=rf"holds no image file .*; it looks like a MOTChallenge sequence: give its img1/ "
+        rf"folder, {img1}$",
+    ):
+        FrameSource(seq)
+    with FrameSource(seq / "img1") as src:
+        assert len(src) == 1
+
+
 def test_sources_that_cannot_be_opened(tmp_path):
     with pytest.raises(VideoError, match="does not exist"):
         FrameSource(tmp_path / "missing.mp4")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(VideoError, match="holds no image file"):
+    with pytest.raises(VideoError, match=r"holds no image file \(looked for [^)]*\)$"):
         FrameSource(tmp_path / "empty")
     bad = tmp_path / "broken.mp4"
     bad.write_bytes(b"\x00garbage" * 100)

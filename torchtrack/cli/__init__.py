@@ -119,8 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     # OpenCV reads its log level once, at import: warnings it would print before our own
-    # clean error message are noise (errors still show). Set before the parser is built, as
-    # a subcommand's module may import OpenCV (track's corpus options import torchtrack.io).
+    # clean error message are noise (errors still show). Set first, before anything a
+    # command does could import OpenCV.
     os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     parser = build_parser()
     args = parser.parse_args(argv)

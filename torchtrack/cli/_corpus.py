@@ -16,7 +16,7 @@ import os
 import sys
 import tempfile
 
-from torchtrack.eval.corpus import OutputKind
+from torchtrack.eval.output_kind import OutputKind
 
 #: The per-source outputs of a corpus run: the ``--write`` name, the file's ending, and the
 #: keyword of :func:`~torchtrack.cli.track.track_source` that receives its path (also the

@@ -214,6 +214,9 @@ def check_args(args: argparse.Namespace) -> None:
 
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames must be >= 1, got {args.max_frames}")
+    # a corpus run's Backend checks it too, but a single-source run builds no backend
+    if args.max_retries < 0:
+        raise ConfigError(f"--max-retries must be >= 0, got {args.max_retries}")
     if args.particles and not args.video:
         raise ConfigError("--particles draws into the annotated video: give --video FILE too")
     multi = is_multi(args)

@@ -50,6 +50,7 @@ from typing import Any
 
 from torchtrack.errors import ConfigError, DataError
 from torchtrack.eval.backends import Backend, TaskFailure, check_backend, run_tasks, worker_info
+from torchtrack.eval.output_kind import OutputKind
 from torchtrack.io.atomic import check_writable_dir
 from torchtrack.io.video import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key
 
@@ -67,23 +68,6 @@ MANIFEST = "manifest.jsonl"
 _FORMAT = "torchtrack-corpus"
 _VERSION = 1
 _GLOB_CHARS = frozenset("*?[")
-
-
-@dataclass(frozen=True)
-class OutputKind:
-    """One kind of per-source output file.
-
-    Attributes:
-        name: what the user asks for (``"csv"``).
-        suffix: the file's ending after the source's name (``".csv"``, ``".mot.txt"``); the
-            temporary file ends with it too, so writers that pick a format from the extension
-            (``cv2.VideoWriter``) still work.
-        keyword: the job's keyword argument that receives the path to write (``"out"``).
-    """
-
-    name: str
-    suffix: str
-    keyword: str
 
 
 # ---------------------------------------------------------------------------------------------

@@ -273,6 +273,8 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
         if not any(c.strip() for c in r):
             raise SequenceError(f"{p} line {no} is blank (blank lines only allowed at the end)")
         try:
+            if any("_" in r[i] for i in (*idx, vcol, fcol) if i is not None):
+                raise ValueError  # Python reads 1_0 as 10; a CSV does not
             v = [float(r[i]) for i in idx]
             if vcol is not None and float(r[vcol]) == 0:
                 v = [math.nan] * 4

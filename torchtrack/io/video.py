@@ -78,7 +78,8 @@ def list_image_files(folder: str | os.PathLike) -> list[Path]:
     """Image files directly inside ``folder``, in natural order. Hidden files are ignored.
 
     Raises:
-        VideoError: the folder does not exist or holds no image file.
+        VideoError: the folder does not exist or holds no image file (the message points to
+            ``img1/`` where the folder is a MOTChallenge sequence's).
     """
     d = Path(folder)
     if not d.is_dir():
@@ -89,8 +90,12 @@ def list_image_files(folder: str | os.PathLike) -> list[Path]:
         if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") and p.is_file()
     ]
     if not files:
+        hint = ""
+        if (d / "img1").is_dir():  # MOTChallenge: seqinfo.ini, gt/, det/ beside img1/
+            hint = f"; it looks like a MOTChallenge sequence: give its img1/ folder, {d / 'img1'}"
         raise VideoError(
-            f"frame folder {d} holds no image file (looked for {', '.join(sorted(IMAGE_EXTENSIONS))})"
+            f"frame folder {d} holds no image file (looked for "
+            f"{', '.join(sorted(IMAGE_EXTENSIONS))}){hint}"
         )
     return sorted(files, key=lambda p: natural_key(p.name))
 
