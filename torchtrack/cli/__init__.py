@@ -86,7 +86,8 @@ def reuse_freed_memory() -> bool:
     (~125 MiB a level) made 15-40% of the command's time system time. Here such blocks stay in
     the process's heap (allocated below 1 GiB, the heap trimmed above 1 GiB free) and are
     reused: ``torchtrack track`` on 40 frames of 1440x1080 in one process, 54.6 / 61.2 s ->
-    50.4 / 48.2 s (system time 8.5-9.6 s -> 0.7-0.8 s), peak memory +4-7%
+    50.4 / 48.2 s (system time 8.5-9.6 s -> 0.7-0.8 s), peak memory +4-7%; with two scan
+    workers the three processes hold ~2.16 GB, flat, against 1.4-1.8 GB (+20% at the peak)
     (docs/multi_target.md). Forked scan workers inherit it. Commands only: a library does not
     change its host's allocator.
 
