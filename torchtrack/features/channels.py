@@ -1235,10 +1235,10 @@ def _sample_product(tab: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> to
     ``(B, len(ys), len(xs), C)``.
 
     Frame by frame, on ``(H1, W * C)`` views of the table: rows are copied (the first pass)
-    and C-value runs (the second), which is 1.2-2.5x faster than
-    indexing the 4-d table. On the CPU both passes go a band of rows at a time
-    (:data:`_SAMPLE_CHUNK_BYTES`) over the columns the reads need; the arithmetic is the same,
-    so are the values. On a GPU one pass reads whole rows (no host synchronisation)."""
+    and C-value runs (the second), which is 1.2-2.5x faster than indexing the 4-d table. On
+    the CPU both passes go a band of rows at a time (:data:`_SAMPLE_CHUNK_BYTES`) over the
+    columns the reads need; the arithmetic is the same, so are the values. On a GPU one pass
+    reads whole rows (no host synchronisation)."""
     b, h1, w1, c = tab.shape
     ys = ys.clamp(0, h1 - 1)
     xs = xs.clamp(0, w1 - 1)
