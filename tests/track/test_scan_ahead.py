@@ -64,8 +64,10 @@ def test_workers_give_the_tracks_of_the_tracker_alone(clip, one_thread, scan_eve
 def test_frames_come_back_in_order_and_only_scan_frames_are_scanned(clip, monkeypatch):
     mt = make(scan_every=3)
     calls = []
-    monkeypatch.setattr(
-        mt, "detect", lambda f, g=None: calls.append(1) or (torch.zeros(0, 4), torch.zeros(0))
+    monkeypatch.setattr(  # the in-process scans go through detect_batch, a frame a call here
+        mt,
+        "detect_batch",
+        lambda fs, gs: [calls.append(1) or (torch.zeros(0, 4), torch.zeros(0)) for _ in fs],
     )
     with ScanAhead(mt, 0) as ahead:
         got = list(ahead.frames(clip))

@@ -697,7 +697,10 @@ def scan_batch(
             raise ConfigError(
                 f"keep_windows gives {len(frame_keep)} functions for {nb} frames: one per frame"
             )
-        keep_windows = _any_keeps(frame_keep)
+        if nb == 1:  # one frame: its function is the scan's, nothing to filter afterwards
+            keep_windows, frame_keep = frame_keep[0], None
+        else:
+            keep_windows = _any_keeps(frame_keep)
     if _lattice_capable(detector):
         scales = scan_scales(
             (fh, fw),

@@ -376,7 +376,7 @@ class MultiTargetTracker:
             vote_iou=cfg.scan_vote or None,
             pad=cfg.scan_pad,
             cascade_threshold=cfg.scan_cascade or None,
-            keep_windows=keeps[0] if len(keeps) == 1 else keeps,
+            keep_windows=keeps,
             batch=16_384 * frames.shape[0],  # scan's windows per call, for each frame
         )
         # the scan runs on the frames' device; the filter's bookkeeping lives on the CPU

@@ -336,11 +336,8 @@ class ScanAhead(Ahead):
                     if self.device is not None:
                         frames = frames.to(self.device)
                     lines = [self.tracker.scan_ground(kk) for _, kk in todo]
-                    if len(todo) == 1:  # one frame: the tracker's detect
-                        found[todo[0][0]] = self.tracker.detect(frames[0], lines[0])
-                    else:
-                        got = self.tracker.detect_batch(frames, lines)
-                        found.update((n, r) for (n, _), r in zip(todo, got, strict=True))
+                    got = self.tracker.detect_batch(frames, lines)
+                    found.update((n, r) for (n, _), r in zip(todo, got, strict=True))
                 finally:
                     self.seconds += time.perf_counter() - t0
             out = [(i, f, found.get(n)) for n, (i, f, _) in enumerate(buf)]
