@@ -90,10 +90,34 @@ def test_local_normalisation_makes_gradients_contrast_invariant():
 
 def test_integral_cv2_path_equals_cumsum():
     ch = torch.rand(2, 5, 33, 41)
-    got = _integral(ch)
+    got = _integral(list(ch.unbind(1)))
     ref = torch.zeros((2, 34, 42, 5), dtype=torch.float64)
     ref[:, 1:, 1:] = ch.double().permute(0, 2, 3, 1).cumsum(1).cumsum(2)
     torch.testing.assert_close(got, ref, rtol=0, atol=1e-9)
+    assert got.is_contiguous()
+
+
+def test_integral_of_planes_is_the_interleaved_integral_to_the_bit():
+    """One ``cv2.integral`` per plane, interleaved afterwards, gives the table of one
+    ``cv2.integral`` of the interleaved channels (the path before) bit for bit; one plane too."""
+    import cv2
+
+    g = torch.Generator().manual_seed(3)
+    for c in (1, 10):
+        ch = torch.rand(1, c, 57, 73, generator=g) * torch.logspace(-6, 2, c).view(1, c, 1, 1)
+        got = _integral(list(ch.unbind(1)))
+        hwc = ch[0].permute(1, 2, 0).contiguous().numpy()
+        ref = torch.from_numpy(cv2.integral(hwc, sdepth=cv2.CV_64F)).reshape(1, 58, 74, c)
+        assert torch.equal(got, ref)
+
+
+def test_channels_last_layout_holds_the_same_channels():
+    x = frames()
+    for cs in (ChannelSet(), ChannelSet(names=("gray", "grad", "orient"), orientations=4)):
+        a = compute_channels(x, cs)
+        b = compute_channels(x, cs, memory_format=torch.channels_last)
+        assert b.shape == a.shape and b.permute(0, 2, 3, 1).is_contiguous()
+        assert torch.equal(a, b)
 
 
 def test_features_at_scale_one_equal_a_pixel_loop():

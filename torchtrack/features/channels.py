@@ -219,7 +219,8 @@ def _linear_rgb(rgb: torch.Tensor) -> torch.Tensor:
             v = torch.arange(256, dtype=torch.float32, device=rgb.device) / 255.0
             lut = rgb_to_linear_rgb(v.view(1, 1, 256).expand(3, 1, 256))[0, 0].contiguous()
             _LINEAR_LUT[rgb.device] = lut
-        return lut[rgb.long()]
+        # index_select on the flat frame: the same values as lut[rgb.long()], 3x faster on CPU
+        return lut.index_select(0, rgb.reshape(-1).long()).view(rgb.shape)
     return rgb_to_linear_rgb(rgb.float() / 255.0)
 
 
@@ -297,29 +298,14 @@ def _check_frames(frames: Any) -> torch.Tensor:
     return frames
 
 
-def compute_channels(
-    frames: torch.Tensor,
-    channels: ChannelSet | None = None,
-    *,
-    memory_format: torch.memory_format = torch.contiguous_format,
-) -> torch.Tensor:
-    """The channels of a batch of frames.
+#: OpenCV's most channels per image (``CV_CN_MAX``): :func:`compute_channels` interleaves up
+#: to this many with ``cv2.merge``
+_CV_MAX_CN = 512
 
-    Args:
-        frames: ``(B, C, H, W)``, C = 1 (gray) or 3 (RGB), 0..255 (uint8 or float).
-        channels: the channel set (default: :class:`ChannelSet` ``()``, ten channels).
-        memory_format: ``torch.channels_last`` lays the result out as ``(B, H, W, C)`` in
-            memory (the same values), the layout the integral images are summed in: one copy
-            of the frame's channels less.
 
-    Returns:
-        ``(B, len(channels), H, W)`` float32 on the frames' device, in ``channels.channels``
-        order.
-
-    Raises:
-        ShapeError: not ``(B, 1 | 3, H, W)``.
-    """
-    cs = channels or ChannelSet()
+def _channel_planes(frames: torch.Tensor, cs: ChannelSet) -> list[torch.Tensor]:
+    """The channels of ``frames (B, 1 | 3, H, W)`` as planes ``(B, H, W)`` float32, in
+    ``cs.channels`` order (views where a computation gives several at once)."""
     x = _check_frames(frames)
     parts: dict[str, torch.Tensor] = {}
     if cs.colour:
@@ -344,50 +330,104 @@ def compute_channels(
             o = torch.remainder(torch.atan2(gy, gx), math.pi) * (n / math.pi)  # [0, n)
             o0 = o.floor()
             frac = o - o0
-            i0 = o0.long().remainder(n)
+            # bins in [0, n] (o reaches n by rounding): n wrapped to 0 in place, not by an
+            # integer remainder (the same bins, several times faster)
+            i0 = o0.long()
+            i0.masked_fill_(i0 == n, 0)
+            i1 = i0 + 1
+            i1.masked_fill_(i1 == n, 0)
             hist = torch.zeros((x.shape[0], n, *mag.shape[-2:]), dtype=mag.dtype, device=mag.device)
             hist.scatter_add_(1, i0, mag * (1 - frac))
-            hist.scatter_add_(1, (i0 + 1).remainder(n), mag * frac)
+            hist.scatter_add_(1, i1, mag * frac)
             for i in range(n):
                 parts[f"orient{i}"] = hist[:, i : i + 1]
-    if memory_format == torch.channels_last:
-        # one channel at a time into the channels-last buffer: 2.4x faster on CPU than
-        # torch.stack(..., -1) of the same planes (the same values)
-        first = parts[cs.channels[0]]
-        out = torch.empty(
-            (x.shape[0], *first.shape[-2:], len(cs.channels)),
-            dtype=first.dtype,
-            device=first.device,
-        )
-        for i, c in enumerate(cs.channels):
-            out[..., i] = parts[c][:, 0]
-        return out.permute(0, 3, 1, 2)
-    return torch.cat([parts[c] for c in cs.channels], 1)
+    return [parts[c][:, 0] for c in cs.channels]
 
 
-def _integral(ch: torch.Tensor) -> torch.Tensor:
-    """``(B, C, H, W)`` -> channels-last ``(B, H + 1, W + 1, C)`` float64 summed-area tables
-    (contiguous: the C values of one point are adjacent, which is how the lattices read them).
+def compute_channels(
+    frames: torch.Tensor,
+    channels: ChannelSet | None = None,
+    *,
+    memory_format: torch.memory_format = torch.contiguous_format,
+) -> torch.Tensor:
+    """The channels of a batch of frames.
 
-    On the CPU, OpenCV's ``cv2.integral`` (float64 accumulation, the same values as two float64
-    cumulative sums) is several times faster than torch's.
+    Args:
+        frames: ``(B, C, H, W)``, C = 1 (gray) or 3 (RGB), 0..255 (uint8 or float).
+        channels: the channel set (default: :class:`ChannelSet` ``()``, ten channels).
+        memory_format: ``torch.channels_last`` lays the result out as ``(B, H, W, C)`` in
+            memory (the same values), the layout the integral images are summed in: one copy
+            of the frame's channels less.
+
+    Returns:
+        ``(B, len(channels), H, W)`` float32 on the frames' device, in ``channels.channels``
+        order.
+
+    Raises:
+        ShapeError: not ``(B, 1 | 3, H, W)``.
     """
-    b, c, h, w = ch.shape
-    if ch.device.type == "cpu" and c <= 512:
-        import cv2
-        import numpy as np
+    cs = channels or ChannelSet()
+    planes = _channel_planes(frames, cs)
+    if memory_format == torch.channels_last:
+        first = planes[0]
+        b, (h, w), nc = first.shape[0], first.shape[-2:], len(planes)
+        if first.device.type == "cpu" and nc <= _CV_MAX_CN:
+            # OpenCV interleaves the planes (SIMD): at 1440x1080 7 against 33 ms for the
+            # strided writes below, which go through the whole buffer once per channel (the
+            # same values: a copy)
+            import cv2
 
-        hwc = ch.to(torch.float32).permute(0, 2, 3, 1).contiguous().numpy()
-        if b == 1:  # cv2's own table, not a copy of it (a fresh 8-byte table costs page faults)
-            return torch.from_numpy(
-                cv2.integral(hwc[0], sdepth=cv2.CV_64F).reshape(1, h + 1, w + 1, c)
+            frames_hwc = [
+                torch.from_numpy(_cv_merge(cv2, [p[i] for p in planes]).reshape(h, w, nc))
+                for i in range(b)
+            ]
+            out = frames_hwc[0][None] if b == 1 else torch.stack(frames_hwc)
+            return out.permute(0, 3, 1, 2)
+        # one channel at a time into the channels-last buffer: 2.4x faster than
+        # torch.stack(..., -1) of the same planes (the same values)
+        out = torch.empty((b, h, w, nc), dtype=first.dtype, device=first.device)
+        for i, pl in enumerate(planes):
+            out[..., i] = pl
+        return out.permute(0, 3, 1, 2)
+    return torch.stack(planes, 1)
+
+
+def _cv_merge(cv2, planes: list[torch.Tensor]):
+    """``cv2.merge`` of 2-d CPU planes -> an ``(H, W, C)`` numpy array (``(H, W)`` for one)."""
+    return cv2.merge([p.contiguous().numpy() for p in planes])
+
+
+def _integral(planes: list[torch.Tensor]) -> torch.Tensor:
+    """Channel planes ``(B, H, W)`` -> channels-last ``(B, H + 1, W + 1, C)`` float64
+    summed-area tables (contiguous: the C values of one point are adjacent, which is how the
+    lattices read them).
+
+    On the CPU, OpenCV's ``cv2.integral`` of each plane (float64 accumulation, the same values
+    as two float64 cumulative sums), interleaved by ``cv2.merge``: several times faster than
+    torch's cumulative sums, and faster than one ``cv2.integral`` of the interleaved channels
+    (1440x1080, ten channels: 27.5 against 37 ms, the same values).
+    """
+    first = planes[0]
+    b, (h, w), c = first.shape[0], first.shape[-2:], len(planes)
+    if first.device.type == "cpu" and c <= _CV_MAX_CN:
+        import cv2
+
+        tabs = [
+            torch.from_numpy(
+                _cv_merge(
+                    cv2,
+                    [
+                        torch.from_numpy(cv2.integral(p[i].contiguous().numpy(), sdepth=cv2.CV_64F))
+                        for p in planes
+                    ],
+                ).reshape(h + 1, w + 1, c)
             )
-        out = np.empty((b, h + 1, w + 1, c), dtype=np.float64)
-        for i in range(b):
-            out[i] = cv2.integral(hwc[i], sdepth=cv2.CV_64F).reshape(h + 1, w + 1, c)
-        return torch.from_numpy(out)
-    out = torch.zeros((b, h + 1, w + 1, c), dtype=torch.float64, device=ch.device)
-    out[:, 1:, 1:] = ch.to(torch.float64).permute(0, 2, 3, 1).cumsum(2).cumsum(1)
+            for i in range(b)
+        ]
+        # cv2's own table, not a copy of it (a fresh 8-byte table costs page faults)
+        return tabs[0][None] if b == 1 else torch.stack(tabs)
+    out = torch.zeros((b, h + 1, w + 1, c), dtype=torch.float64, device=first.device)
+    out[:, 1:, 1:] = torch.stack(planes, -1).to(torch.float64).cumsum(2).cumsum(1)
     return out
 
 
@@ -433,7 +473,7 @@ class ChannelIntegrals:
             f = self.frames
             if k > 0:
                 f = F.avg_pool2d(f.float(), 1 << k)
-            tab = _integral(compute_channels(f, self.channels, memory_format=torch.channels_last))
+            tab = _integral(_channel_planes(f, self.channels))
             self._levels[k] = tab
         return tab
 
