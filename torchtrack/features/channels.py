@@ -51,6 +51,7 @@ from torch.nn import functional as F
 
 from torchtrack.boxes import check_boxes
 from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.features.integral import check_pixel_values
 
 __all__ = [
     "CHANNEL_NAMES",
@@ -318,9 +319,15 @@ def compute_channels(
 
     Raises:
         ShapeError: not ``(B, 1 | 3, H, W)``.
+        DataError: a pixel not finite or outside [0, 255].
     """
-    cs = channels or ChannelSet()
     x = _check_frames(frames)
+    check_pixel_values(x)
+    return _channels(x, channels or ChannelSet(), memory_format)
+
+
+def _channels(x: torch.Tensor, cs: ChannelSet, memory_format: torch.memory_format) -> torch.Tensor:
+    """:func:`compute_channels` of checked frames."""
     parts: dict[str, torch.Tensor] = {}
     if cs.colour:
         rgb = x if x.shape[1] == 3 else x.expand(-1, 3, -1, -1)
@@ -405,6 +412,7 @@ class ChannelIntegrals:
 
     def __init__(self, frames: torch.Tensor, channels: ChannelSet) -> None:
         self.frames = _check_frames(frames)
+        check_pixel_values(self.frames)
         self.channels = channels
         self._levels: dict[int, torch.Tensor] = {}
 
@@ -433,7 +441,7 @@ class ChannelIntegrals:
             f = self.frames
             if k > 0:
                 f = F.avg_pool2d(f.float(), 1 << k)
-            tab = _integral(compute_channels(f, self.channels, memory_format=torch.channels_last))
+            tab = _integral(_channels(f, self.channels, torch.channels_last))
             self._levels[k] = tab
         return tab
 
