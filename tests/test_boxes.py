@@ -32,6 +32,20 @@ def test_iou_hand_computed():
     assert m[1, 0].item() == pytest.approx(1 / 3)
 
 
+def test_iou_of_boxes_that_do_not_pair_is_a_shape_error():
+    """box_iou of 3 and 5 boxes raised torch's RuntimeError; box_iou_matrix of one box (4,)
+    an IndexError, and of a (2, 3, 4) batch against (5, 4) a RuntimeError."""
+    a, b = torch.ones(3, 4), torch.ones(5, 4)
+    with pytest.raises(ShapeError, match=r"broadcastable boxes, got a \(3, 4\) and b \(5, 4\)"):
+        box_iou(a, b)
+    assert box_iou(a, b[:1]).shape == (3,) and box_iou(a[:, None], b).shape == (3, 5)
+    for bad in (torch.ones(4), torch.ones(2, 3, 4)):
+        with pytest.raises(ShapeError, match=r"box_iou_matrix needs a \(N, 4\) and b \(M, 4\)"):
+            box_iou_matrix(bad, b)
+        with pytest.raises(ShapeError, match=r"box_iou_matrix needs"):
+            box_iou_matrix(b, bad)
+
+
 def test_check_boxes_errors():
     with pytest.raises(BoxError, match=r"boxes\[1\].*size below"):
         check_boxes(torch.tensor([[0.0, 0, 5, 5], [1.0, 1, 0, 5]]))

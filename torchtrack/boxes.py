@@ -76,6 +76,13 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """
     _check_last4(a, "a")
     _check_last4(b, "b")
+    if a.shape[:-1] != b.shape[:-1]:  # torch's RuntimeError otherwise
+        try:
+            torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+        except RuntimeError:
+            raise ShapeError(
+                f"box_iou needs broadcastable boxes, got a {tuple(a.shape)} and b {tuple(b.shape)}"
+            ) from None
     ax1, ay1, ax2, ay2 = xywh_to_xyxy(a).unbind(-1)
     bx1, by1, bx2, by2 = xywh_to_xyxy(b).unbind(-1)
     iw = (torch.minimum(ax2, bx2) - torch.maximum(ax1, bx1)).clamp(min=0)
@@ -90,6 +97,10 @@ def box_iou_matrix(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Pairwise IoU: ``a (N, 4)``, ``b (M, 4)`` xywh -> ``(N, M)``."""
     _check_last4(a, "a")
     _check_last4(b, "b")
+    if a.ndim != 2 or b.ndim != 2:  # one box (4,) was an IndexError, (B, N, 4) broadcast
+        raise ShapeError(
+            f"box_iou_matrix needs a (N, 4) and b (M, 4), got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
     return box_iou(a[:, None, :], b[None, :, :])
 
 

@@ -133,11 +133,17 @@ def test_object_region_to_window_fractions(tmp_path):
         ("negative_max_scale = -1", "negative_max_scale must be a finite number >= "),
         ("negative_max_scale = nan", "negative_max_scale must be a finite number >= "),
         ('positives = ["p", "p"]', "data.positives names '.*/p' twice"),
+        # a folder in both classes trained for minutes, then failed on the Platt slope (or, with
+        # other folders beside it, gave a model whose positives were also its negatives)
+        ('negatives = ["q", "p"]', "data.negatives names '.*/p', a folder of data.positives"),
+        ('negative_images = ["p"]', "data.negative_images names '.*/p', a folder of data.pos"),
     ],
 )
 def test_bad_data_values(tmp_path, line, match):
     if line.startswith("positives"):  # in place of BASE's own
         text = BASE.replace('positives = ["p"]', line)
+    elif line.startswith("negatives"):
+        text = BASE.replace('negatives = ["n"]', line)
     else:
         text = BASE.replace("[data]\n", f"[data]\n{line}\n")
     with pytest.raises(ConfigError, match=match):

@@ -236,3 +236,28 @@ def test_a_keep_function_per_frame_gives_each_frame_its_own_scan():
             assert torch.equal(wa, wb) and torch.equal(sa, sb)
     with pytest.raises(ConfigError, match="one per frame"):
         scan_batch(det, frames, keep_windows=keeps[:2])
+
+
+def test_scan_thresholds_nms_and_max_scale_out_of_range_are_refused():
+    """threshold=NaN kept no window and nms_iou=NaN suppressed none (the comparisons are false),
+    a threshold of 2 or an nms_iou of 1.5 ran as given, and max_scale=NaN was ignored: all
+    silently. Margins (margin=True) take any threshold but NaN."""
+    from torchtrack.detect.scan import scan_scales
+
+    det = load_model("vehicle")
+    frame = torch.zeros(3, 60, 120, dtype=torch.uint8)
+    for bad in (math.nan, 2.0, -0.1):
+        with pytest.raises(ConfigError, match=r"threshold must be None or a probability"):
+            scan(det, frame, threshold=bad)
+    with pytest.raises(ConfigError, match=r"threshold must be None or a margin \(not NaN\)"):
+        scan(det, frame, threshold=math.nan, margin=True)
+    scan(det, frame, threshold=-5.0, margin=True)
+    for bad in (math.nan, 1.5, -0.1):
+        with pytest.raises(ConfigError, match=r"nms_iou must be None or in \[0, 1\]"):
+            scan(det, frame, nms_iou=bad)
+    for bad in (math.nan, 0.5):
+        with pytest.raises(ConfigError, match=r"max_scale must be None or a number >= min_scale"):
+            scan_scales((480, 640), (128, 64), min_scale=0.6, max_scale=bad)
+    assert scan_scales((480, 640), (128, 64), max_scale=math.inf) == scan_scales(
+        (480, 640), (128, 64)
+    )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -185,6 +186,19 @@ def test_errors():
         evaluate_sequence(torch.zeros(3, 4), torch.zeros(3, 4), torch.ones(2))
     with pytest.raises(ConfigError, match="invisible must be"):
         evaluate_sequence(torch.zeros(3, 4), torch.zeros(3, 4), invisible="skip")
+
+
+def test_init_and_reinit_frames_outside_the_sequence_are_refused():
+    """init_frames=[10] on 3 frames was skipped (frame 0 then scored as a tracked frame) and
+    reinit_frames=[7, 8] counted two re-initialisations that never happened, silently."""
+    z = torch.zeros(3, 4)
+    for kw in ({"init_frames": [10]}, {"init_frames": [-1]}, {"reinit_frames": [0, 7]}):
+        with pytest.raises(ConfigError, match=r"_frames must hold frame indices in \[0, 3\)"):
+            evaluate_sequence(z, z, **kw)
+    with pytest.raises(ConfigError, match=r"got 1.5"):
+        evaluate_sequence(z, z, init_frames=[1.5])
+    m = evaluate_sequence(z, z, init_frames=[np.int64(0), 2], reinit_frames=[1])
+    assert m.n_evaluated == 1 and m.n_reinit == 1
 
 
 def test_losses_and_reacquisitions_count_long_miss_runs():

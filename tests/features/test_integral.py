@@ -1,9 +1,11 @@
+import math
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from torchtrack.errors import ShapeError
+from torchtrack.errors import DataError, ShapeError
 from torchtrack.features.integral import IntegralImage, integral_image, rgb_to_gray
 
 
@@ -91,3 +93,31 @@ def test_bad_input(bad, match):
 def test_gray_rejects_two_channels():
     with pytest.raises(ShapeError, match="1 \\(gray\\) or 3 \\(RGB\\)"):
         rgb_to_gray(torch.zeros(1, 2, 3, 3))
+
+
+def test_feature_banks_refuse_pixels_that_are_not_8_bit_levels():
+    """NaN or infinite pixels gave NaN features, which the classifiers turned into an
+    ordinary-looking probability (a NaN frame scored 1e-7, like an empty window), and 16-bit
+    levels were read on the 8-bit scale, silently: both are DataErrors naming the range, for
+    Haar and channel banks and for the public channel function. uint8 frames, floats inside
+    [0, 255] and empty batches pass as before."""
+    from torchtrack.features.channels import channel_integrals, compute_channels
+    from torchtrack.features.haar import integrals as haar_integrals
+    from torchtrack.features.integral import check_pixel_values
+
+    ok = torch.full((1, 3, 8, 8), 255.0, dtype=torch.float64)
+    for fn in (check_pixel_values, compute_channels, channel_integrals, haar_integrals):
+        fn(ok)
+        fn(ok.to(torch.uint8))
+        fn(ok[:0])
+        for bad in (math.nan, math.inf, -math.inf):
+            frame = ok.clone()
+            frame[0, 1, 2, 3] = bad
+            with pytest.raises(DataError, match="NaN or infinite values"):
+                fn(frame)
+        sixteen = (ok * 257).to(torch.int32)
+        sixteen[0, 0, 0, 0] = 0
+        with pytest.raises(DataError, match=r"values in \[0, 65535\].*divide by 257"):
+            fn(sixteen)
+        with pytest.raises(DataError, match=r"values in \[-1, 255\]"):
+            fn(torch.cat([ok, -ok / 255]))

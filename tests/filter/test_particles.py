@@ -52,6 +52,22 @@ def test_nan_log_weights_raise_naming_step():
         normalize_log_weights(torch.tensor([[0.0, math.inf]]))
 
 
+def test_log_weights_without_particles_or_of_bools_are_shape_errors():
+    """resample() and normalize_log_weights() of (B, 0) log-weights restarted the rows at
+    -log(0), Python's ValueError 'math domain error'; bool log-weights reached torch's
+    subtraction (RuntimeError); a list an AttributeError."""
+    from torchtrack.filter.resample import resample
+
+    for fn in (normalize_log_weights, resample, ess):
+        with pytest.raises(ShapeError, match=r"log_weights must be \(B, N\) numbers with N >= 1"):
+            fn(torch.zeros(2, 0))
+        with pytest.raises(ShapeError, match=r"numbers with N >= 1, got \(2, 3\) torch.bool"):
+            fn(torch.zeros(2, 3, dtype=torch.bool))
+    with pytest.raises(ShapeError, match=r"log_weights must be \(B, N\), got list"):
+        normalize_log_weights([[0.0, 0.0]])
+    assert resample(torch.zeros(0, 3))[0].shape == (0, 3)  # no rows: nothing to do
+
+
 def test_estimates_against_loops():
     g = torch.Generator().manual_seed(1)
     x = torch.randn(3, 20, 4, generator=g, dtype=torch.float64)

@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -271,6 +272,17 @@ def test_negative_weights_and_empty_batches(scheme):
         fn(torch.tensor([[0.5, -0.1, 0.6]]))
     assert fn(torch.zeros(0, 5)).shape == (0, 5)
     assert fn(torch.zeros(0, 5), None, 3).shape == (0, 3)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_n_out_that_is_not_a_positive_integer_is_refused(scheme):
+    """n_out -3 raised torch's RuntimeError, 0 an IndexError (stratified) or no particle, and
+    2.5 silently drew 2."""
+    fn = get_resampler(scheme)
+    for bad in (-3, 0, 2.5, True, "4"):
+        with pytest.raises(ConfigError, match=r"n_out must be None or an integer >= 1"):
+            fn(torch.ones(2, 5), None, bad)
+    assert fn(torch.ones(2, 5), None, np.int64(3)).shape == (2, 3)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")

@@ -180,6 +180,25 @@ def test_all_zero_likelihood_recovers_uniform_never_nan(step, dtype):
 
 
 @pytest.mark.parametrize("step,name", [(sir_step, "sir_step"), (seir_step, "seir_step")])
+def test_states_that_are_not_finite_after_the_motion_raise_naming_step(step, name):
+    """NaN states given, or made by the motion model, gave NaN estimates with no error (a
+    likelihood that scores NaN states 0 hides them)."""
+    x = torch.zeros(3, 20, 4, dtype=torch.float64)
+    lw = uniform_log_weights(x)
+    flat = lambda s: torch.zeros(s.shape[:2], dtype=s.dtype)  # noqa: E731
+    still = lambda s, g: s  # noqa: E731
+    bad = x.clone()
+    bad[1, 5, 2] = math.nan
+    with pytest.raises(FilterError, match=rf"{name}: the particles after the motion .*\[1\]"):
+        step(bad, lw, still, flat)
+    for v in (math.nan, math.inf):
+        with pytest.raises(FilterError, match=rf"{name}: .* NaN or infinite .*\[0, 1, 2\]"):
+            step(x, lw, lambda s, g, v=v: s + v, flat)
+    huge = torch.full_like(x, 1e307)  # finite, though the check's sum overflows
+    assert torch.isfinite(step(huge, lw, still, flat).estimate).all()
+
+
+@pytest.mark.parametrize("step,name", [(sir_step, "sir_step"), (seir_step, "seir_step")])
 def test_bad_likelihood_raises_naming_step(step, name):
     m = KleinAR()
     x = m.init(torch.tensor([[10.0, 10.0, 5.0, 5.0]]), 20, torch.Generator().manual_seed(0))

@@ -156,6 +156,14 @@ def test_camera_indices_and_folders_named_by_digits(tmp_path, monkeypatch):
         FrameSource("²")
 
 
+def test_negative_camera_index_is_refused():
+    """A negative camera index reached OpenCV, whose V4L backend died of a segmentation fault
+    on -1 and -2 where no camera is found (the whole process, no exception)."""
+    for index in (-1, -2, -(2**31)):
+        with pytest.raises(VideoError, match=f"camera index {index} is out of range"):
+            FrameSource(index)
+
+
 def test_read_image_errors_and_bgr_roundtrip(tmp_path, folder):
     with pytest.raises(DataError, match="does not exist"):
         read_image(tmp_path / "nope.png")

@@ -74,6 +74,19 @@ def test_platt_sample_weight_matches_sklearn():
     assert abs(cal.a_ - a) < 1e-3 and abs(cal.b_ - b) < 1e-3
 
 
+@pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
+def test_bad_sample_weights_are_refused_by_both_calibrators(cls):
+    """The isotonic fit passed its weights to scikit-learn unchecked: one weight short raised
+    sklearn's ValueError 'inconsistent numbers of samples', negative weights 'Found array with
+    0 sample(s)'; it now refuses them as the Platt fit does."""
+    s, y = _scores(100, 3)
+    with pytest.raises(errors.ShapeError, match=r"sample_weight must have shape \(100,\)"):
+        cls().fit(s, y, sample_weight=np.ones(99))
+    with pytest.raises(errors.DataError, match="sample_weight must be non-negative"):
+        cls().fit(s, y, sample_weight=-np.ones(100))
+    cls().fit(s, y, sample_weight=np.ones(100))
+
+
 def test_flipping_labels_gives_one_minus_p():
     s, y = _scores(400, 7)
     p = PlattCalibrator().fit(s, y).predict_proba(s)

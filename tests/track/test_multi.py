@@ -498,6 +498,9 @@ def test_reset_forgets_outside_detections():
         ({"detection_sigma_rate": -0.1}, "detection_sigma_rate"),
         ({"detection_sigma_rate": float("nan")}, "detection_sigma_rate"),
         ({"noise_height": float("inf")}, "noise_height"),
+        # below a pixel the noise grew beyond any frame: 1e-300 lost every target, silently
+        ({"noise_height": 1e-300}, r"noise_height is an object height in pixels: 0 .* at least 1"),
+        ({"noise_height": 0.5}, r"noise_height is an object height in pixels"),
         ({"scan_cascade": 1.0}, "scan_cascade"),
         ({"scan_cascade": float("-inf")}, "scan_cascade"),
         ({"scan_pad": 0.6}, "scan_pad"),

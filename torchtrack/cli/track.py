@@ -383,7 +383,6 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
 
     from torchtrack.cli._common import device_of
     from torchtrack.cli._track_io import BoxWriter, VideoOut, draw
-    from torchtrack.errors import TrackerError
 
     device = device_of(args)
     csv = BoxWriter(out) if out else None
@@ -429,7 +428,7 @@ def _run_single(args, tracker, box, src, source, *, out, video) -> TrackSummary:
             if vid is not None:
                 vid.write(draw(frame, state, tracker if args.particles else None))
     if last is None and run.status == 0:
-        raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
+        raise _no_readable_frame(src)
     return _summary(source, src, n_frames, t0, t_track, run.status)
 
 
@@ -441,6 +440,15 @@ def _interrupted(exc: BaseException) -> int:
     what = "interrupted" if status == 130 else "terminated"
     print(f"{what}: keeping the results so far", file=sys.stderr)
     return status
+
+
+def _no_readable_frame(src) -> Exception:
+    """The error of a source none of whose frames could be read, with the first one's reason
+    (an image folder of float TIFFs said only 'no readable frame')."""
+    from torchtrack.errors import TrackerError
+
+    why = f" ({src.bad_frames[0].reason})" if src.bad_frames else ""
+    return TrackerError(f"no readable frame in {src.name}: nothing was tracked{why}")
 
 
 def _summary(
@@ -587,7 +595,6 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         VideoOut,
         draw_multi,
     )
-    from torchtrack.errors import TrackerError
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_batch, default_scan_workers
 
     device = device_of(args)
@@ -642,7 +649,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 vid.write(draw_multi(frame, res, trails, parts))
     status = run.status
     if n_frames == 0 and status == 0:
-        raise TrackerError(f"no readable frame in {src.name}: nothing was tracked")
+        raise _no_readable_frame(src)
     if not seen and status == 0:
         what = (
             f"no target was started from --detections {args.detections!r}"

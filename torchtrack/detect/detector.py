@@ -300,6 +300,7 @@ class Detector:
 
         Raises:
             BoxError: a box is not finite, under one pixel, or entirely outside its frame.
+            DataError: a pixel is not finite or outside [0, 255].
             NotFittedError: the detector has no calibration.
         """
         return self.proba_from_margin(self.decision_function(frames, boxes))

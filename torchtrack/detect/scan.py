@@ -242,7 +242,7 @@ def scan_scales(
     Raises:
         ConfigError: ``scale_step`` below :data:`MIN_SCALE_STEP` (a step just above 1 would
             ask for millions of scales: a scan that never ends), or not finite; ``min_scale``
-            below :data:`MIN_SCALE` or not finite.
+            below :data:`MIN_SCALE` or not finite; ``max_scale`` NaN or below ``min_scale``.
     """
     if not (MIN_SCALE_STEP <= scale_step < math.inf):
         raise ConfigError(
@@ -255,6 +255,10 @@ def scan_scales(
         raise ConfigError(
             f"min_scale must be >= {MIN_SCALE:g} (frames upsampled at most "
             f"{1 / MIN_SCALE:g}x for the window), got {min_scale:g}"
+        )
+    if max_scale is not None and not max_scale >= min_scale:  # NaN was ignored, silently
+        raise ConfigError(
+            f"max_scale must be None or a number >= min_scale ({min_scale:g}), got {max_scale}"
         )
     fh, fw = frame_size
     h, w = window
@@ -654,6 +658,8 @@ def scan_batch(
 
     Raises:
         ShapeError: frames not ``(B, C, H, W)``, or smaller than the window at ``min_scale``.
+        ConfigError: an argument out of its range (a ``threshold`` outside [0, 1] or NaN, an
+            ``nms_iou`` outside [0, 1], a ``stride``, ``pad`` or scale out of range, ...).
     """
     if not isinstance(frames, torch.Tensor) or frames.ndim != 4:
         got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
@@ -664,6 +670,17 @@ def scan_batch(
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
+    # NaN kept no window (threshold) or suppressed none (nms_iou), silently
+    if threshold is not None and not (
+        threshold == threshold if margin else 0.0 <= threshold <= 1.0
+    ):
+        raise ConfigError(
+            "threshold must be None or "
+            + ("a margin (not NaN)" if margin else "a probability in [0, 1]")
+            + f", got {threshold}"
+        )
+    if nms_iou is not None and not 0.0 <= nms_iou <= 1.0:
+        raise ConfigError(f"nms_iou must be None or in [0, 1], got {nms_iou}")
     _check_pad(pad)
     if cascade_threshold is not None and not math.isfinite(cascade_threshold):
         raise ConfigError(f"cascade_threshold must be a finite margin, got {cascade_threshold}")

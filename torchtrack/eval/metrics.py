@@ -250,7 +250,8 @@ def evaluate_sequence(
 
     Raises:
         ShapeError: mismatched shapes.
-        ConfigError: unknown ``invisible`` policy.
+        ConfigError: unknown ``invisible`` policy, or a frame of ``init_frames`` /
+            ``reinit_frames`` outside the sequence.
     """
     _check(pred, gt)
     t = pred.shape[0]
@@ -262,10 +263,17 @@ def evaluate_sequence(
     if invisible not in ("box", "miss"):
         raise ConfigError(f"invisible must be 'box' or 'miss', got {invisible!r}")
 
+    for name, frames in (("init_frames", init_frames), ("reinit_frames", reinit_frames or ())):
+        for i in frames:
+            # frames beyond the sequence were skipped (init) or counted (reinit), silently
+            if isinstance(i, bool) or not hasattr(i, "__index__") or not 0 <= int(i) < t:
+                raise ConfigError(
+                    f"{name} must hold frame indices in [0, {t}) (the sequence has {t} frames), "
+                    f"got {i!r}"
+                )
     evaluated = torch.ones(t, dtype=torch.bool)
     for i in init_frames:
-        if 0 <= i < t:
-            evaluated[i] = False
+        evaluated[i] = False
     gt_present = torch.isfinite(gt).all(1)
     present = evaluated & gt_present
     absent = evaluated & ~gt_present

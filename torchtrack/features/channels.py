@@ -51,6 +51,7 @@ from torch.nn import functional as F
 
 from torchtrack.boxes import check_boxes
 from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.features.integral import check_pixel_values
 
 __all__ = [
     "CHANNEL_NAMES",
@@ -303,10 +304,9 @@ def _check_frames(frames: Any) -> torch.Tensor:
 _CV_MAX_CN = 512
 
 
-def _channel_planes(frames: torch.Tensor, cs: ChannelSet) -> list[torch.Tensor]:
-    """The channels of ``frames (B, 1 | 3, H, W)`` as planes ``(B, H, W)`` float32, in
-    ``cs.channels`` order (views where a computation gives several at once)."""
-    x = _check_frames(frames)
+def _channel_planes(x: torch.Tensor, cs: ChannelSet) -> list[torch.Tensor]:
+    """The channels of checked frames ``x (B, 1 | 3, H, W)`` as planes ``(B, H, W)`` float32,
+    in ``cs.channels`` order (views where a computation gives several at once)."""
     parts: dict[str, torch.Tensor] = {}
     if cs.colour:
         rgb = x if x.shape[1] == 3 else x.expand(-1, 3, -1, -1)
@@ -365,9 +365,11 @@ def compute_channels(
 
     Raises:
         ShapeError: not ``(B, 1 | 3, H, W)``.
+        DataError: a pixel not finite or outside [0, 255].
     """
-    cs = channels or ChannelSet()
-    planes = _channel_planes(frames, cs)
+    x = _check_frames(frames)
+    check_pixel_values(x)
+    planes = _channel_planes(x, channels or ChannelSet())
     if memory_format == torch.channels_last:
         first = planes[0]
         b, (h, w), nc = first.shape[0], first.shape[-2:], len(planes)
@@ -445,6 +447,7 @@ class ChannelIntegrals:
 
     def __init__(self, frames: torch.Tensor, channels: ChannelSet) -> None:
         self.frames = _check_frames(frames)
+        check_pixel_values(self.frames)
         self.channels = channels
         self._levels: dict[int, torch.Tensor] = {}
 

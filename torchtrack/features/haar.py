@@ -54,7 +54,7 @@ from torch.nn import functional as F
 
 from torchtrack.boxes import check_boxes
 from torchtrack.errors import ConfigError, ShapeError
-from torchtrack.features.integral import integral_image, rgb_to_gray
+from torchtrack.features.integral import check_pixel_values, integral_image, rgb_to_gray
 
 __all__ = [
     "KINDS",
@@ -374,6 +374,7 @@ def integrals(frames: torch.Tensor) -> Integrals:
     for float luma.
     """
     gray = rgb_to_gray(frames)[:, 0].to(torch.float64)  # (B, H, W)
+    check_pixel_values(frames)
     b, h, w = gray.shape
     both = torch.empty((b, 2, h + 1, w + 1), dtype=torch.float64, device=gray.device)
     both[:, :, 0, :] = 0

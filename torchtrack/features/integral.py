@@ -11,12 +11,14 @@ and converted once; float inputs are accumulated in float64.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
-from torchtrack.errors import ShapeError
+from torchtrack.errors import DataError, ShapeError
 
-__all__ = ["IntegralImage", "integral_image", "rgb_to_gray"]
+__all__ = ["IntegralImage", "check_pixel_values", "integral_image", "rgb_to_gray"]
 
 # ITU-R BT.601 luma, the weights cv2.cvtColor(..., COLOR_RGB2GRAY) uses.
 _LUMA = (0.299, 0.587, 0.114)
@@ -29,6 +31,29 @@ def _check_images(images: torch.Tensor, name: str = "images") -> None:
         raise ShapeError(f"{name} must have shape (B, C, H, W), got {tuple(images.shape)}")
     if images.dtype == torch.bool or images.is_complex():
         raise ShapeError(f"{name} must be an integer or floating tensor, got {images.dtype}")
+
+
+def check_pixel_values(images: torch.Tensor, name: str = "frames") -> None:
+    """Raise DataError unless every value of ``images`` is an 8-bit level: finite, in
+    ``[0, 255]`` (uint8 images need no pass over the pixels).
+
+    Features read from NaN or infinite pixels are NaN, which the classifiers turn into an
+    ordinary-looking score; 16-bit levels (up to 65535) or floats in [0, 1] are read on the
+    8-bit scale the models were trained on. The second of those cannot be told from a dark
+    frame; values beyond 255, below 0 or not finite can.
+    """
+    if images.dtype == torch.uint8 or images.numel() == 0:
+        return
+    lo, hi = (float(v) for v in torch.aminmax(images))
+    if not (lo >= 0 and hi <= 255):  # also false for NaN
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise DataError(
+                f"{name} hold NaN or infinite values: pixels must be finite levels in [0, 255]"
+            )
+        raise DataError(
+            f"{name} hold values in [{lo:g}, {hi:g}]: pixels must be 8-bit levels in [0, 255] "
+            "(16-bit images: divide by 257)"
+        )
 
 
 def integral_image(

@@ -148,8 +148,20 @@ def normalize_with_lse(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``normalize_log_weights`` that also returns the row log-sum-exp ``(B,)`` (``-inf`` for
     recovered rows): the log of the total unnormalised weight, e.g. a log-evidence."""
-    if log_weights.ndim != 2:
-        raise ShapeError(f"{step}: log_weights must be (B, N), got {tuple(log_weights.shape)}")
+    if not isinstance(log_weights, torch.Tensor) or log_weights.ndim != 2:
+        got = (
+            tuple(log_weights.shape)
+            if isinstance(log_weights, torch.Tensor)
+            else type(log_weights).__name__
+        )
+        raise ShapeError(f"{step}: log_weights must be (B, N), got {got}")
+    # N = 0 restarted its rows at -log(0) (Python's ValueError 'math domain error'); bool
+    # weights reached torch's subtraction (RuntimeError)
+    if log_weights.shape[1] == 0 or log_weights.dtype == torch.bool:
+        raise ShapeError(
+            f"{step}: log_weights must be (B, N) numbers with N >= 1, got "
+            f"{tuple(log_weights.shape)} {log_weights.dtype}"
+        )
     if has_nan_or_posinf(log_weights):
         bad = torch.isnan(log_weights) | (log_weights == math.inf)
         rows = torch.nonzero(bad.any(1)).flatten()[:10].tolist()

@@ -239,12 +239,18 @@ def _merge_below(u: torch.Tensor, b: int, cdf: torch.Tensor) -> torch.Tensor:
 
 
 def _check_weights(weights: torch.Tensor, n_out: int | None) -> tuple[int, int]:
-    """``(B, M)`` for weights ``(B, N)``; ShapeError for another shape (negative weights, NaN
-    and rows without positive finite mass are caught by ``_totals``)."""
+    """``(B, M)`` for weights ``(B, N)``; ShapeError for another shape, ConfigError for an
+    ``n_out`` that is not a positive integer (negative weights, NaN and rows without positive
+    finite mass are caught by ``_totals``)."""
     if not isinstance(weights, torch.Tensor) or weights.ndim != 2 or weights.shape[1] == 0:
         shape = tuple(weights.shape) if isinstance(weights, torch.Tensor) else type(weights)
         raise ShapeError(f"weights must be a (B, N) tensor with N >= 1, got {shape}")
-    return weights.shape[0], weights.shape[1] if n_out is None else int(n_out)
+    if n_out is None:
+        return weights.shape[0], weights.shape[1]
+    # -3 raised torch's RuntimeError, 0 an IndexError (stratified), 2.5 drew 2, silently
+    if isinstance(n_out, bool) or not isinstance(n_out, (int, np.integer)) or n_out < 1:
+        raise ConfigError(f"n_out must be None or an integer >= 1 (particles drawn), got {n_out!r}")
+    return weights.shape[0], int(n_out)
 
 
 def _no_rows(n: int, device: torch.device) -> torch.Tensor:

@@ -35,6 +35,7 @@ from torchtrack.filter.sir import (
     StepResult,
     _estimate,
     _gather_states,
+    check_predicted,
     evaluate_log_likelihood,
     get_estimator,
 )
@@ -86,7 +87,8 @@ def seir_step(
 
     Raises:
         ConfigError: bad ``ess_target``, ``max_iter``, scheme or estimator.
-        FilterError: NaN likelihood (message names ``seir_step``).
+        FilterError: NaN likelihood, or states after the motion step that are not finite
+            (message names ``seir_step``).
     """
     check_particles(states, log_weights)
     if not (0.0 < float(ess_target) <= 1.0):
@@ -106,6 +108,7 @@ def seir_step(
     ancestors, prior_lw, resampled = resample(log_weights, scheme, None, generator, "seir_step")
     x = motion(_gather_states(states, ancestors), generator)
     check_particles(x, prior_lw)
+    check_predicted(x, "seir_step")
     ll = evaluate_log_likelihood(likelihood, x, log_likelihood, "seir_step")
     log_evidence = torch.logsumexp(prior_lw + ll, dim=1)
     lw, recovered = normalize_log_weights(ll, step="seir_step")

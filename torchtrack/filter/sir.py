@@ -6,6 +6,7 @@ model, (c) weight with the observation likelihood, (d) estimate.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -14,6 +15,7 @@ import torch
 from torchtrack.errors import ConfigError, FilterError, ShapeError
 from torchtrack.filter._random import GeneratorLike
 from torchtrack.filter.particles import (
+    _capturing,
     best_particle,
     check_particles,
     dominant_mode_mean,
@@ -29,6 +31,7 @@ __all__ = [
     "Likelihood",
     "MotionFn",
     "StepResult",
+    "check_predicted",
     "evaluate_log_likelihood",
     "get_estimator",
     "sir_step",
@@ -116,6 +119,21 @@ def evaluate_log_likelihood(
     return out
 
 
+def check_predicted(states: torch.Tensor, step: str) -> None:
+    """FilterError unless the states ``(B, N, D)`` a motion model returned are all finite (NaN
+    states, given or made by the motion, gave NaN estimates silently). One read from the
+    device in the common case; none while a CUDA graph is recorded (checked after replay)."""
+    if _capturing(states) or math.isfinite(float(states.sum())):
+        return
+    bad = ~torch.isfinite(states).flatten(1).all(1)
+    if bool(bad.any()):  # a finite sum can also overflow: only then are the entries read
+        rows = torch.nonzero(bad).flatten()[:10].tolist()
+        raise FilterError(
+            f"{step}: the particles after the motion step hold NaN or infinite values (batch "
+            f"rows {rows}): check the states given and the motion model"
+        )
+
+
 def _estimate(name: str, fn, states: torch.Tensor, lw: torch.Tensor) -> torch.Tensor:
     """Estimate from normalised ``lw``; the weighted mean skips re-normalisation."""
     if name == "mean":
@@ -166,7 +184,8 @@ def sir_step(
 
     Raises:
         ShapeError, ConfigError: bad inputs or names.
-        FilterError: the likelihood returned NaN (message names ``sir_step``).
+        FilterError: the likelihood returned NaN, or the states after the motion step are not
+            finite (message names ``sir_step``).
     """
     check_particles(states, log_weights)
     est_fn = get_estimator(estimator)
@@ -175,6 +194,7 @@ def sir_step(
     )
     predicted = motion(_gather_states(states, ancestors), generator)
     check_particles(predicted, prior_lw)
+    check_predicted(predicted, "sir_step")
     ll = evaluate_log_likelihood(likelihood, predicted, log_likelihood, "sir_step")
     joint = prior_lw.to(ll.dtype) + ll
     lw, recovered, log_evidence = normalize_with_lse(joint, step="sir_step")

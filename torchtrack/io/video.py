@@ -305,8 +305,13 @@ class FrameSource:
             index = int(source)
             self.kind = "camera"
             self.name = f"camera {index}"
-            if not -(2**31) <= index < 2**31:  # OpenCV takes a C int (cv2.error beyond)
-                raise VideoError(f"camera index {source} is out of range (at most {2**31 - 1})")
+            # OpenCV takes a C int (cv2.error beyond); its V4L backend dies of a segmentation
+            # fault on -1 and -2 where no camera is found, taking the process with it
+            if not 0 <= index < 2**31:
+                raise VideoError(
+                    f"camera index {source} is out of range (cameras are 0, 1, ..., at most "
+                    f"{2**31 - 1})"
+                )
             self._cap = cv2.VideoCapture(index)
             if not self._cap.isOpened():
                 raise VideoError(f"camera index {index} cannot be opened")

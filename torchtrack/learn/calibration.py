@@ -54,6 +54,26 @@ def _scores(scores: Any, name: str = "scores") -> torch.Tensor:
     return as_float_tensor(scores, name, ndim=1, dtype=torch.float64)
 
 
+def _sample_weight(sample_weight: Any, s: torch.Tensor) -> torch.Tensor | None:
+    """``sample_weight`` as ``(n,)`` float64 on the scores' device (None stays None).
+
+    Raises:
+        ShapeError: not one weight per score.
+        DataError: a weight not finite or negative.
+    """
+    if sample_weight is None:
+        return None
+    sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
+    sw = sw.to(s.device)
+    if sw.shape != s.shape:
+        raise errors.ShapeError(
+            f"sample_weight must have shape {tuple(s.shape)}, got {tuple(sw.shape)}"
+        )
+    if bool((sw < 0).any()):
+        raise errors.DataError("sample_weight must be non-negative")
+    return sw
+
+
 def _to_like(p: torch.Tensor, like: Any) -> Any:
     return p if isinstance(like, torch.Tensor) else p.cpu().numpy()
 
@@ -173,16 +193,7 @@ class PlattCalibrator(BaseEstimator):
         s = _scores(scores)
         y01, _ = as_binary_labels(y, s.shape[0])
         y01 = y01.to(s.device)
-        sw = None
-        if sample_weight is not None:
-            sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
-            sw = sw.to(s.device)
-            if sw.shape != s.shape:
-                raise errors.ShapeError(
-                    f"sample_weight must have shape {tuple(s.shape)}, got {tuple(sw.shape)}"
-                )
-            if bool((sw < 0).any()):
-                raise errors.DataError("sample_weight must be non-negative")
+        sw = _sample_weight(sample_weight, s)
         if bool((s == s[0]).all()):
             warnings.warn(
                 "all calibration scores are identical: the calibrator returns the (smoothed) "
@@ -279,8 +290,9 @@ class IsotonicCalibrator(BaseEstimator):
         """Fit on ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
 
         Raises:
-            DataError: NaN / inf scores (index named), scores whose range overflows, or a
-                single class.
+            DataError: NaN / inf scores (index named), scores whose range overflows, a single
+                class, or negative sample weights.
+            ShapeError: mismatched lengths.
         """
         from sklearn.isotonic import IsotonicRegression
 
@@ -291,9 +303,8 @@ class IsotonicCalibrator(BaseEstimator):
                 f"scores span {lo:.3g} to {hi:.3g}, a range beyond the float range: rescale them"
             )
         y01, _ = as_binary_labels(y, s.shape[0])
-        sw = None
-        if sample_weight is not None:
-            sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
+        sw = _sample_weight(sample_weight, s)
+        if sw is not None:
             sw = sw.cpu().numpy()
         iso = IsotonicRegression(y_min=0.0, y_max=1.0, increasing=True, out_of_bounds="clip")
         iso.fit(s.cpu().numpy(), y01.cpu().numpy().astype(np.float64), sample_weight=sw)

@@ -182,7 +182,7 @@ class MultiTrackerConfig:
         noise_height: object height in pixels at which ``motion_noise`` applies as is: the
             centre's noise then scales with each target's height / ``noise_height`` (a person
             twice as tall, nearer the camera, moves twice as many pixels per frame); 0 keeps
-            the noise in pixels whatever the target's size.
+            the noise in pixels whatever the target's size (else at least 1 pixel).
         scan_every: scan the frame with the detector every k-th frame (1: every frame); the
             filter carries the targets in between.
         scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
@@ -487,9 +487,12 @@ class MultiTrackerConfig:
                 f"motion_noise (a factor on the fitted noise's sd) must be in (0, 100], got "
                 f"{self.motion_noise}"
             )
-        if not (self.noise_height >= 0 and math.isfinite(self.noise_height)):
+        # a height in pixels: below 1 px the centre's noise grows by height / noise_height
+        # beyond any frame (1e-300 made it infinite: every target lost at once, silently)
+        if not (self.noise_height == 0 or 1 <= self.noise_height < math.inf):
             raise ConfigError(
-                f"noise_height must be >= 0 (0: noise in pixels), got {self.noise_height}"
+                f"noise_height is an object height in pixels: 0 (noise in pixels) or at "
+                f"least 1, got {self.noise_height}"
             )
         if self.appearance not in ("colour", "none"):
             raise ConfigError(f"appearance must be 'colour' or 'none', got {self.appearance!r}")
