@@ -16,6 +16,15 @@ and writes its box of every frame to a CSV file as ``torchtrack track --out`` do
 detector scan on every ``--multi-scan-every``-th frame of the same stream; its frames are far
 more expensive, so it runs ``--multi-frames`` frames (default 2,000).
 
+``command`` is that job as a user runs it: ``torchtrack track VIDEO --detect pedestrian --mot
+OUT`` in its own process, with what the command does and a library call does not (two scan
+workers forked from it, the heap memory it keeps for the next frame: ``reuse_freed_memory``).
+The same ``--multi-frames`` frames of the stream are written to a video file first (MJPG);
+the memory is the proportional set size (``Pss``, ``/proc/PID/smaps_rollup``: pages shared by
+the forked workers counted once) of the command and its workers together, sampled every 0.25
+s, and a mark is the sample nearest to that share of the run after start-up (frames go at a
+steady rate; start-up is the run's time minus the frames' time the command reports).
+
 Reported per tracker: ``VmRSS`` (resident memory now, from ``/proc/self/status``) after 1%
 (the baseline, once the tracker has warmed up), 10%, 50% and 100% of the frames, the growth
 from 10% to 100%, and ``VmHWM`` (peak). Flat memory means a growth near zero: a few MiB of
@@ -53,7 +62,86 @@ def _stream(n: int) -> tuple[list, list[float]]:
     return [cycle[i % len(cycle)] for i in range(n)], [float(v) for v in seq.boxes[0]]
 
 
+def _tree_pss_mib(pid: int) -> tuple[float, int]:
+    """Proportional set size of ``pid`` and its descendants (MiB) and how many processes
+    were read."""
+    total, todo, n = 0.0, [pid], 0
+    while todo:
+        p = todo.pop()
+        try:
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    total += float(line.split()[1]) / 1024.0
+                    n += 1
+                    break
+            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
+        except OSError:  # ended between two reads
+            continue
+        todo += [int(k) for k in kids]
+    return total, n
+
+
+def command(frames: int, threads: int) -> dict:
+    """``torchtrack track --detect pedestrian`` on ``frames`` frames of the stream, as a video
+    file; the Pss of its processes over the run (see the module docstring)."""
+    import re
+    import threading
+
+    import cv2
+
+    stream, _ = _stream(frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        video, mot = Path(tmp) / "stream.avi", Path(tmp) / "out.txt"
+        h, w = stream[0].shape[-2:]
+        vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (w, h))
+        for f in stream:
+            vw.write(f.permute(1, 2, 0).numpy()[:, :, ::-1].copy())
+        vw.release()
+        del stream
+        cmd = [sys.executable, "-m", "torchtrack", "track", str(video), "--detect", "pedestrian"]
+        cmd += ["--seed", "0", "--mot", str(mot), "--no-progress", "--threads", str(threads)]
+        samples: list[tuple[float, float, int]] = []
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+        def sample() -> None:
+            while proc.poll() is None:
+                samples.append((time.perf_counter() - t0, *_tree_pss_mib(proc.pid)))
+                time.sleep(0.25)
+
+        th = threading.Thread(target=sample, daemon=True)
+        th.start()
+        out, err = proc.communicate()
+        wall = time.perf_counter() - t0
+        th.join()
+        if proc.returncode != 0:
+            raise RuntimeError(f"torchtrack track failed ({proc.returncode}): {err[-2000:]}")
+        m = re.search(r"tracked (\d+) frames .*?, ([\d.]+) fps overall", out + err)
+        if m is None:
+            raise RuntimeError(f"no summary line in the command's output: {(out + err)[-2000:]}")
+        run = int(m.group(1)) / float(m.group(2))  # the frames' time
+    start = max(0.0, wall - run)
+    # marks read samples taken while every process of the run was up (the scan workers end
+    # before the command has written its files)
+    full = max(s[2] for s in samples)
+    samples = [s for s in samples if s[2] == full]
+    rss = {}
+    for mk in MARKS:
+        at = start + mk * run
+        rss[f"{mk:.2f}"] = min(samples, key=lambda s: abs(s[0] - at))[1]
+    return {
+        "spec": "command",
+        "frames": frames,
+        "rss_mib": rss,
+        "peak_mib": max(s[1] for s in samples),
+        "processes": full,
+        "seconds": wall,
+    }
+
+
 def worker(spec: str, frames: int, threads: int, scan_every: int) -> dict:
+    if spec == "command":
+        return command(frames, threads)
     import cv2
     import torch
 
@@ -109,12 +197,14 @@ def main() -> None:
     ap.add_argument("--multi-frames", type=int, default=2_000)
     ap.add_argument("--multi-scan-every", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--trackers", nargs="+", default=["adaptive-haar", "multi", "mil", "csrt"])
+    ap.add_argument(
+        "--trackers", nargs="+", default=["adaptive-haar", "multi", "command", "mil", "csrt"]
+    )
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks" / "memory.md")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        n = args.multi_frames if args.worker == "multi" else args.frames
+        n = args.multi_frames if args.worker in ("multi", "command") else args.frames
         print(json.dumps(worker(args.worker, n, args.threads, args.multi_scan_every)))
         return
     if not Path("/proc/self/status").exists():
@@ -145,7 +235,9 @@ def main() -> None:
         "BoBoT pedestrian (320x240) played forwards and backwards into one long stream; each "
         "tracker in its own process; resident memory (VmRSS, MiB) after 1% (baseline), 10%, 50% "
         "and 100% of its frames, and the peak (VmHWM). The decoded frames are held before the "
-        "first mark, so they are in every baseline.",
+        "first mark, so they are in every baseline. The `command` row is the whole command with "
+        "its scan workers: their proportional set size together, sampled every 0.25 s, the "
+        "peak the largest sample (it holds no decoded stream).",
         "",
         "| tracker | frames | 1% | 10% | 50% | 100% | growth 10% -> 100% | peak | seconds |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -153,8 +245,13 @@ def main() -> None:
     for d in rows:
         m = d["rss_mib"]
         v = [m.get(f"{x:.2f}", float("nan")) for x in MARKS]
+        label = (
+            "command (`torchtrack track`, Pss of it and its scan workers)"
+            if d["spec"] == "command"
+            else d["spec"]
+        )
         lines.append(
-            f"| {d['spec']} | {d['frames']:,} | {v[0]:.0f} | {v[1]:.0f} | {v[2]:.0f} | {v[3]:.0f} "
+            f"| {label} | {d['frames']:,} | {v[0]:.0f} | {v[1]:.0f} | {v[2]:.0f} | {v[3]:.0f} "
             f"| {v[3] - v[1]:+.1f} | {d['peak_mib']:.0f} | {d['seconds']:.0f} |"
         )
     text = "\n".join(lines) + "\n"
