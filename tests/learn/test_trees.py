@@ -98,9 +98,10 @@ def test_staged_margins_and_numpy_in_numpy_out():
     assert lo <= float(staged[:, -1].min()) and float(staged[:, -1].max()) <= hi
 
 
-def test_soft_cascade_keeps_every_positive_above_the_cut_and_scores_passers_fully():
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_soft_cascade_keeps_every_positive_above_the_cut_and_scores_passers_fully(depth):
     x, y = xor_data(800)
-    clf = BoostedTrees(n_estimators=40, variant="real").fit(x, y)
+    clf = BoostedTrees(n_estimators=40, variant="real", max_depth=depth).fit(x, y)
     pos = x[y == 1]
     cut = float(clf.decision_function(pos).quantile(0.2))
     clf.fit_cascade(pos, cut)
@@ -111,7 +112,8 @@ def test_soft_cascade_keeps_every_positive_above_the_cut_and_scores_passers_full
         return xt[rows[:, None], f]
 
     rows, m = clf.cascade(read, xt.shape[0], stages=(2, 5))
-    torch.testing.assert_close(m, full[rows], atol=1e-5, rtol=0)  # passers: the full margin
+    # passers: the full margin (a running sum against a sum: float32 rounding of margins ~50)
+    torch.testing.assert_close(m, full[rows], atol=1e-5, rtol=1e-6)
     kept = set(rows.tolist())
     staged = clf.staged_decision_function(pos)
     # every training positive at or above the cut passes (direct backward pruning) ...
@@ -121,7 +123,7 @@ def test_soft_cascade_keeps_every_positive_above_the_cut_and_scores_passers_full
     assert len(kept) < xt.shape[0]
     rows_all, m_all = clf.cascade(read, xt.shape[0], reject=False)
     assert rows_all.numel() == xt.shape[0]
-    torch.testing.assert_close(m_all, full, atol=1e-5, rtol=0)
+    torch.testing.assert_close(m_all, full, atol=1e-5, rtol=1e-6)
 
 
 def test_state_round_trip_and_validation():

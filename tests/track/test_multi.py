@@ -896,3 +896,14 @@ def test_a_scan_min_scale_under_one_sixteenth_is_refused():
         MultiTrackerConfig(scan_min_scale=0.001).validate()
     with pytest.raises(ConfigError, match=r"scan_min_scale must be .* >= 0.0625"):
         MultiTargetTracker("pedestrian", scan_min_scale=0.001)
+
+
+def test_channel_sum_is_the_frames_channel_sum():
+    from torchtrack.track.multi import _channel_sum
+
+    g = torch.Generator().manual_seed(0)
+    for c in (1, 3):
+        f = torch.randint(0, 256, (c, 37, 53), dtype=torch.uint8, generator=g)
+        f[:, 0, 0] = 255  # the largest sum, 765, fits int16
+        s = _channel_sum(f)
+        assert s.dtype == torch.int16 and torch.equal(s.long(), f.long().sum(0))

@@ -362,7 +362,10 @@ def _combine_corners(v: torch.Tensor, coef: torch.Tensor | None) -> torch.Tensor
     ``v * (1, -1, -1, 1)``, so with weights of 1 the values are the same, bit for bit)."""
     if coef is None:
         a, b, c, d = v.unbind(-1)
-        return ((a - b) - c) + d
+        s = a - b
+        s -= c  # in place: ((a - b) - c) + d, no temporary per step
+        s += d
+        return s
     return (v * coef).sum(-1)
 
 
@@ -443,7 +446,9 @@ def _scan_lattice(
             # with its scale's tables, exactly as one call per scale would
             # f: (A, T) per window, or (T,) shared by every window (broadcast tables)
             cut = torch.searchsorted(rows, bounds).tolist()
-            parts = []
+            # each run's float64 features times their factors, rounded to float32 as they are
+            # written into its rows (the product's float32 rounding: (v * fac).to(float32))
+            out = torch.empty((rows.shape[0], f.shape[-1]), dtype=torch.float32, device=dev)
             for g, (r0, r1) in enumerate(zip([0, *cut], [*cut, rows.shape[0]], strict=True)):
                 if r1 == r0:
                     continue
@@ -456,12 +461,8 @@ def _scan_lattice(
                 # on CPU than advanced indexing (the scan's hottest gather)
                 v = group[g].values.index_select(0, idx.view(-1)).view(idx.shape)
                 v = _combine_corners(v, None if box_only else coef[fg])  # (A, T)
-                parts.append((v * factors[g][fg]).to(torch.float32))
-            if len(parts) == 1:
-                return parts[0]
-            if not parts:
-                return torch.zeros((0, f.shape[-1]), dtype=torch.float32, device=dev)
-            return torch.cat(parts)
+                torch.mul(v, factors[g][fg], out=out[r0:r1])
+            return out
 
         total = base.shape[0]
         for r0 in range(0, total, batch):

@@ -475,7 +475,7 @@ class MultiTargetTracker:
         self.frame_index = t
         gray = None  # the frame's channel sum, for the birth motion test and the camera
         if cfg.birth_floor < cfg.birth_threshold and detections is None and not self._external:
-            gray = frame.to(torch.int16).sum(0).cpu()
+            gray = _channel_sum(frame)
             self._grays.append(gray)
         if detections is not None:
             det_boxes, det_p = self._check_detections(detections)
@@ -510,7 +510,7 @@ class MultiTargetTracker:
             bin_map = hsv_bin_map(frame[None], self._bins).cpu()
 
         if cfg.camera_motion:
-            self._follow_camera(frame.to(torch.int16).sum(0).cpu() if gray is None else gray)
+            self._follow_camera(_channel_sum(frame) if gray is None else gray)
         matched_det = torch.full((self.n_targets,), -1, dtype=torch.int64)
         if self.n_targets:
             has_dets = scan and det_boxes.shape[0] > 0
@@ -1296,6 +1296,16 @@ def _camera_translation(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]
     yb, xb = min(h, h + sy), min(w, w + sx)
     shifted = (new[ya:yb:2, xa:xb:2] - old[ya - sy : yb - sy : 2, xa - sx : xb - sx : 2]).abs()
     return (sx, sy) if float(shifted.median()) < CAMERA_EXPLAINS * raw else (0, 0)
+
+
+def _channel_sum(frame: torch.Tensor) -> torch.Tensor:
+    """``(H, W)`` int16 sum of a ``(C, H, W)`` uint8 frame's channels, on the CPU: the values of
+    ``frame.to(torch.int16).sum(0)`` (exact; at most 765), in C - 1 in-place additions instead
+    of a reduction (a quarter of a PETS frame's 2.3 ms), and kept in 16 bits, not 64."""
+    out = frame[0].to(torch.int16, copy=True)
+    for c in range(1, frame.shape[0]):
+        out += frame[c]
+    return out.cpu()
 
 
 def _camera_shift(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]:
