@@ -3,7 +3,8 @@
     python tools/bench_chateau.py [--frames 60] [--repeats 5] [--threads 2] [--eval-dirs DIR ...]
 
 Frames: the bundled PETS 2009 demo clip resized to 640x480 (Chateau tracker, paper setting:
-200 particles, goal < 4 ms per frame; the paper reports 16 ms on a Pentium IV) and to 320x240
+200 particles, goal <= 1 ms per frame (issue 14; 4 ms before it); the paper reports 16 ms on a
+Pentium IV) and to 320x240
 (histogram PF, Klein et al.'s resolution, J = 2000). Each tracker is initialised on the same
 pedestrian box and timed over ``--frames`` updates, ``--repeats`` times; the table gives the
 median wall-clock ms per frame, the median CPU ms per frame (process time, all threads; less
@@ -51,6 +52,7 @@ def load_frames(size: tuple[int, int], n: int) -> list[torch.Tensor]:
 
 
 TUNED = "detector:likelihood_power=2,estimator=mode,context=1.3"
+GOAL_MS = 1.0  # issue 14 (the earlier goal was 4 ms)
 
 
 def make(name: str):
@@ -177,6 +179,12 @@ def main() -> None:
     frames = load_frames((640, 480), 8)
     batched = time_batched(bb, bn, frames, scaled_box((640, 480)), max(3, args.repeats))
     load = Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"
+    from torchtrack.detect.bundled import load_model
+
+    ped = load_model("pedestrian")
+    n_feat = int(ped.feature_index.numel()) if ped.feature_index is not None else len(ped.bank)
+    trees = getattr(ped.classifier, "feature_", None)
+    model_desc = f"{n_feat} features" + (f", {trees.shape[0]} trees" if trees is not None else "")
     goal = next(r for r in rows if r[0] == "detector")
     cmd = "python tools/bench_chateau.py " + " ".join(sys.argv[1:])
     lines = [
@@ -187,12 +195,12 @@ def main() -> None:
         f"{torch.get_num_threads()} torch / OpenCV thread(s), load average {load} at the end "
         "(shared machine: compare the ratios in one run).",
         "",
-        "Goal (paper setting: 200 particles, 640x480): < 4 ms per frame. Measured: "
+        f"Goal (paper setting: 200 particles, 640x480): <= {GOAL_MS:g} ms per frame. Measured: "
         f"{goal[2]:.2f} ms wall-clock, {goal[3]:.2f} ms CPU per frame (medians): "
         + (
             "met."
-            if goal[2] < 4.0
-            else "missed in wall-clock time" + (", met in CPU time." if goal[3] < 4.0 else ".")
+            if goal[2] <= GOAL_MS
+            else "missed in wall-clock time" + (", met in CPU time." if goal[3] <= GOAL_MS else ".")
         ),
         "",
         "## Speed (median ms per frame over "
@@ -214,7 +222,8 @@ def main() -> None:
         "",
         f"Batched SIR step of the `detector` tracker, (B, N) = ({bb}, {bn}) at 640x480 (B "
         f"targets near the same pedestrian, {bb * bn:,} windows scored from one integral image "
-        f"per frame, the pedestrian model's 40 features): {batched[0]:.1f} ms wall-clock, "
+        f"per frame, the bundled pedestrian model, {model_desc}): {batched[0]:.1f} ms "
+        "wall-clock, "
         f"{batched[1]:.1f} ms CPU per step (median of {max(3, args.repeats)}).",
         "",
     ]
