@@ -380,7 +380,9 @@ def compute_channels(
             import cv2
 
             frames_hwc = [
-                torch.from_numpy(_cv_merge(cv2, [p[i] for p in planes]).reshape(h, w, nc))
+                torch.from_numpy(
+                    cv2.merge([p[i].contiguous().numpy() for p in planes]).reshape(h, w, nc)
+                )
                 for i in range(b)
             ]
             out = frames_hwc[0][None] if b == 1 else torch.stack(frames_hwc)
@@ -392,11 +394,6 @@ def compute_channels(
             out[..., i] = pl
         return out.permute(0, 3, 1, 2)
     return torch.stack(planes, 1)
-
-
-def _cv_merge(cv2, planes: list[torch.Tensor]):
-    """``cv2.merge`` of 2-d CPU planes -> an ``(H, W, C)`` numpy array (``(H, W)`` for one)."""
-    return cv2.merge([p.contiguous().numpy() for p in planes])
 
 
 def _integral(planes: list[torch.Tensor]) -> torch.Tensor:
@@ -416,12 +413,8 @@ def _integral(planes: list[torch.Tensor]) -> torch.Tensor:
 
         tabs = [
             torch.from_numpy(
-                _cv_merge(
-                    cv2,
-                    [
-                        torch.from_numpy(cv2.integral(p[i].contiguous().numpy(), sdepth=cv2.CV_64F))
-                        for p in planes
-                    ],
+                cv2.merge(
+                    [cv2.integral(p[i].contiguous().numpy(), sdepth=cv2.CV_64F) for p in planes]
                 ).reshape(h + 1, w + 1, c)
             )
             for i in range(b)
