@@ -611,24 +611,22 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
                 go = read(alive, tf[:, :3].t().reshape(-1)) >= tt[:, :3].t().reshape(-1)
                 right = go[:, :nt]  # (A, T)
                 below = torch.where(right, go[:, 2 * nt :], go[:, nt : 2 * nt])
-                if self.max_depth == 2:
-                    # the leaf's place in the flat leaf table, in int32 and in place: leaf
-                    # 2 right + below of tree t (node 3 + 2 right + below)
-                    place = right.to(torch.int32).mul_(2).add_(below)
-                    place += (cols * (n_int + 1)).to(torch.int32)
-                    out = tl.reshape(-1).index_select(0, place.view(-1)).view(place.shape)
-                else:
-                    node = 3 + 2 * right.long() + below.long()
+                node = 3 + 2 * right.long() + below.long() if self.max_depth > 2 else None
             else:  # root only: one feature per tree, shared by every window
                 node = 1 + (read(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
-            if self.max_depth != 2:
+            if node is None:
+                # depth 2: the leaf's place in the flat leaf table in int32 and in place, leaf
+                # 2 right + below of tree t (node 3 + 2 right + below)
+                place = right.to(torch.int32).mul_(2).add_(below)
+                place += (cols * (n_int + 1)).to(torch.int32)
+            else:
                 for _ in range(2, int(self.max_depth)):
                     f = tf[cols, node]  # (A, T)
                     v = read(alive, f)
                     node = node * 2 + 1 + (v >= tt[cols, node]).long()
-                # leaf values (A, T): a flat index_select (faster on CPU than tl[cols, leaf])
                 place = node - n_int + cols * (n_int + 1)
-                out = tl.reshape(-1).index_select(0, place.view(-1)).view(node.shape)
+            # leaf values (A, T): a flat index_select (faster on CPU than tl[cols, leaf])
+            out = tl.reshape(-1).index_select(0, place.view(-1)).view(place.shape)
             run = score.index_select(0, alive)[:, None] + out.cumsum(1)
             score.index_copy_(0, alive, run[:, -1])
             if reject:

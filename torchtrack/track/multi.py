@@ -1301,7 +1301,7 @@ def _camera_translation(old: torch.Tensor, new: torch.Tensor) -> tuple[int, int]
 def _channel_sum(frame: torch.Tensor) -> torch.Tensor:
     """``(H, W)`` int16 sum of a ``(C, H, W)`` uint8 frame's channels, on the CPU: the values of
     ``frame.to(torch.int16).sum(0)`` (exact; at most 765), in C - 1 in-place additions instead
-    of a reduction (a quarter of a PETS frame's 2.3 ms), and kept in 16 bits, not 64."""
+    of a reduction into int64, and kept in 16 bits."""
     out = frame[0].to(torch.int16, copy=True)
     for c in range(1, frame.shape[0]):
         out += frame[c]
