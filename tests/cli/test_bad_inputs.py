@@ -130,6 +130,10 @@ def corpus(tmp_path_factory, forge_model):
     for i in range(3):
         cv2.imwrite(str(c / "tiny" / f"{i}.png"), np.zeros((1, 1, 3), np.uint8))
     (c / "emptydir").mkdir()
+    # links to the frames, the third one broken (its target gone)
+    (c / "linked").mkdir()
+    for f in sorted((c / "frames").iterdir()):
+        (c / "linked" / f.name).symlink_to(f if f.name != "0002.png" else c / "gone.png")
     (c / "notes").mkdir()
     (c / "notes" / "readme.txt").write_text("no images here")
     _frames(c / "motseq" / "img1", 3, ext=".jpg")  # a MOTChallenge sequence's folder
@@ -1412,6 +1416,25 @@ CASES += [
         "track-frames-below-window",
         "track {c}/tiny --detect {c}/toy.safetensors -o {o}/b.csv",
         "smaller than the detector window 16x8",
+    ),
+    # a broken symbolic link among the frames: dropped from the listing, every later frame was
+    # numbered one too low (track wrote frame 3's box as frame 2; detect --strict passed)
+    A(
+        "track-broken-link-frame",
+        "track {c}/linked --tracker camshift --box 10,14,14,20 --no-progress -o {o}/b.csv",
+        "1 unreadable frame",
+        ("b.csv",),
+    ),
+    A(
+        "detect-broken-link-frame",
+        "detect {c}/toy.safetensors {c}/linked -o {o}/d.jsonl",
+        r"skipped frame 2: image .*0002\.png is a broken symbolic link",
+        ("d.jsonl",),
+    ),
+    E(
+        "detect-strict-broken-link-frame",
+        "detect {c}/toy.safetensors {c}/linked --strict -o {o}/d.jsonl",
+        r"0002\.png is a broken symbolic link \(to .*gone\.png, which does not exist\)",
     ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),

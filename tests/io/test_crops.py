@@ -116,3 +116,14 @@ def test_real_inria_crops(data_dir):
     only = {"crop001001a.png", "crop001001c.png", "person_001a.png"}
     cs = load_crops(folder, (128, 64), region=(16, 16, 64, 128), crop_size=(160, 96), only=only)
     assert cs.images.shape == (len(cs), 1, 128, 64) and cs.resized == 0 and len(cs) >= 2
+
+
+def test_a_broken_symbolic_link_is_an_unusable_crop(folder):
+    """A link whose target is gone is skipped with its reason (and refused under strict),
+    as an unreadable crop is; it was left out of the listing unseen, even with strict."""
+    (folder / "gone.png").symlink_to(folder / "nowhere.png")
+    cs = load_crops(folder, (20, 10))
+    reasons = dict((p.rsplit("/", 1)[1], why) for p, why in cs.skipped)
+    assert "broken symbolic link" in reasons["gone.png"]
+    with pytest.raises(DataError, match=r"gone\.png"):
+        load_crops(folder, (20, 10), strict=True)

@@ -280,3 +280,21 @@ def test_native_output_is_captured(capfd):
     assert log.text == "libfoo: warning\n" and log.first_line() == "libfoo: warning"
     os.write(2, b"after\n")
     assert capfd.readouterr().err == "after\n"
+
+
+def test_a_broken_symbolic_link_is_an_unreadable_frame_in_its_place(tmp_path):
+    """A folder of links whose third target is gone: the broken link is frame 2, unreadable;
+    it was dropped from the listing, so the frames after it were numbered one too low."""
+    src, linked = tmp_path / "src", tmp_path / "linked"
+    src.mkdir()
+    linked.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(src / f"{i}.png"), np.full((8, 8, 3), 40 * i, np.uint8))
+        (linked / f"{i}.png").symlink_to(src / f"{i}.png")
+    (src / "2.png").unlink()
+    with FrameSource(linked) as source:
+        assert len(source) == 4
+        seen = [(i, None if f is None else int(f[0, 0, 0])) for i, f in source.items()]
+    assert seen == [(0, 0), (1, 40), (2, None), (3, 120)]
+    (bad,) = source.bad_frames
+    assert bad.index == 2 and "2.png is a broken symbolic link" in bad.reason

@@ -123,13 +123,17 @@ def list_image_files(folder: str | os.PathLike) -> tuple[list[Path], list[tuple[
     Raises:
         DataError: the folder does not exist.
     """
+    from torchtrack.io.video import is_broken_link
+
     root = Path(folder)
     if not root.is_dir():
         raise DataError(f"crop folder {str(root)!r} does not exist or is not a folder")
     files, skipped = [], []
     for p in sorted(root.iterdir()):
         name = p.name
-        if name.startswith(".") or not p.is_file():
+        # a broken symbolic link stays a candidate: reading it fails like any unreadable
+        # crop (skipped and counted, or refused with strict), never dropped unseen
+        if name.startswith(".") or not (p.is_file() or is_broken_link(p)):
             continue
         low = name.lower()
         if low.startswith("readme") or low.endswith(_NOTES):

@@ -53,6 +53,7 @@ __all__ = [
     "BadFrame",
     "FrameSource",
     "decode_image",
+    "is_broken_link",
     "jpeg_is_truncated",
     "list_image_files",
     "native_output",
@@ -74,8 +75,14 @@ def natural_key(name: str) -> tuple:
     return tuple(int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", name))
 
 
+def is_broken_link(p: Path) -> bool:
+    """Whether ``p`` is a symbolic link whose target does not exist."""
+    return p.is_symlink() and not p.exists()
+
+
 def list_image_files(folder: str | os.PathLike) -> list[Path]:
-    """Image files directly inside ``folder``, in natural order. Hidden files are ignored.
+    """Image files directly inside ``folder``, in natural order. Hidden files are ignored;
+    broken symbolic links are listed (reading one fails, as for any unreadable frame).
 
     Raises:
         VideoError: the folder does not exist or holds no image file (the message points to
@@ -84,10 +91,14 @@ def list_image_files(folder: str | os.PathLike) -> list[Path]:
     d = Path(folder)
     if not d.is_dir():
         raise VideoError(f"frame folder {d} does not exist or is not a folder")
+    # a broken symbolic link is kept: it is read (and reported) as an unreadable frame in its
+    # place, where dropping it silently gave every later frame the number of the one before
     files = [
         p
         for p in d.iterdir()
-        if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") and p.is_file()
+        if p.suffix.lower() in IMAGE_EXTENSIONS
+        and not p.name.startswith(".")
+        and (p.is_file() or is_broken_link(p))
     ]
     if not files:
         hint = ""
@@ -220,6 +231,10 @@ def decode_image(path: str | os.PathLike, flags: int = cv2.IMREAD_UNCHANGED) -> 
     try:
         data = p.read_bytes()
     except FileNotFoundError:
+        if is_broken_link(p):
+            raise DataError(
+                f"image {p} is a broken symbolic link (to {os.readlink(p)}, which does not exist)"
+            ) from None
         raise DataError(f"image {p} does not exist") from None
     except IsADirectoryError:
         raise DataError(f"image {p} is a folder, not an image file") from None
