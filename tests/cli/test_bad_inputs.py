@@ -1436,6 +1436,20 @@ CASES += [
         "detect {c}/toy.safetensors {c}/linked --strict -o {o}/d.jsonl",
         r"0002\.png is a broken symbolic link \(to .*gone\.png, which does not exist\)",
     ),
+    # one folder as both classes: the fit learnt only the positive rate, and the model was
+    # written with a calibration that ignores its scores (exit 0, a misleading 'underflow' hint)
+    E(
+        "cal-model-pos-is-neg",
+        "calibrate {c}/toy.safetensors --pos {c}/crops/pos --neg {c}/crops/pos/ -o {o}/m.safetensors",
+        r"--neg names .*crops/pos/', a folder of --pos: its crops would be both positives and "
+        "negatives",
+    ),
+    E(
+        "cal-model-pos-twice",  # every crop counted twice
+        "calibrate {c}/toy.safetensors --pos {c}/crops/pos {c}/crops/pos --neg {c}/crops/neg "
+        "-o {o}/m.safetensors",
+        r"--pos names .*crops/pos' twice",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),

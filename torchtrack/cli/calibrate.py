@@ -17,6 +17,7 @@ and can draw a reliability diagram (``--plot``).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -184,6 +185,30 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
     return torch.tensor(scores, dtype=torch.float64), torch.tensor(labels, dtype=torch.float64)
 
 
+def check_crop_folders(pos: list[str], neg: list[str]) -> None:
+    """Refuse a folder named twice in ``--pos`` / ``--neg`` (its crops would count twice) or in
+    both (every crop of it a positive and a negative: a fit that can only learn the positive
+    rate), as training does; paths are compared after resolving links, ``..`` and ``/``.
+
+    Raises:
+        ConfigError: naming the option and the folder.
+    """
+    from torchtrack.errors import ConfigError
+
+    found: dict[str, str] = {}  # a folder -> the option that names it
+    for option, folders in (("--pos", pos), ("--neg", neg)):
+        for x in folders:
+            k = os.path.normcase(os.path.realpath(os.fspath(x)))
+            if found.get(k) == option:
+                raise ConfigError(f"{option} names {x!r} twice: its crops would count twice")
+            if k in found:
+                raise ConfigError(
+                    f"--neg names {x!r}, a folder of --pos: its crops would be both positives "
+                    "and negatives"
+                )
+            found[k] = option
+
+
 def crop_margins(
     det: Any,
     folders: list[str],
@@ -323,6 +348,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         if not args.pos or not args.neg:
             raise ConfigError("a MODEL needs labelled calibration crops: --pos DIR and --neg DIR")
+        check_crop_folders(args.pos, args.neg)
         from torchtrack.detect import load_detector, save_detector
         from torchtrack.detect.bundled import resolve_model
 
