@@ -1450,6 +1450,23 @@ CASES += [
         "-o {o}/m.safetensors",
         r"--pos names .*crops/pos' twice",
     ),
+    # numbers in a tracker spec as Python reads them, not as a setting is written: 1_0 ran 10
+    # particles, Arabic-Indic 50 ran 50, silently
+    E(
+        "track-spec-number-underscore",
+        f"{T} --tracker histogram:n_particles=1_0 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"histogram tracker: 'n_particles' must be an integer, got '1_0'",
+    ),
+    E(
+        "track-spec-number-non-ascii",
+        f"{T} --tracker histogram:n_particles=\u0665\u0660 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"'n_particles' must be an integer, got '\u0665\u0660'",
+    ),
+    E(
+        "eval-spec-number-underscore",
+        f"{EV} --trackers camshift:bins=1_6 -o {{o}}/r",
+        r"camshift bins must be an integer in \[2, 256\], got '1_6'",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),

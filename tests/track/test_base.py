@@ -159,6 +159,22 @@ def test_parse_tracker_spec():
         parse_tracker_spec("histogram: ")  # was the tracker "histogram" labelled "histogram:"
 
 
+def test_tracker_spec_numbers_are_ascii_without_underscores():
+    """int() reads 1_0 as 10 and Arabic-Indic digits as a number: the spec
+    histogram:n_particles=1_0 ran 10 particles, silently. Such text stays a string, which the
+    typed settings refuse by name; plain numbers, exponents and words parse as before."""
+    _, p = parse_tracker_spec("histogram:n_particles=1_0,lam=2_5.0,a=\u0665\u0660,b=1e3,c=my_model")
+    assert p == {
+        "n_particles": "1_0",
+        "lam": "2_5.0",
+        "a": "\u0665\u0660",
+        "b": 1000.0,
+        "c": "my_model",
+    }
+    with pytest.raises(ConfigError, match=r"'n_particles' must be an integer, got '1_0'"):
+        create_tracker("histogram", **parse_tracker_spec("histogram:n_particles=1_0")[1])
+
+
 def test_a_broken_tracker_module_only_warns(monkeypatch):
     monkeypatch.setattr(base, "_loaded", False)
     monkeypatch.setattr(

@@ -372,6 +372,10 @@ def _parse_value(v: str) -> Any:
         return low == "true"
     if low == "null":  # not "none": it is a real value of some options (e.g. adapt=none)
         return None
+    if "_" in v or not v.isascii():
+        # Python reads 1_0 as 10 and Arabic-Indic digits as numbers; a setting does not:
+        # the text stays a string (refused where a number is expected)
+        return v
     for cast in (int, float):
         try:
             return cast(v)
@@ -383,7 +387,7 @@ def _parse_value(v: str) -> Any:
 def parse_tracker_spec(spec: str) -> tuple[str, dict[str, Any]]:
     """Split ``"name"`` or ``"name:key=value,key=value"`` into the name and its parameters
     (values become bool (true/false), int, float or None (null) where they parse as such,
-    else strings).
+    else strings; numbers are ASCII without ``_``: ``1_0`` stays the string ``'1_0'``).
 
     Example: ``parse_tracker_spec("adaptive-haar:adapt=none,particles=500")``.
 
