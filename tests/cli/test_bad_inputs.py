@@ -1467,6 +1467,19 @@ CASES += [
         f"{EV} --trackers camshift:bins=1_6 -o {{o}}/r",
         r"camshift bins must be an integer in \[2, 256\], got '1_6'",
     ),
+    # one sequence given twice (or inside a folder also given) was scored twice, weighing
+    # double in every overall number, silently
+    E(
+        "eval-sequence-twice",
+        "eval --sequences {c}/seqs/good {c}/seqs/good/ --trackers camshift -o {o}/r",
+        r"--sequences gives sequence 'good' \(.*groundtruth_rect\.txt\) twice: through "
+        r"'.*seqs/good' and '.*seqs/good/'",
+    ),
+    E(
+        "eval-sequence-in-a-folder-also-given",
+        "eval --sequences {c}/seqs {c}/seqs/good --trackers camshift -o {o}/r",
+        "--sequences gives sequence 'good' .* twice",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),

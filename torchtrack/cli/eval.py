@@ -15,6 +15,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import os
 
 
 def register(subparsers) -> None:
@@ -209,8 +210,19 @@ def run(args: argparse.Namespace) -> int:
     check_backend(backend_from_args(args))  # Ray installed, its address answering: fail fast
 
     seqs = []
+    given: dict[str, str] = {}  # a ground-truth file -> the --sequences path that found it
     for path in args.sequences:
-        seqs.extend(find_sequences(path, on_mismatch=args.on_mismatch))
+        for s in find_sequences(path, on_mismatch=args.on_mismatch):
+            # one sequence twice (a path repeated, or a folder and a sequence inside it):
+            # scored twice, it would weigh double in every overall number
+            k = os.path.normcase(os.path.realpath(s.gt_path))
+            if k in given:
+                raise ConfigError(
+                    f"--sequences gives sequence {s.name!r} ({s.gt_path}) twice: through "
+                    f"{given[k]!r} and {path!r}; each sequence is scored once"
+                )
+            given[k] = path
+            seqs.append(s)
     if args.max_frames:
         seqs = [s.head(args.max_frames) for s in seqs]
     command = _command_line(args)
