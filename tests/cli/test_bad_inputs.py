@@ -262,6 +262,13 @@ def corpus(tmp_path_factory, forge_model):
         (c / "mot" / name / "gt").mkdir(parents=True)
         (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
         (c / "mot" / name / "seqinfo.ini").write_text(text)
+    for name, text in (
+        ("NOHEADER", ini.replace("[Sequence]\n", "")),  # configparser's message: three lines
+        ("GARBAGE", ini.replace("frameRate=10", "frameRate 10\n  [")),
+    ):
+        (c / "mot" / name / "gt").mkdir(parents=True)
+        (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
+        (c / "mot" / name / "seqinfo.ini").write_text(text)
     (c / "mot" / "BIN" / "gt").mkdir(parents=True)
     (c / "mot" / "BIN" / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
     (c / "mot" / "BIN" / "seqinfo.ini").write_bytes(b"\xb3\xff\x00[Sequence]")
@@ -1070,6 +1077,12 @@ CASES += [
         "a%b",
         ("r/results.json", "r/results.md"),
     ),
+    E(
+        "eval-mot-seqinfo-no-header",
+        "eval --mot {c}/mot/NOHEADER --results {c}/res.txt",
+        r"seqinfo\.ini line 1: 'name=TOY-01' comes before any section header \(a seqinfo\.ini "
+        r"starts with \[Sequence\]\)$",
+    ),
     E("eval-mot-seqinfo-binary", "eval --mot {c}/mot/BIN --results {c}/res.txt", "not a text file"),
     E(
         "eval-mot-seqlength-huge",
@@ -1671,6 +1684,9 @@ def test_model_header_is_not_allocated(corpus):
         "detect {c}/toy.safetensors {c}/badcrops -o {o}/d.jsonl",
         "detect {c}/toy.safetensors {c}/jpgs --strict -o {o}/d.jsonl",
         "detect {c}/toy.safetensors {c}/text.mp4 -o {o}/d.jsonl",
+        # configparser's messages span lines: the file's line and its text came on two more
+        "eval --mot {c}/mot/NOHEADER --results {c}/res.txt -o {o}/r",
+        "eval --mot {c}/mot/GARBAGE --results {c}/res.txt -o {o}/r",
     ],
 )
 def test_one_clean_line_and_no_library_noise(argv, corpus, tmp_path, capfd):
