@@ -1411,6 +1411,12 @@ CASES += [
     E("detect-max-scale-nan", "detect {c}/toy.safetensors {c}/frames --max-scale nan", "finite"),
     E("detect-max-scale-inf", "detect {c}/toy.safetensors {c}/frames --max-scale inf", "finite"),
     E("detect-min-scale-inf", "detect {c}/toy.safetensors {c}/frames --min-scale inf", "finite"),
+    # was refused only after every frame was read and scanned, at 'scale inf (infxinf)'
+    E(
+        "detect-min-height-inf",
+        "detect {c}/toy.safetensors {c}/frames --min-height inf",
+        r"--min-height must be > 0 pixels and finite, got inf",
+    ),
     # messages that came late or named the wrong thing
     E(
         "train-name-empty",

@@ -247,8 +247,8 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--min-scale must be > 0 and finite, got {args.min_scale}")
     if args.max_scale is not None and not 0 < args.max_scale < math.inf:
         raise ConfigError(f"--max-scale must be > 0 and finite, got {args.max_scale}")
-    if not args.min_height > 0:
-        raise ConfigError(f"--min-height must be > 0 pixels, got {args.min_height}")
+    if not 0 < args.min_height < math.inf:  # inf: a scan of every frame, then 'scale inf'
+        raise ConfigError(f"--min-height must be > 0 pixels and finite, got {args.min_height}")
     if (
         args.max_scale is not None
         and args.min_scale is not None
