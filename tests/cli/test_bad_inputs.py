@@ -1080,8 +1080,8 @@ CASES += [
     E(
         "eval-mot-seqinfo-no-header",
         "eval --mot {c}/mot/NOHEADER --results {c}/res.txt",
-        r"seqinfo\.ini line 1: 'name=TOY-01' comes before any section header \(a seqinfo\.ini "
-        r"starts with \[Sequence\]\)$",
+        r"seqinfo\.ini is not a valid ini file: line 1 'name=TOY-01' comes before any section "
+        r"header \(a seqinfo\.ini starts with \[Sequence\]\)$",
     ),
     E("eval-mot-seqinfo-binary", "eval --mot {c}/mot/BIN --results {c}/res.txt", "not a text file"),
     E(

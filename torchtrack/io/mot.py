@@ -445,8 +445,8 @@ def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
         raise MotFormatError(f"{p} is not a text file (not UTF-8)") from None
     except configparser.MissingSectionHeaderError as exc:
         raise MotFormatError(
-            f"{p} line {exc.lineno}: {exc.line.strip()!r} comes before any section header "
-            "(a seqinfo.ini starts with [Sequence])"
+            f"{p} is not a valid ini file: line {exc.lineno} {exc.line.strip()!r} comes before "
+            "any section header (a seqinfo.ini starts with [Sequence])"
         ) from None
     except configparser.Error as exc:  # one line: configparser's own message spans several
         raise MotFormatError(f"{p} is not a valid ini file: {' '.join(str(exc).split())}") from None
