@@ -226,3 +226,35 @@ def test_manifest_drops_a_line_cut_short_by_a_crash(tmp_path):
     m.append({"source": "/b", "name": "b", "status": "failed"})
     m.close()
     assert list(Manifest(tmp_path / MANIFEST, {"k": 1}).entries) == ["/a", "/b"]
+
+
+def test_a_cluster_lost_before_any_source_leaves_nothing_behind(videos, tmp_path, monkeypatch):
+    """An address that accepts connections but is not Ray passes the early probe and fails in
+    run_tasks: a run that recorded nothing removes the manifest it began (and a folder it made);
+    an earlier run's manifest stays as it was."""
+    import torchtrack.eval.corpus as corpus
+    from torchtrack.errors import BackendError
+
+    def unreachable(*_a, **_k):
+        raise BackendError("cannot connect to Ray at 10.0.0.5:6379: timed out")
+
+    job = functools.partial(size_job, str(tmp_path / "calls"))
+    srcs = find_sources([str(videos)])
+    monkeypatch.setattr(corpus, "run_tasks", unreachable)
+    fresh = tmp_path / "new" / "out"
+    with pytest.raises(BackendError, match="cannot connect to Ray"):
+        run_corpus(srcs, job, fresh, [CSV], progress=False)
+    assert not fresh.exists() and (tmp_path / "new").is_dir()  # only what the run made is gone
+    there = tmp_path / "there"
+    there.mkdir()
+    with pytest.raises(BackendError):
+        run_corpus(srcs, job, there, [CSV], progress=False)
+    assert not (there / MANIFEST).exists() and there.is_dir()
+    monkeypatch.undo()
+    done = tmp_path / "done"
+    run_corpus(srcs[:1], job, done, [CSV], progress=False)
+    before = (done / MANIFEST).read_bytes()
+    monkeypatch.setattr(corpus, "run_tasks", unreachable)
+    with pytest.raises(BackendError):
+        run_corpus(srcs, job, done, [CSV], progress=False)
+    assert (done / MANIFEST).read_bytes() == before  # an earlier run's record is kept

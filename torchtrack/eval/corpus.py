@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchtrack.errors import ConfigError, DataError
+from torchtrack.errors import BackendError, ConfigError, DataError
 from torchtrack.eval.backends import Backend, TaskFailure, check_backend, run_tasks, worker_info
 from torchtrack.eval.output_kind import OutputKind
 from torchtrack.io.atomic import check_writable_dir
@@ -483,8 +483,6 @@ def run_corpus(
             holds a run with other settings, another run holds its lock.
         BackendError: Ray is not installed or its cluster cannot be reached.
     """
-    from tqdm import tqdm
-
     backend = backend or Backend()
     kinds = tuple(kinds)
     if not sources:
@@ -496,8 +494,51 @@ def run_corpus(
         if len(set(vals)) != len(vals):
             raise ConfigError(f"output kinds repeat a {attr}: {vals}")
     check_backend(backend)
+    created = not Path(out_dir).exists()
     folder = check_writable_dir(out_dir, "--out-dir")
+    fresh = not (folder / MANIFEST).exists()
     say = log or (lambda _msg: None)
+    recorded: list[str] = []  # sources this run wrote a manifest line for
+    try:
+        return _run_locked(
+            folder, sources, job, kinds, backend, settings, command, progress, say, recorded
+        )
+    except BackendError:
+        # The cluster could not be reached after all (an address that accepts connections
+        # but is not Ray passes check_backend's probe): a run that recorded nothing leaves
+        # nothing behind, not a manifest of no source or a folder it made.
+        if fresh and not recorded:
+            _remove_unused(folder, created)
+        raise
+
+
+def _remove_unused(folder: Path, created: bool) -> None:
+    """Remove the manifest a failed run began in ``folder`` and, when the run ``created`` the
+    folder, its lock file and the folder (if nothing else is in it)."""
+    with contextlib.suppress(OSError):
+        (folder / MANIFEST).unlink()
+    if created:
+        with contextlib.suppress(OSError):
+            (folder / ".manifest.lock").unlink()
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _run_locked(
+    folder: Path,
+    sources: Sequence_[str],
+    job: Callable[..., dict],
+    kinds: tuple,
+    backend: Backend,
+    settings: dict | None,
+    command: str | None,
+    progress: bool,
+    say: Callable[[str], None],
+    recorded: list[str],
+) -> CorpusReport:
+    """:func:`run_corpus` once its arguments are checked: under the folder's lock."""
+    from tqdm import tqdm
+
     with _locked(folder):
         manifest = Manifest(folder / MANIFEST, settings or {}, command)
         try:
@@ -523,6 +564,7 @@ def run_corpus(
                     entry.update(status="done", **value)
                     report.done.append(src)
                 manifest.append(entry)
+                recorded.append(src)
                 bar.update(1)
                 bar.set_postfix_str(f"{len(report.failed)} failed", refresh=False)
 
