@@ -194,6 +194,35 @@ def test_low_probability_detections_extend_but_never_start_targets():
         assert bool(out.detected.all()) and out.ids.tolist() == [1, 2, 3]
 
 
+def test_weak_outside_detections_beside_a_more_confident_one_are_dropped():
+    """Another detector's looser NMS leaves weak boxes beside a person's main box; the tracker
+    drops those that overlap a more confident detection by more than ``scan_nms`` (0.4), the
+    NMS of its own scans, and keeps the rest: a weak box elsewhere, one overlapping less, and
+    two confident boxes side by side (two people)."""
+    mt = make()
+    a = [100.0, 60.0, 40.0, 100.0]
+    boxes = torch.tensor(
+        [
+            a,
+            [112.0, 60.0, 40.0, 100.0],  # weak, IoU 0.54 with a: dropped
+            [250.0, 60.0, 40.0, 100.0],  # weak, apart: kept
+            [122.0, 60.0, 40.0, 100.0],  # weak, IoU 0.29 with a: kept
+        ],
+        dtype=torch.float64,
+    )
+    p = torch.tensor([0.9, 0.3, 0.3, 0.3], dtype=torch.float64)
+    for _ in range(3):
+        mt.update(blank(), (boxes, p))
+    assert mt.stats["outside weak duplicates dropped"] == 3
+    two = torch.tensor([a, [112.0, 60.0, 40.0, 100.0]], dtype=torch.float64)
+    mt2 = make()
+    for _ in range(3):
+        out = mt2.update(blank(), (two, torch.tensor([0.9, 0.8], dtype=torch.float64)))
+    assert mt2.stats["outside weak duplicates dropped"] == 0 and len(out) == 2
+    # the tracker's own scans already have this NMS: the rule is for outside detections only
+    assert MultiTargetTracker._weak_duplicates(mt, boxes, p).tolist() == [False, True, False, False]
+
+
 def walkers(t):
     """Four people on a ground plane seen from above: lower in the frame is taller (height
     0.3 * foot row + 5), walking right at 2 px per frame."""
@@ -638,10 +667,14 @@ def test_tud_stadtmitte_public_detections_real_data(data_dir, one_thread, tracke
     for m in ms:
         assert m.mota >= 0.5 and m.id_switches <= 15, m
         assert m.n_result_ids >= 9  # one identity per person, not a few that hop
-    assert sum(m.hota for m in ms) / 2 >= 0.34, ms
+    assert sum(m.hota for m in ms) / 2 >= 0.37, ms
     idf1 = sum(m.idf1 for m in ms) / 2
-    assert idf1 >= 0.54, ms
+    assert idf1 >= 0.60, ms
     assert idf1 > sum(scores(seed, overlap_gate=0.1).idf1 for seed in (0, 1)) / 2 + 0.02
+    # the public detector leaves weak boxes at IoU 0.4-0.5 beside people's main boxes; without
+    # the scan's NMS on them (scan_nms = 1: none) a second target feeds on them and the person
+    # changes identity (seeds 0 and 1: IDF1 0.533 / 0.566 against 0.617 / 0.678)
+    assert idf1 > sum(scores(seed, scan_nms=1.0).idf1 for seed in (0, 1)) / 2 + 0.05
 
 
 @pytest.mark.parametrize("seed", [0, 2])

@@ -187,7 +187,11 @@ class MultiTrackerConfig:
             filter carries the targets in between.
         scan_min_scale, scan_max_scale, scan_scale_step, scan_stride, scan_nms: the scan
             (:func:`torchtrack.detect.scan.sliding_windows`; ``scan_max_scale = 0``: up to the
-            largest window that fits the frame; ``scan_scale_step`` at least 1.01).
+            largest window that fits the frame; ``scan_scale_step`` at least 1.01). Detections
+            given from outside get the scan's NMS on their weak boxes: one below the birth
+            threshold that overlaps a more confident detection by more than ``scan_nms`` is
+            dropped (another detector's looser NMS leaves such boxes beside a person's main box,
+            and they would feed a second target on that person; ``docs/multi_target.md``).
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):
             each detection moves to the probability-weighted mean position and scale of the
             windows above ``detection_threshold`` that overlap it by this IoU; 0: off.

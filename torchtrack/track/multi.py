@@ -497,6 +497,10 @@ class MultiTargetTracker:
                 off = keep & ~self._on_line(det_boxes, self.ground.line_, self.frame_size[0])
                 self.stats["detections off the ground plane"] += int(off.sum())
                 keep &= ~off
+            if self._external:
+                dup = keep & self._weak_duplicates(det_boxes, det_p)
+                self.stats["outside weak duplicates dropped"] += int(dup.sum())
+                keep &= ~dup
             det_boxes, det_p = det_boxes[keep], det_p[keep]
             if not self._external:
                 self._adapt_birth(det_p)
@@ -734,6 +738,23 @@ class MultiTargetTracker:
         boxes = self.particle_boxes().reshape(1, t * n, 4)
         h = self._histograms(bin_map, boxes).reshape(t, n, -1)
         return bhattacharyya(h, self.hist[:, None, :]).to(torch.float64)
+
+    def _weak_duplicates(self, det_boxes: torch.Tensor, det_p: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` bool: weak detections (below the birth threshold) that overlap a more
+        confident detection by more than ``scan_nms``, the NMS the tracker's own scans apply.
+        Another detector may suppress less (the MOT15 public detections of TUD-Stadtmitte keep
+        pairs at IoU 0.4-0.5): its low-score boxes beside a person's main box then feed a
+        second target on that person in the weak association, which ends the first as a
+        duplicate, and the person changes identity. Only weak boxes are dropped; two confident
+        ones (two people side by side) both stay."""
+        from torchtrack.boxes import box_iou_matrix
+
+        weak = det_p < self._birth_threshold()
+        if det_p.numel() < 2 or not bool(weak.any()):
+            return torch.zeros_like(weak)
+        iou = box_iou_matrix(det_boxes, det_boxes)
+        higher = det_p[None, :] > det_p[:, None]  # (i, j): detection j is more confident than i
+        return weak & ((iou > self.config.scan_nms) & higher).any(1)
 
     def _associate(
         self, det_boxes: torch.Tensor, det_p: torch.Tensor, det_hist: torch.Tensor | None
