@@ -7,6 +7,7 @@ from torchtrack.boxes import (
     check_boxes,
     clip_boxes,
     cxcywh_to_xywh,
+    inside_fraction,
     xywh_to_cxcywh,
     xywh_to_xyxy,
     xyxy_to_xywh,
@@ -61,3 +62,13 @@ def test_check_boxes_errors():
 def test_clip_boxes():
     b = torch.tensor([[-5.0, 2.0, 10.0, 20.0]])
     assert clip_boxes(b, (10, 8)).tolist() == [[0.0, 2.0, 5.0, 8.0]]
+
+
+@pytest.mark.parametrize("size", [(-10, 8), (10, -1), (float("nan"), 8), (10, float("inf")), (10,)])
+def test_a_frame_size_that_is_not_two_sizes_is_refused(size):
+    # a negative size clipped boxes to a mirrored frame and gave negative inside fractions
+    b = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    with pytest.raises(ShapeError, match="frame_size must be"):
+        clip_boxes(b, size)
+    with pytest.raises(ShapeError, match="frame_size must be"):
+        inside_fraction(b, size)

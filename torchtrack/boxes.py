@@ -9,6 +9,8 @@ subtracts 1.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchtrack.errors import BoxError, ShapeError
@@ -32,6 +34,21 @@ def _check_last4(boxes: torch.Tensor, name: str = "boxes") -> None:
         raise ShapeError(f"{name} must be a torch.Tensor, got {type(boxes).__name__}")
     if boxes.ndim == 0 or boxes.shape[-1] != 4:
         raise ShapeError(f"{name} must have shape (..., 4), got {tuple(boxes.shape)}")
+
+
+def _check_frame_size(frame_size) -> tuple[float, float]:
+    """``(H, W)`` of a frame: two finite numbers >= 0.
+
+    Raises:
+        ShapeError: anything else (a negative size clipped every box to a mirrored frame).
+    """
+    try:
+        h, w = (float(v) for v in frame_size)
+    except (TypeError, ValueError):
+        raise ShapeError(f"frame_size must be (H, W), got {frame_size!r}") from None
+    if not (math.isfinite(h) and math.isfinite(w) and h >= 0 and w >= 0):
+        raise ShapeError(f"frame_size must be (H, W) with H, W >= 0 and finite, got {frame_size!r}")
+    return frame_size[0], frame_size[1]
 
 
 def xywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:
@@ -148,7 +165,7 @@ def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor
     zero size at the nearest border. Boxes already inside come back exactly as they are (the
     corners' round trip would change a fractional box in its last bits)."""
     _check_last4(boxes)
-    h_img, w_img = frame_size
+    h_img, w_img = _check_frame_size(frame_size)
     xyxy = xywh_to_xyxy(boxes)
     x1 = xyxy[..., 0].clamp(0, w_img)
     y1 = xyxy[..., 1].clamp(0, h_img)

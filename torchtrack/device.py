@@ -29,6 +29,8 @@ def check_device(device: torch.device | str | None) -> torch.device:
     except (RuntimeError, TypeError, ValueError):
         raise ConfigError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
     if dev.type == "cpu":
+        if dev.index not in (None, 0):  # torch accepts "cpu:3"; there is one CPU device
+            raise ConfigError(f"device {device!r}: the CPU is one device, name it 'cpu'")
         return dev
     if dev.type != "cuda":
         raise ConfigError(f"device: only 'cpu' and 'cuda' are supported, got {device!r}")

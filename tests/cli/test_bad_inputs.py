@@ -353,6 +353,8 @@ CASES: list[Case] = [
     # output paths, checked before any work
     E("track-out-is-dir", f"{T} {HB} -o {{o}}", "is an existing folder"),
     E("track-device-unknown", f"{T} {HB} --device tpu -o {{o}}/t.csv", "expected 'cpu', 'cuda'"),
+    # torch accepts "cpu:3", which then meant the one CPU, silently
+    E("track-device-cpu-index", f"{T} {HB} --device cpu:3 -o {{o}}/t.csv", "the CPU is one device"),
     *(
         []
         if torch.cuda.is_available()
@@ -1021,6 +1023,12 @@ CASES += [
         "line 2",
     ),
     E("eval-mot-no-results", "eval --mot {c}/mot/TOY-01 -o {o}/r", "needs --mot SEQ"),
+    # one results file given twice was scored as two trackers
+    E(
+        "eval-mot-results-twice",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt {c}/./res.txt -o {o}/r",
+        r"--results gives '.*res\.txt' twice",
+    ),
     E(
         "eval-mot-results-device",
         "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --device cuda:0 -o {o}/r",

@@ -350,6 +350,15 @@ def run_mot(args: argparse.Namespace) -> int:
             "with --results); to run the multi-target tracker and score it, give --mot and "
             "--trackers multi without --results"
         )
+    seen: dict[str, str] = {}  # one results file or folder given twice would be two trackers
+    for r in args.results:
+        k = os.path.normcase(os.path.realpath(r))
+        if k in seen:
+            raise ConfigError(
+                f"--results gives {seen[k]!r} twice (as {r!r}): each results file or folder "
+                "is one tracker, scored once"
+            )
+        seen[k] = r
     from torchtrack.eval.mot import evaluate_mot, mot_table
 
     seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
