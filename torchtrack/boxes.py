@@ -36,8 +36,8 @@ def _check_last4(boxes: torch.Tensor, name: str = "boxes") -> None:
         raise ShapeError(f"{name} must have shape (..., 4), got {tuple(boxes.shape)}")
 
 
-def _check_frame_size(frame_size) -> tuple[float, float]:
-    """``(H, W)`` of a frame: two finite numbers >= 0.
+def _check_frame_size(frame_size) -> tuple:
+    """``(H, W)`` of a frame, as given, once checked to be two finite numbers >= 0.
 
     Raises:
         ShapeError: anything else (a negative size clipped every box to a mirrored frame).

@@ -111,15 +111,6 @@ def test_integral_of_planes_is_the_interleaved_integral_to_the_bit():
         assert torch.equal(got, ref)
 
 
-def test_channels_last_layout_holds_the_same_channels():
-    x = frames()
-    for cs in (ChannelSet(), ChannelSet(names=("gray", "grad", "orient"), orientations=4)):
-        a = compute_channels(x, cs)
-        b = compute_channels(x, cs, memory_format=torch.channels_last)
-        assert b.shape == a.shape and b.permute(0, 2, 3, 1).is_contiguous()
-        assert torch.equal(a, b)
-
-
 def test_features_at_scale_one_equal_a_pixel_loop():
     x = frames()
     bank = small_bank()
@@ -448,12 +439,19 @@ def test_a_keep_function_by_row_is_asked_one_window_a_row():
         assert asked[-1] == n_i < whole.boxes.shape[0]
 
 
-@pytest.mark.parametrize("names", [None, ("gray", "grad", "orient")])
-def test_channels_last_layout_holds_the_same_values(names):
-    """``memory_format=torch.channels_last`` (the layout the integral images are summed in)
-    lays the same channels out with the channel innermost."""
-    cs = ChannelSet() if names is None else ChannelSet(names=names)
-    x = frames(2, 33, 47)
+@pytest.mark.parametrize(
+    "cs",
+    [
+        ChannelSet(),
+        ChannelSet(names=("gray", "grad", "orient")),
+        ChannelSet(names=("gray", "grad", "orient"), orientations=4),
+    ],
+)
+@pytest.mark.parametrize("size", [(2, 70, 90), (2, 33, 47)])
+def test_channels_last_layout_holds_the_same_values(cs, size):
+    """``memory_format=torch.channels_last`` lays the same channels out with the channel
+    innermost."""
+    x = frames(*size)
     planar = compute_channels(x, cs)
     last = compute_channels(x, cs, memory_format=torch.channels_last)
     assert last.shape == planar.shape and torch.equal(last, planar)

@@ -295,15 +295,14 @@ def check_distinct(paths: dict[str, str | None]) -> None:
     Raises:
         ConfigError: two options name one file.
     """
-    import os
-
     from torchtrack.errors import ConfigError
+    from torchtrack.io.atomic import path_key
 
     seen: dict[str, str] = {}
     for option, path in paths.items():
         if not path:
             continue
-        key = os.path.normcase(os.path.realpath(path))
+        key = path_key(path)
         if key in seen:
             raise ConfigError(f"{seen[key]} and {option} name the same file {path!r}")
         seen[key] = option
@@ -321,9 +320,9 @@ def check_spares_inputs(outputs: dict[str, str | None], inputs: dict[str, object
     import os
 
     from torchtrack.errors import ConfigError
+    from torchtrack.io.atomic import path_key
 
-    def key(path) -> str:
-        return os.path.normcase(os.path.realpath(os.fspath(path)))
+    key = path_key
 
     for out_opt, out in outputs.items():
         if not out:

@@ -185,30 +185,6 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
     return torch.tensor(scores, dtype=torch.float64), torch.tensor(labels, dtype=torch.float64)
 
 
-def check_crop_folders(pos: list[str], neg: list[str]) -> None:
-    """Refuse a folder named twice in ``--pos`` / ``--neg`` (its crops would count twice) or in
-    both (every crop of it a positive and a negative: a fit that can only learn the positive
-    rate), as training does; paths are compared after resolving links, ``..`` and ``/``.
-
-    Raises:
-        ConfigError: naming the option and the folder.
-    """
-    from torchtrack.errors import ConfigError
-
-    found: dict[str, str] = {}  # a folder -> the option that names it
-    for option, folders in (("--pos", pos), ("--neg", neg)):
-        for x in folders:
-            k = os.path.normcase(os.path.realpath(os.fspath(x)))
-            if found.get(k) == option:
-                raise ConfigError(f"{option} names {x!r} twice: its crops would count twice")
-            if k in found:
-                raise ConfigError(
-                    f"--neg names {x!r}, a folder of --pos: its crops would be both positives "
-                    "and negatives"
-                )
-            found[k] = option
-
-
 def crop_margins(
     det: Any,
     folders: list[str],
@@ -348,7 +324,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         if not args.pos or not args.neg:
             raise ConfigError("a MODEL needs labelled calibration crops: --pos DIR and --neg DIR")
-        check_crop_folders(args.pos, args.neg)
+        from torchtrack.io.crops import check_crop_folders
+
+        check_crop_folders({"--pos": args.pos, "--neg": args.neg}, "--pos")
         from torchtrack.detect import load_detector, save_detector
         from torchtrack.detect.bundled import resolve_model
 
@@ -445,7 +423,6 @@ def run(args: argparse.Namespace) -> int:
     # last: when one fails, those this run created before it are removed (a file that was
     # there before the run, now replaced, is left: its old content is gone either way).
     import contextlib
-    import os
 
     written: list[str] = []
     out = None

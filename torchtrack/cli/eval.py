@@ -15,7 +15,8 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import os
+
+from torchtrack.io.atomic import path_key
 
 
 def register(subparsers) -> None:
@@ -215,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
         for s in find_sequences(path, on_mismatch=args.on_mismatch):
             # one sequence twice (a path repeated, or a folder and a sequence inside it):
             # scored twice, it would weigh double in every overall number
-            k = os.path.normcase(os.path.realpath(s.gt_path))
+            k = path_key(s.gt_path)
             if k in given:
                 raise ConfigError(
                     f"--sequences gives sequence {s.name!r} ({s.gt_path}) twice: through "
@@ -352,7 +353,7 @@ def run_mot(args: argparse.Namespace) -> int:
         )
     seen: dict[str, str] = {}  # one results file or folder given twice would be two trackers
     for r in args.results:
-        k = os.path.normcase(os.path.realpath(r))
+        k = path_key(r)
         if k in seen:
             raise ConfigError(
                 f"--results gives {seen[k]!r} twice (as {r!r}): each results file or folder "

@@ -295,21 +295,15 @@ class TrainConfig:
                 f"data.random_negatives must be in [0, {MAX_RANDOM_NEGATIVES}] (windows held in "
                 f"memory), got {d.random_negatives}"
             )
-        found: dict[str, str] = {}  # a folder -> the key that names it
-        for key in ("positives", "negatives", "negative_images"):
-            seen: set[str] = set()
-            for x in getattr(d, key):
-                k = os.path.normcase(os.path.realpath(os.fspath(x)))
-                if k in seen:  # its crops would count twice: copies in the hold-out too
-                    raise ConfigError(f"data.{key} names {x!r} twice")
-                seen.add(k)
-                # one folder as objects and as object-free: every crop in both classes
-                if key != "positives" and found.get(k) == "positives":
-                    raise ConfigError(
-                        f"data.{key} names {x!r}, a folder of data.positives: its images "
-                        "would be both positives and negatives"
-                    )
-                found[k] = key
+        from torchtrack.io.crops import check_crop_folders
+
+        check_crop_folders(
+            {
+                f"data.{key}": getattr(d, key)
+                for key in ("positives", "negatives", "negative_images")
+            },
+            "data.positives",
+        )
         if not d.negatives and not (d.negative_images and d.random_negatives > 0):
             raise ConfigError(
                 "no negatives: give data.negatives (crop folders) or data.negative_images with "

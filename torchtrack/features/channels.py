@@ -299,8 +299,8 @@ def _check_frames(frames: Any) -> torch.Tensor:
     return frames
 
 
-#: OpenCV's most channels per image (``CV_CN_MAX``): :func:`compute_channels` interleaves up
-#: to this many with ``cv2.merge``
+#: OpenCV's most channels per image (``CV_CN_MAX``): :func:`_integral` interleaves up to this
+#: many tables with ``cv2.merge``
 _CV_MAX_CN = 512
 
 
@@ -356,8 +356,8 @@ def compute_channels(
         frames: ``(B, C, H, W)``, C = 1 (gray) or 3 (RGB), 0..255 (uint8 or float).
         channels: the channel set (default: :class:`ChannelSet` ``()``, ten channels).
         memory_format: ``torch.channels_last`` lays the result out as ``(B, H, W, C)`` in
-            memory (the same values), the layout the integral images are summed in: one copy
-            of the frame's channels less.
+            memory (the same values). The integral images do not need it: they are summed
+            plane by plane (:class:`ChannelIntegrals`).
 
     Returns:
         ``(B, len(channels), H, W)`` float32 on the frames' device, in ``channels.channels``
@@ -371,28 +371,7 @@ def compute_channels(
     check_pixel_values(x)
     planes = _channel_planes(x, channels or ChannelSet())
     if memory_format == torch.channels_last:
-        first = planes[0]
-        b, (h, w), nc = first.shape[0], first.shape[-2:], len(planes)
-        if first.device.type == "cpu" and nc <= _CV_MAX_CN:
-            # OpenCV interleaves the planes (SIMD): at 1440x1080 7 against 57 ms for the
-            # strided writes below, which go through the whole buffer once per channel (33 ms
-            # a band of rows at a time; the same values: a copy)
-            import cv2
-
-            frames_hwc = [
-                torch.from_numpy(
-                    cv2.merge([p[i].contiguous().numpy() for p in planes]).reshape(h, w, nc)
-                )
-                for i in range(b)
-            ]
-            out = frames_hwc[0][None] if b == 1 else torch.stack(frames_hwc)
-            return out.permute(0, 3, 1, 2)
-        # one channel at a time into the channels-last buffer: 2.4x faster than
-        # torch.stack(..., -1) of the same planes (the same values)
-        out = torch.empty((b, h, w, nc), dtype=first.dtype, device=first.device)
-        for i, pl in enumerate(planes):
-            out[..., i] = pl
-        return out.permute(0, 3, 1, 2)
+        return torch.stack(planes, -1).permute(0, 3, 1, 2)
     return torch.stack(planes, 1)
 
 

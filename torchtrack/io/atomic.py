@@ -14,11 +14,18 @@ __all__ = [
     "atomic_write",
     "check_regular_destination",
     "check_writable_dir",
+    "path_key",
     "uninterrupted",
     "write_bytes_atomic",
     "write_error",
     "write_text_atomic",
 ]
+
+
+def path_key(path: str | os.PathLike) -> str:
+    """What two names of one file or folder have in common: the real path (links, ``..`` and
+    a trailing ``/`` resolved), case-folded where the file system ignores case."""
+    return os.path.normcase(os.path.realpath(os.fspath(path)))
 
 
 def _umask() -> int:

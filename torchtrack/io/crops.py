@@ -33,6 +33,7 @@ from torchtrack.errors import ConfigError, DataError
 __all__ = [
     "IMAGE_SUFFIXES",
     "CropSet",
+    "check_crop_folders",
     "crops_from_boxes",
     "list_image_files",
     "load_crops",
@@ -115,6 +116,31 @@ def read_image(path: str | os.PathLike, colour: bool = False) -> np.ndarray | No
     """Decode an image file as ``(H, W)`` uint8 luma, or with ``colour`` as ``(H, W, 3)`` uint8
     RGB (grayscale files replicated); ``None`` when it is not a decodable image."""
     return _decode(path, colour)[0]
+
+
+def check_crop_folders(groups: dict[str, list], positives: str) -> None:
+    """Refuse a crop folder named twice under one option (its crops would count twice) or under
+    ``positives`` and another option (every crop of it both a positive and a negative: a fit
+    that can only learn the positive rate). ``groups``: option name -> folders, in the order
+    given; folders are compared by :func:`~torchtrack.io.atomic.path_key`.
+
+    Raises:
+        ConfigError: naming the option and the folder.
+    """
+    from torchtrack.io.atomic import path_key
+
+    found: dict[str, str] = {}  # a folder -> the option that named it last
+    for option, folders in groups.items():
+        for x in folders:
+            k = path_key(x)
+            if found.get(k) == option:
+                raise ConfigError(f"{option} names {x!r} twice: its crops would count twice")
+            if option != positives and found.get(k) == positives:
+                raise ConfigError(
+                    f"{option} names {x!r}, a folder of {positives}: its crops would be both "
+                    "positives and negatives"
+                )
+            found[k] = option
 
 
 def list_image_files(folder: str | os.PathLike) -> tuple[list[Path], list[tuple[str, str]]]:
