@@ -196,8 +196,8 @@ def test_low_probability_detections_extend_but_never_start_targets():
 
 def test_weak_outside_detections_beside_a_more_confident_one_are_dropped():
     """Another detector's looser NMS leaves weak boxes beside a person's main box; the tracker
-    drops those that overlap a more confident detection by more than ``scan_nms`` (0.4), the
-    NMS of its own scans, and keeps the rest: a weak box elsewhere, one overlapping less, and
+    drops those that the NMS of its own scans (``scan_nms`` 0.4) suppresses, and keeps the
+    rest: a weak box elsewhere, one overlapping less, and
     two confident boxes side by side (two people)."""
     mt = make()
     a = [100.0, 60.0, 40.0, 100.0]

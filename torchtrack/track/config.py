@@ -189,7 +189,7 @@ class MultiTrackerConfig:
             (:func:`torchtrack.detect.scan.sliding_windows`; ``scan_max_scale = 0``: up to the
             largest window that fits the frame; ``scan_scale_step`` at least 1.01). Detections
             given from outside get the scan's NMS on their weak boxes: one below the birth
-            threshold that overlaps a more confident detection by more than ``scan_nms`` is
+            threshold that :func:`torchtrack.detect.scan.nms` at ``scan_nms`` suppresses is
             dropped (another detector's looser NMS leaves such boxes beside a person's main box,
             and they would feed a second target on that person; ``docs/multi_target.md``).
         scan_vote: box voting after the scan's NMS (:func:`torchtrack.detect.scan.box_vote`):

@@ -740,21 +740,21 @@ class MultiTargetTracker:
         return bhattacharyya(h, self.hist[:, None, :]).to(torch.float64)
 
     def _weak_duplicates(self, det_boxes: torch.Tensor, det_p: torch.Tensor) -> torch.Tensor:
-        """``(M,)`` bool: weak detections (below the birth threshold) that overlap a more
-        confident detection by more than ``scan_nms``, the NMS the tracker's own scans apply.
-        Another detector may suppress less (the MOT15 public detections of TUD-Stadtmitte keep
-        pairs at IoU 0.4-0.5): its low-score boxes beside a person's main box then feed a
-        second target on that person in the weak association, which ends the first as a
-        duplicate, and the person changes identity. Only weak boxes are dropped; two confident
-        ones (two people side by side) both stay."""
-        from torchtrack.boxes import box_iou_matrix
+        """``(M,)`` bool: weak detections (below the birth threshold) that the scan's own NMS
+        (:func:`~torchtrack.detect.scan.nms` at ``scan_nms``) would suppress. Another detector
+        may suppress less (the MOT15 public detections of TUD-Stadtmitte keep pairs at IoU
+        0.4-0.5): its low-score boxes beside a person's main box then feed a second target on
+        that person in the weak association, which ends the first as a duplicate, and the
+        person changes identity. Only weak boxes are dropped; two confident ones (two people
+        side by side) both stay."""
+        from torchtrack.detect.scan import nms
 
         weak = det_p < self._birth_threshold()
-        if det_p.numel() < 2 or not bool(weak.any()):
-            return torch.zeros_like(weak)
-        iou = box_iou_matrix(det_boxes, det_boxes)
-        higher = det_p[None, :] > det_p[:, None]  # (i, j): detection j is more confident than i
-        return weak & ((iou > self.config.scan_nms) & higher).any(1)
+        if not bool(weak.any()):
+            return weak
+        kept = torch.zeros_like(weak)
+        kept[nms(det_boxes, det_p, self.config.scan_nms)] = True
+        return weak & ~kept
 
     def _associate(
         self, det_boxes: torch.Tensor, det_p: torch.Tensor, det_hist: torch.Tensor | None
