@@ -51,6 +51,13 @@ panning camera, a check of the motion model and of ``camera_motion``.
 
     python tools/loso_multi.py --grid camera_motion=false,true --shake 4
 
+``--zoom R`` magnifies every frame about the horizon (the row the ground truth's people give)
+by ``1 + R`` a frame up to 1.5x and back, resized to the frame's size (ground truth and public
+detections scaled with it): a camera walking towards the scene and back, whose people grow,
+shrink and move away from the horizon's centre (scale and motion beyond a translation).
+
+    python tools/loso_multi.py --grid camera_motion=false,true --zoom 0.01
+
 ``--set key=v,...`` holds other keys at those values for every candidate (a grid on top of a
 non-default setting).
 
@@ -226,6 +233,53 @@ def shaken(seq: MotSequence, amplitude: int, cache: Path) -> MotSequence:
     )  # fmt: skip
 
 
+def zoomed(seq: MotSequence, rate: float, cache: Path, top: float = 1.5) -> MotSequence:
+    """``seq`` seen by a camera that moves towards the scene and back: frame i is the window
+    ``1 / z(i)`` of the frame's size about an anchor point, resized back to the frame's size,
+    where the magnification ``z`` grows by ``1 + rate`` a frame up to ``top`` and shrinks back
+    (a triangle wave in log z). The anchor is the column of the frame's centre on the row of
+    the horizon that the ground truth's people give (the foot row where their fitted height
+    reaches 0; the top row when that lies above the frame): a zoom about the horizon keeps a
+    person's height proportional to its foot row's distance from it, as a camera walking
+    forward on flat ground does. Ground truth and public detections scaled with it, those
+    less than half inside dropped."""
+    if not rate > 0:
+        raise SystemExit(f"--zoom must be > 0, got {rate}")
+    g = seq.gt.boxes
+    a, b = np.polyfit(g[:, 1] + g[:, 3], g[:, 3], 1)  # height = a foot + b, every person
+    ay = float(np.clip(-b / a if a > 0 else 0.0, 0.0, seq.height - 1.0))
+    transform = zoom_transform(seq.width / 2.0, ay, rate, top)
+    return _copy(
+        seq, f"{seq.name}-zoom{rate:g}", cache / "zoomed",
+        lambda img, i: zoom_warp(img, *transform(i)),
+        box_shift=(transform, seq.width, seq.height),
+    )  # fmt: skip
+
+
+def zoom_transform(ax: float, ay: float, rate: float, top: float):
+    """``transform(i) -> (x0, y0, z)``: frame i of a zoom about ``(ax, ay)`` shows the window
+    whose top-left corner is ``(x0, y0)`` magnified ``z`` times, ``z`` growing by ``1 + rate``
+    a frame from 1 to ``top`` and back (a triangle wave in log z); a point ``p`` of the frame
+    is then seen at ``z (p - (x0, y0)) = z (p - a) + a``."""
+    half = math.log(top) / math.log1p(rate)  # frames from 1 to top
+
+    def transform(i: int) -> tuple[float, float, float]:
+        p = i % (2 * half)
+        z = math.exp(math.log1p(rate) * (p if p <= half else 2 * half - p))
+        return ax * (1 - 1 / z), ay * (1 - 1 / z), z
+
+    return transform
+
+
+def zoom_warp(img: np.ndarray, x0: float, y0: float, z: float) -> np.ndarray:
+    """``img (H, W, C)``'s window at ``(x0, y0)`` magnified ``z`` times, at the same size
+    (bilinear)."""
+    import cv2
+
+    m = np.array([[z, 0.0, -x0 * z], [0.0, z, -y0 * z]])
+    return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR)
+
+
 def _crop_copy(seq: MotSequence, name: str, root: Path, offset, less_w: int, less_h: int):
     """``seq``'s frames cropped to windows ``less_w`` / ``less_h`` pixels narrower / shorter
     at ``offset(i) = (dx, dy)`` (see :func:`_copy`'s ``box_shift``)."""
@@ -290,15 +344,19 @@ def _copy(
 
 def _copied_rows(rows: MotRows, s: float, every: int, shift: tuple | None = None) -> MotRows:
     """``rows`` with boxes times ``s`` on the frames kept by ``every`` (renumbered); with
-    ``shift = (offset(i), width, height)`` moved by minus the frame's offset ``(dx, dy)``,
-    those less than half inside the ``width`` x ``height`` crop (along either axis) dropped."""
+    ``shift = (offset(i), width, height)`` moved by minus the frame's offset ``(dx, dy)``
+    (then times ``z`` where the offset is ``(dx, dy, z)``: a magnified window), those less
+    than half inside the ``width`` x ``height`` frame (along either axis) dropped."""
     keep = rows.frames % every == 0
     boxes = rows.boxes * s
     if shift is not None:
         offset, width, height = shift
         boxes = boxes.copy()
-        d = np.array([offset(int(f)) for f in rows.frames], dtype=np.float64).reshape(-1, 2)
-        boxes[:, :2] -= d
+        d = np.array([offset(int(f)) for f in rows.frames], dtype=np.float64)
+        d = d.reshape(len(rows.frames), -1)
+        boxes[:, :2] -= d[:, :2]
+        if d.shape[1] == 3:
+            boxes *= d[:, 2:3]
         for axis, size in ((0, width), (1, height)):
             lo, ext = boxes[:, axis], boxes[:, axis + 2]
             inside = np.clip(lo + ext, 0, size) - np.clip(lo, 0, size)
@@ -452,6 +510,13 @@ def main(argv: list[str] | None = None) -> int:
         "random offset of up to 2 A px on both axes each frame)",
     )
     ap.add_argument(
+        "--zoom",
+        type=float,
+        metavar="R",
+        help="score on copies of the sequences seen by a camera moving towards the scene and "
+        "back (magnified 1 + R a frame about the horizon up to 1.5x, then back)",
+    )
+    ap.add_argument(
         "--degrade",
         metavar="contrast=C,noise=S[,gray=1]",
         help="score on copies of the sequences with lowered contrast and added sensor noise "
@@ -475,6 +540,8 @@ def main(argv: list[str] | None = None) -> int:
         seqs = {n: panned(s, args.pan, args.cache) for n, s in seqs.items()}
     if args.shake is not None:
         seqs = {n: shaken(s, args.shake, args.cache) for n, s in seqs.items()}
+    if args.zoom is not None:
+        seqs = {n: zoomed(s, args.zoom, args.cache) for n, s in seqs.items()}
     if args.degrade:
         seqs = {n: degraded(s, args.degrade, args.cache) for n, s in seqs.items()}
     res: dict[tuple, list[dict]] = {}

@@ -1,6 +1,7 @@
 """``tools/loso_multi.py``'s argument checks (the grid itself runs for minutes: not a test)."""
 
 import importlib.util
+import math
 from pathlib import Path
 
 import pytest
@@ -66,11 +67,44 @@ def test_shake_copies_move_the_boxes_on_both_axes():
     np.testing.assert_allclose(out.boxes, [[46, 41, 20, 40], [46, 76, 20, 40]])  # 24 of 40
 
 
+def test_zoom_copies_scale_the_boxes_as_the_frames_are_magnified():
+    """The frame and its boxes go through the same zoom: a bright box drawn on a frame is found
+    in the zoomed frame where the zoomed box says (to a pixel), and boxes pushed out of the view
+    are dropped."""
+    import numpy as np
+
+    from torchtrack.io.mot import MotRows
+
+    transform = loso.zoom_transform(50.0, 10.0, 0.02, 1.5)
+    assert transform(0) == (0.0, 0.0, 1.0)
+    half = math.log(1.5) / math.log1p(0.02)  # frames from 1x to 1.5x
+    assert transform(round(half))[2] == pytest.approx(1.5, rel=0.02)
+    assert transform(round(2 * half))[2] == pytest.approx(1.0, rel=0.02)  # and back
+    i = 15
+    x0, y0, z = transform(i)
+    img = np.zeros((80, 100, 3), dtype=np.uint8)
+    img[30:50, 60:70] = 255  # the box (60, 30, 10, 20)
+    seen = loso.zoom_warp(img, x0, y0, z)[..., 0] >= 128
+    ys, xs = np.nonzero(seen)
+    rows = MotRows(
+        np.array([i, i]), np.array([1, 2]), np.array([[60.0, 30, 10, 20], [95, 70, 10, 20]]),
+        np.ones(2),
+    )  # fmt: skip
+    out = loso._copied_rows(rows, 1.0, 1, (transform, 100, 80))
+    assert out.ids.tolist() == [1]  # the box near the corner left the view
+    x, y, w, h = out.boxes[0]
+    assert w == pytest.approx(10 * z) and h == pytest.approx(20 * z)
+    assert abs(xs.min() - x) <= 1 and abs(xs.max() + 1 - (x + w)) <= 1
+    assert abs(ys.min() - y) <= 1 and abs(ys.max() + 1 - (y + h)) <= 1
+
+
 def test_pan_must_move():
     with pytest.raises(SystemExit, match="--pan"):
         loso.panned(None, 0.0, None)
     with pytest.raises(SystemExit, match="--shake"):
         loso.shaken(None, 0, None)
+    with pytest.raises(SystemExit, match="--zoom"):
+        loso.zoomed(None, 0.0, None)
 
 
 def test_degrade_gain_follows_the_sine_and_leaves_the_default_unchanged():
