@@ -1507,6 +1507,55 @@ CASES += [
         "eval --sequences {c}/seqs {c}/seqs/good --trackers camshift -o {o}/r",
         "--sequences gives sequence 'good' .* twice",
     ),
+    # options accepted and silently without effect (the eighth sweep)
+    E(
+        "track-particles-tracker-without-particles",  # the video had no particle drawn
+        "track {c}/frames --no-progress --tracker camshift --box 10,14,14,20 "
+        "--video {o}/v.mp4 --particles",
+        r"--particles draws a particle filter's particles: tracker 'camshift' has none",
+    ),
+    E(
+        "eval-mot-results-jobs",  # scored in this process, one after another
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --jobs 2 -o {o}/r",
+        r"--jobs do\(es\) not apply to scoring existing results files \(--mot with --results\)$",
+    ),
+    E(
+        "eval-mot-results-seed",  # nothing random in scoring; recorded in results.json as used
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --seed 3 -o {o}/r",
+        r"--seed do\(es\) not apply to scoring existing results files",
+    ),
+    E(
+        "eval-mot-results-invisible",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --invisible miss -o {o}/r",
+        r"--invisible do\(es\) not apply",
+    ),
+    E(
+        "eval-mot-trackers-on-mismatch",
+        "eval --mot {c}/mot/TOY-01 --trackers multi --on-mismatch truncate -o {o}/r",
+        r"--on-mismatch do\(es\) not apply to --mot",
+    ),
+    E(
+        "eval-mot-trackers-backend",
+        "eval --mot {c}/mot/TOY-01 --trackers multi --backend ray --max-retries 1 -o {o}/r",
+        r"--backend, --max-retries do\(es\) not apply to --mot",
+    ),
+    E(
+        "cal-scores-region",  # the crop region of a score file: nothing to cut
+        f"{CS} --json {{o}}/p.json --region 0 0 8 8 --crop-size 16 16",
+        r"--region, --crop-size go\(es\) with a MODEL's --pos / --neg crops, not with --scores",
+    ),
+    E("cal-scores-strict", f"{CS} --json {{o}}/p.json --strict", "--strict go"),
+    E(
+        "train-variant-with-svm",  # the SVM was trained; the variant went nowhere
+        f"{TR} --classifier svm --variant real -o {{o}}/m.safetensors",
+        r"learn.variant = 'real' is the boosting variant: learn.classifier = 'svm'",
+    ),
+    E(
+        "detect-cascade-haar-model",  # a Haar model has no soft cascade: the scan ignored it
+        f"{D} --cascade -5 -o {{o}}/d.jsonl",
+        r"--cascade sets the soft cascade of channel models .* has none",
+    ),
+    E("detect-no-cascade-haar-model", f"{D} --no-cascade -o {{o}}/d.jsonl", "--no-cascade sets"),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),

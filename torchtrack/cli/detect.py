@@ -459,6 +459,15 @@ def run(args: argparse.Namespace) -> int:
         raise NotFittedError(
             f"model {args.model!r} has no calibration: run `torchtrack calibrate` first"
         )
+    if args.no_cascade or args.cascade is not None:
+        from torchtrack.detect.scan import _lattice_capable
+
+        if not _lattice_capable(det):  # the scan ignores both: they did nothing, silently
+            raise ConfigError(
+                f"{'--no-cascade' if args.no_cascade else '--cascade'} sets the soft cascade of "
+                f"channel models (boosted trees): model {args.model!r} ("
+                f"{type(det.bank).__name__}, {type(det.classifier).__name__}) has none"
+            )
     src = _open(args.source)
     files = src.files
     fps = src.fps
