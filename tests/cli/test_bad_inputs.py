@@ -269,6 +269,11 @@ def corpus(tmp_path_factory, forge_model):
         (c / "mot" / name / "gt").mkdir(parents=True)
         (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
         (c / "mot" / name / "seqinfo.ini").write_text(text)
+    (c / "mot" / "HALF" / "gt").mkdir(parents=True)  # conf 0.5: a 0/1 flag truncated to 0
+    (c / "mot" / "HALF" / "gt" / "gt.txt").write_text(
+        (mot / "gt" / "gt.txt").read_text().replace(",1,-1,-1,-1", ",0.5,-1,-1,-1")
+    )
+    (c / "mot" / "HALF" / "seqinfo.ini").write_text(ini)
     (c / "mot" / "BIN" / "gt").mkdir(parents=True)
     (c / "mot" / "BIN" / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
     (c / "mot" / "BIN" / "seqinfo.ini").write_bytes(b"\xb3\xff\x00[Sequence]")
@@ -1556,6 +1561,11 @@ CASES += [
         r"--cascade sets the soft cascade of channel models .* has none",
     ),
     E("detect-no-cascade-haar-model", f"{D} --no-cascade -o {{o}}/d.jsonl", "--no-cascade sets"),
+    A(
+        "eval-mot-gt-conf-fractional",  # every row ignored by the scoring, and no word of it
+        "eval --mot {c}/mot/HALF --results {c}/res.txt",
+        r"6 ground-truth row\(s\) of TOY-01 .* have a conf in \(0, 1\): .* so they are ignored",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),

@@ -304,7 +304,18 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
     import sys
 
     for seq in seqs:
-        if len(seq.gt) == 0 or not (seq.gt.conf != 0).any():
+        # the scoring's rule (TrackEval's): a row is ignored when its conf, truncated to an
+        # integer, is 0, so conf 0.5 is ignored too (the warning below tested conf != 0)
+        conf = seq.gt.conf
+        fractional = int(((conf > 0) & (conf < 1)).sum())
+        if fractional:
+            print(
+                f"warning: {fractional} ground-truth row(s) of {seq.name} ({seq.gt_path}) have "
+                "a conf in (0, 1): ground truth's conf is a 0/1 flag, truncated to an integer, "
+                "so they are ignored",
+                file=sys.stderr,
+            )
+        if len(seq.gt) == 0 or not (conf.astype(int) != 0).any():
             print(
                 f"warning: the ground truth of {seq.name} has no scored row (empty, or every "
                 "row marked conf 0): every reported box counts as a false positive",
