@@ -1566,6 +1566,19 @@ CASES += [
         "eval --mot {c}/mot/HALF --results {c}/res.txt",
         r"6 ground-truth row\(s\) of TOY-01 .* have a conf in \(0, 1\): .* so they are ignored",
     ),
+    # signing wrote the file, then refused it as untrusted: exit 1 with the output left
+    E(
+        "sign-require-signed",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {o}/s.safetensors --require-signed",
+        r"--require-signed decide\(s\) which model files are accepted: they go with --check",
+    ),
+    E(
+        "sign-trusted-key-other-signer",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {o}/s.safetensors "
+        "--trusted-key {c}/mallory.pub",
+        "--trusted-key decide",
+    ),
+    E("sign-new-key-trusted-key", "sign --new-key {o}/k.pem --trusted-key {c}/alice.pub", "decide"),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),
@@ -1856,3 +1869,16 @@ def test_detections_mostly_outside_the_frames_warn(corpus, tmp_path):
     )
     with pytest.warns(UserWarning, match="6 of the 6 boxes .* lie mostly outside the 64x48 frames"):
         assert main(argv) == 0
+
+
+def test_signing_under_required_signatures_reports_the_signer(corpus, tmp_path, monkeypatch):
+    """TORCHTRACK_REQUIRE_SIGNED=1 in the environment: the signed file was written, then
+    refused as signed by an untrusted key (exit 1, the file left). The report now only says
+    who signed it."""
+    from torchtrack.detect.signing import ENV_REQUIRE
+
+    monkeypatch.setenv(ENV_REQUIRE, "1")
+    out = tmp_path / "s.safetensors"
+    key = str(corpus / "alice.pem")
+    assert main(["sign", str(corpus / "toy.safetensors"), "--key", key, "-o", str(out)]) == 0
+    assert out.is_file()
