@@ -514,6 +514,8 @@ class MotSequence:
         det_path: the public detections (``det/det.txt``) when present.
         width, height: frame size in pixels when known.
         frame_rate: frames per second when known.
+        im_dir: the frames' folder a MOTChallenge folder names (``img1/`` or ``seqinfo.ini``'s
+            ``imDir``), whether or not it exists; ``None`` for a video.
     """
 
     name: str
@@ -527,6 +529,7 @@ class MotSequence:
     width: int | None = None
     height: int | None = None
     frame_rate: float | None = None
+    im_dir: Path | None = None
 
     @property
     def source(self) -> Path | list[Path] | None:
@@ -540,8 +543,11 @@ class MotSequence:
             VideoError: the sequence has no frames here (ground truth only).
         """
         if self.source is None:
+            # the folder looked for: seqinfo.ini's imDir may name another than img1/ (which
+            # the message named even when it was there)
+            where = f"{self.im_dir}/" if self.im_dir is not None else "img1/"
             raise VideoError(
-                f"sequence {self.name} has no frames here (no img1/ folder and no video)"
+                f"sequence {self.name} has no frames here (no {where} folder and no video)"
             )
         return FrameSource(self.source, color=color)
 
@@ -640,6 +646,7 @@ def _load_folder(d: Path, gt: str | os.PathLike | None, scale: float) -> MotSequ
         width=None if info is None else info.im_width,
         height=None if info is None else info.im_height,
         frame_rate=None if info is None else info.frame_rate,
+        im_dir=img_dir,
     )
 
 
