@@ -285,6 +285,11 @@ def corpus(tmp_path_factory, forge_model):
     shutil.copytree(mot, c / "mot2" / "TOY-01")
     shutil.copytree(mot, c / "mot2" / "TOY-02")
     (c / "mot2" / "TOY-02" / "seqinfo.ini").write_text(ini.replace("name=TOY-01", "name=TOY-02"))
+    # frames resized to a tenth of seqinfo.ini's imWidth x imHeight (the ground truth's pixels)
+    shutil.copytree(mot, c / "mot" / "RESIZED")
+    (c / "mot" / "RESIZED" / "seqinfo.ini").write_text(
+        ini.replace("imWidth=64", "imWidth=640").replace("imHeight=48", "imHeight=480")
+    )
     odd = sorted((c / "mot2" / "TOY-02" / "img1").iterdir())[3]
     cv2.imwrite(str(odd), np.zeros((40, 64, 3), np.uint8))
     return c
@@ -1579,6 +1584,18 @@ CASES += [
         "--trusted-key decide",
     ),
     E("sign-new-key-trusted-key", "sign --new-key {o}/k.pem --trusted-key {c}/alice.pub", "decide"),
+    # frames resized since the ground truth was drawn: scored against boxes 10x their size,
+    # the warnings measuring the frames by seqinfo.ini (exit 0, every box a miss)
+    E(
+        "eval-mot-frames-not-seqinfo-size",
+        "eval --mot {c}/mot/RESIZED --results {c}/res.txt -o {o}/r",
+        r"img1/0000\.jpg is 64x48 but .*RESIZED/seqinfo\.ini says imWidth=640 imHeight=480",
+    ),
+    A(
+        "eval-mot-frames-not-seqinfo-size-scale-given",
+        "eval --mot {c}/mot/RESIZED --results {c}/res.txt --gt-scale 1",
+        "HOTA",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),
