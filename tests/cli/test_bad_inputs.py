@@ -1596,6 +1596,11 @@ CASES += [
         "eval --mot {c}/mot/RESIZED --results {c}/res.txt --gt-scale 1",
         "HOTA",
     ),
+    E(
+        "detect-vote-without-nms",  # the scan votes only among what NMS keeps: dropped, silently
+        f"{D} --vote-iou 0.7 --nms-iou 1 -o {{o}}/d.jsonl",
+        r"--vote-iou 0.7 refines .* with --nms-iou 1 \(off\) there is none",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),
