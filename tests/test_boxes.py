@@ -72,3 +72,17 @@ def test_a_frame_size_that_is_not_two_sizes_is_refused(size):
         clip_boxes(b, size)
     with pytest.raises(ShapeError, match="frame_size must be"):
         inside_fraction(b, size)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_boxes_of_ordinary_size(dtype):
+    """A 300 x 300 box's area (90000) is beyond float16: its IoU with itself came out 0 and
+    its inside fraction NaN. The areas are taken in float32; the results keep the dtype."""
+    a = torch.tensor([[0.0, 0.0, 300.0, 300.0]], dtype=dtype)
+    b = torch.tensor([[10.0, 10.0, 300.0, 300.0]], dtype=dtype)
+    want = box_iou(a.float(), b.float())
+    assert box_iou(a, a).dtype == dtype and box_iou(a, a).item() == 1.0
+    assert box_iou(a, b).float().item() == pytest.approx(want.item(), abs=5e-3)
+    assert box_iou_matrix(a, b).float().item() == pytest.approx(want.item(), abs=5e-3)
+    frac = inside_fraction(a, (150, 1000))
+    assert frac.dtype == dtype and frac.float().item() == pytest.approx(0.5, abs=5e-3)

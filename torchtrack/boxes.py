@@ -100,6 +100,9 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
             raise ShapeError(
                 f"box_iou needs broadcastable boxes, got a {tuple(a.shape)} and b {tuple(b.shape)}"
             ) from None
+    half = _half_dtype(a, b)
+    if half is not None:  # areas of boxes from 256 px overflow float16: IoU 0 for one box twice
+        return box_iou(a.float(), b.float()).to(half)
     ax1, ay1, ax2, ay2 = xywh_to_xyxy(a).unbind(-1)
     bx1, by1, bx2, by2 = xywh_to_xyxy(b).unbind(-1)
     iw = (torch.minimum(ax2, bx2) - torch.maximum(ax1, bx1)).clamp(min=0)
@@ -182,9 +185,22 @@ def inside_fraction(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.T
     size ``(H, W)``: 1 inside, 0 entirely outside; NaN for a box that is not finite or has no
     area (compare with ``>=`` and such boxes fail)."""
     _check_last4(boxes)
+    half = _half_dtype(boxes)
+    if half is not None:  # as box_iou: the areas in float32, the fractions in the half dtype
+        return inside_fraction(boxes.float(), frame_size).to(half)
     area = boxes[..., 2] * boxes[..., 3]
     inside = box_area(clip_boxes(boxes, frame_size))
     return torch.where(area > 0, inside / torch.where(area > 0, area, 1), float("nan"))
+
+
+def _half_dtype(*boxes: torch.Tensor) -> torch.dtype | None:
+    """The 16-bit float dtype of ``boxes`` (their promoted dtype), else ``None``: box areas
+    are computed in float32, since a 256 x 256 box's area is beyond float16's 65504 (and
+    bfloat16 keeps 8 bits of it)."""
+    dtype = boxes[0].dtype
+    for b in boxes[1:]:
+        dtype = torch.promote_types(dtype, b.dtype)
+    return dtype if dtype in (torch.float16, torch.bfloat16) else None
 
 
 def _first_false(mask: torch.Tensor) -> int:

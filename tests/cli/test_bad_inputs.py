@@ -269,6 +269,11 @@ def corpus(tmp_path_factory, forge_model):
         (c / "mot" / name / "gt").mkdir(parents=True)
         (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
         (c / "mot" / name / "seqinfo.ini").write_text(text)
+    (c / "mot" / "HALF" / "gt").mkdir(parents=True)  # conf 0.5: a 0/1 flag truncated to 0
+    (c / "mot" / "HALF" / "gt" / "gt.txt").write_text(
+        (mot / "gt" / "gt.txt").read_text().replace(",1,-1,-1,-1", ",0.5,-1,-1,-1")
+    )
+    (c / "mot" / "HALF" / "seqinfo.ini").write_text(ini)
     (c / "mot" / "BIN" / "gt").mkdir(parents=True)
     (c / "mot" / "BIN" / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
     (c / "mot" / "BIN" / "seqinfo.ini").write_bytes(b"\xb3\xff\x00[Sequence]")
@@ -280,6 +285,11 @@ def corpus(tmp_path_factory, forge_model):
     shutil.copytree(mot, c / "mot2" / "TOY-01")
     shutil.copytree(mot, c / "mot2" / "TOY-02")
     (c / "mot2" / "TOY-02" / "seqinfo.ini").write_text(ini.replace("name=TOY-01", "name=TOY-02"))
+    # frames resized to a tenth of seqinfo.ini's imWidth x imHeight (the ground truth's pixels)
+    shutil.copytree(mot, c / "mot" / "RESIZED")
+    (c / "mot" / "RESIZED" / "seqinfo.ini").write_text(
+        ini.replace("imWidth=64", "imWidth=640").replace("imHeight=48", "imHeight=480")
+    )
     odd = sorted((c / "mot2" / "TOY-02" / "img1").iterdir())[3]
     cv2.imwrite(str(odd), np.zeros((40, 64, 3), np.uint8))
     return c
@@ -1507,6 +1517,90 @@ CASES += [
         "eval --sequences {c}/seqs {c}/seqs/good --trackers camshift -o {o}/r",
         "--sequences gives sequence 'good' .* twice",
     ),
+    # options accepted and silently without effect (the eighth sweep)
+    E(
+        "track-particles-tracker-without-particles",  # the video had no particle drawn
+        "track {c}/frames --no-progress --tracker camshift --box 10,14,14,20 "
+        "--video {o}/v.mp4 --particles",
+        r"--particles draws a particle filter's particles: tracker 'camshift' has none",
+    ),
+    E(
+        "eval-mot-results-jobs",  # scored in this process, one after another
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --jobs 2 -o {o}/r",
+        r"--jobs do\(es\) not apply to scoring existing results files \(--mot with --results\)$",
+    ),
+    E(
+        "eval-mot-results-seed",  # nothing random in scoring; recorded in results.json as used
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --seed 3 -o {o}/r",
+        r"--seed do\(es\) not apply to scoring existing results files",
+    ),
+    E(
+        "eval-mot-results-invisible",
+        "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --invisible miss -o {o}/r",
+        r"--invisible do\(es\) not apply",
+    ),
+    E(
+        "eval-mot-trackers-on-mismatch",
+        "eval --mot {c}/mot/TOY-01 --trackers multi --on-mismatch truncate -o {o}/r",
+        r"--on-mismatch do\(es\) not apply to --mot",
+    ),
+    E(
+        "eval-mot-trackers-backend",
+        "eval --mot {c}/mot/TOY-01 --trackers multi --backend ray --max-retries 1 -o {o}/r",
+        r"--backend, --max-retries do\(es\) not apply to --mot",
+    ),
+    E(
+        "cal-scores-region",  # the crop region of a score file: nothing to cut
+        f"{CS} --json {{o}}/p.json --region 0 0 8 8 --crop-size 16 16",
+        r"--region, --crop-size go\(es\) with a MODEL's --pos / --neg crops, not with --scores",
+    ),
+    E("cal-scores-strict", f"{CS} --json {{o}}/p.json --strict", "--strict go"),
+    E(
+        "train-variant-with-svm",  # the SVM was trained; the variant went nowhere
+        f"{TR} --classifier svm --variant real -o {{o}}/m.safetensors",
+        r"learn.variant = 'real' is the boosting variant: learn.classifier = 'svm'",
+    ),
+    E(
+        "detect-cascade-haar-model",  # a Haar model has no soft cascade: the scan ignored it
+        f"{D} --cascade -5 -o {{o}}/d.jsonl",
+        r"--cascade sets the soft cascade of channel models .* has none",
+    ),
+    E("detect-no-cascade-haar-model", f"{D} --no-cascade -o {{o}}/d.jsonl", "--no-cascade sets"),
+    A(
+        "eval-mot-gt-conf-fractional",  # every row ignored by the scoring, and no word of it
+        "eval --mot {c}/mot/HALF --results {c}/res.txt",
+        r"6 ground-truth row\(s\) of TOY-01 .* have a conf in \(0, 1\): .* so they are ignored",
+    ),
+    # signing wrote the file, then refused it as untrusted: exit 1 with the output left
+    E(
+        "sign-require-signed",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {o}/s.safetensors --require-signed",
+        r"--require-signed decide\(s\) which model files are accepted: they go with --check",
+    ),
+    E(
+        "sign-trusted-key-other-signer",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {o}/s.safetensors "
+        "--trusted-key {c}/mallory.pub",
+        "--trusted-key decide",
+    ),
+    E("sign-new-key-trusted-key", "sign --new-key {o}/k.pem --trusted-key {c}/alice.pub", "decide"),
+    # frames resized since the ground truth was drawn: scored against boxes 10x their size,
+    # the warnings measuring the frames by seqinfo.ini (exit 0, every box a miss)
+    E(
+        "eval-mot-frames-not-seqinfo-size",
+        "eval --mot {c}/mot/RESIZED --results {c}/res.txt -o {o}/r",
+        r"img1/0000\.jpg is 64x48 but .*RESIZED/seqinfo\.ini says imWidth=640 imHeight=480",
+    ),
+    A(
+        "eval-mot-frames-not-seqinfo-size-scale-given",
+        "eval --mot {c}/mot/RESIZED --results {c}/res.txt --gt-scale 1",
+        "HOTA",
+    ),
+    E(
+        "detect-vote-without-nms",  # the scan votes only among what NMS keeps: dropped, silently
+        f"{D} --vote-iou 0.7 --nms-iou 1 -o {{o}}/d.jsonl",
+        r"--vote-iou 0.7 refines .* with --nms-iou 1 \(off\) there is none",
+    ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
     E("top-no-command", "", "usage", 2),
@@ -1797,3 +1891,16 @@ def test_detections_mostly_outside_the_frames_warn(corpus, tmp_path):
     )
     with pytest.warns(UserWarning, match="6 of the 6 boxes .* lie mostly outside the 64x48 frames"):
         assert main(argv) == 0
+
+
+def test_signing_under_required_signatures_reports_the_signer(corpus, tmp_path, monkeypatch):
+    """TORCHTRACK_REQUIRE_SIGNED=1 in the environment: the signed file was written, then
+    refused as signed by an untrusted key (exit 1, the file left). The report now only says
+    who signed it."""
+    from torchtrack.detect.signing import ENV_REQUIRE
+
+    monkeypatch.setenv(ENV_REQUIRE, "1")
+    out = tmp_path / "s.safetensors"
+    key = str(corpus / "alice.pem")
+    assert main(["sign", str(corpus / "toy.safetensors"), "--key", key, "-o", str(out)]) == 0
+    assert out.is_file()

@@ -335,3 +335,16 @@ def test_video_gt_from_another_sequence(tmp_path):
     _write(d2 / "seqinfo.ini", "[Sequence]\nseqLength=4\nimWidth=16\nimHeight=16\n")
     with pytest.raises(SequenceError, match="another aspect ratio"):
         load_mot_sequence(video, gt=d2 / "gt" / "gt.txt")
+
+
+def test_frames_folder_named_by_imdir_is_the_one_reported_missing(tmp_path):
+    """seqinfo.ini's imDir names another folder than the img1/ that is there: the sequence
+    has no frames, and the message names the folder looked for (it said 'no img1/ folder'
+    beside an img1/ folder)."""
+    d = _mot_folder(tmp_path / "s")
+    ini = (d / "seqinfo.ini").read_text().replace("imDir=img1", "imDir=frames")
+    (d / "seqinfo.ini").write_text(ini)
+    seq = load_mot_sequence(d)
+    assert seq.frames is None and seq.im_dir == d / "frames"
+    with pytest.raises(VideoError, match=r"no .*[/\\]s[/\\]frames/ folder and no video"):
+        seq.open()

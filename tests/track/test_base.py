@@ -82,6 +82,10 @@ def test_call_order_and_frame_checks():
     t.init(FRAME[:1], [1, 1, 4, 4])  # gray frames are accepted
     with pytest.raises(ShapeError, match="frame size changed"):
         t.update(torch.zeros(3, 21, 30, dtype=torch.uint8))
+    # but not a gray frame after RGB ones (or back): it was tracked, compared with RGB models
+    t.init(FRAME, [1, 1, 4, 4])
+    with pytest.raises(ShapeError, match="frame channels changed from 3 to 1 during tracking"):
+        t.update(FRAME[:1])
 
 
 def test_bad_init_boxes():

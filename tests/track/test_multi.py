@@ -594,6 +594,8 @@ def test_bad_frames_and_detections():
     mt.update(blank(), (people(0), torch.ones(3)))
     with pytest.raises(ShapeError, match="frame size changed"):
         mt.update(blank(200, 320))
+    with pytest.raises(ShapeError, match="frame channels changed from 3 to 1 at frame 1"):
+        mt.update(blank()[:1])
     with pytest.raises(ShapeError, match="probabilities"):
         mt.update(blank(), (people(1), torch.ones(2)))
     # malformed detections are an error naming the detection, never dropped or reshaped

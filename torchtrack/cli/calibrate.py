@@ -310,6 +310,20 @@ def run(args: argparse.Namespace) -> int:
     if args.scores is not None:
         if args.pos or args.neg or args.out:
             raise ConfigError("--pos / --neg / --out need a MODEL, not --scores")
+        crop_only = [  # options of the crops: a score file has none, they did nothing
+            flag
+            for flag, used in (
+                ("--region", args.region),
+                ("--crop-size", args.crop_size),
+                ("--strict", args.strict),
+            )
+            if used
+        ]
+        if crop_only:
+            raise ConfigError(
+                f"{', '.join(crop_only)} go(es) with a MODEL's --pos / --neg crops, not with "
+                "--scores (a score file has no crops)"
+            )
         if not args.json:
             raise ConfigError("--scores needs --json OUT to write the calibration to")
         s, labels = read_scores_csv(args.scores)

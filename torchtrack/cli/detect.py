@@ -177,7 +177,7 @@ def add_box_refinement(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--vote-iou",
         type=float,
-        default=VOTE_IOU,
+        default=None,
         help="refine each detection with the windows above --threshold that overlap it by this "
         f"IoU (weighted mean position and scale; the probability stays the best window's; "
         f"default {VOTE_IOU:g}; 0: off)",
@@ -221,6 +221,7 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
             f"{det.window[1]} window; at most {1 / MIN_SCALE:g}x: --min-scale {MIN_SCALE:g} or "
             f"more (--min-height {MIN_SCALE * object_height(det):.3g} px or more)"
         )
+    vote = VOTE_IOU if args.vote_iou is None else args.vote_iou
     return {
         "threshold": args.threshold,
         "scale_step": args.scale_step,
@@ -229,7 +230,7 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
         "max_scale": args.max_scale,
         "nms_iou": None if args.nms_iou >= 1.0 else args.nms_iou,
         "nms_overlap": args.nms_overlap,
-        "vote_iou": args.vote_iou if args.vote_iou > 0 and args.nms_iou < 1.0 else None,
+        "vote_iou": vote if vote > 0 and args.nms_iou < 1.0 else None,
         "pad": args.pad,
         "windows": args.windows,
         "cascade": not args.no_cascade,
@@ -267,8 +268,13 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ConfigError(f"--nms-iou must be in (0, 1], got {args.nms_iou}")
     if not 0.0 <= args.pad <= 0.5:
         raise ConfigError(f"--pad is a fraction of the window in [0, 0.5], got {args.pad}")
-    if not 0.0 <= args.vote_iou <= 1.0:
+    if args.vote_iou is not None and not 0.0 <= args.vote_iou <= 1.0:
         raise ConfigError(f"--vote-iou must be in [0, 1] (0: off), got {args.vote_iou}")
+    if args.vote_iou and args.nms_iou >= 1.0:  # the scan drops the vote without NMS, silently
+        raise ConfigError(
+            f"--vote-iou {args.vote_iou:g} refines the detections non-maximum suppression keeps: "
+            "with --nms-iou 1 (off) there is none; drop one of them"
+        )
     if args.cascade is not None:
         if not (math.isfinite(args.cascade) and args.cascade <= 0):
             raise ConfigError(
@@ -459,6 +465,15 @@ def run(args: argparse.Namespace) -> int:
         raise NotFittedError(
             f"model {args.model!r} has no calibration: run `torchtrack calibrate` first"
         )
+    if args.no_cascade or args.cascade is not None:
+        from torchtrack.detect.scan import _lattice_capable
+
+        if not _lattice_capable(det):  # the scan ignores both: they did nothing, silently
+            raise ConfigError(
+                f"{'--no-cascade' if args.no_cascade else '--cascade'} sets the soft cascade of "
+                f"channel models (boosted trees): model {args.model!r} ("
+                f"{type(det.bank).__name__}, {type(det.classifier).__name__}) has none"
+            )
     src = _open(args.source)
     files = src.files
     fps = src.fps

@@ -304,13 +304,38 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
     import sys
 
     for seq in seqs:
-        if len(seq.gt) == 0 or not (seq.gt.conf != 0).any():
+        # the scoring's rule (TrackEval's): a row is ignored when its conf, truncated to an
+        # integer, is 0, so conf 0.5 is ignored too (the warning below tested conf != 0)
+        conf = seq.gt.conf
+        fractional = int(((conf > 0) & (conf < 1)).sum())
+        if fractional:
+            print(
+                f"warning: {fractional} ground-truth row(s) of {seq.name} ({seq.gt_path}) have "
+                "a conf in (0, 1): ground truth's conf is a 0/1 flag, truncated to an integer, "
+                "so they are ignored",
+                file=sys.stderr,
+            )
+        if len(seq.gt) == 0 or not (conf.astype(int) != 0).any():
             print(
                 f"warning: the ground truth of {seq.name} has no scored row (empty, or every "
                 "row marked conf 0): every reported box counts as a false positive",
                 file=sys.stderr,
             )
     return seqs
+
+
+def _single_target_options(args: argparse.Namespace) -> list[tuple[str, bool]]:
+    """The options only a ``--sequences`` run reads, each with whether it was given: ``--mot``
+    scores (or tracks, one sequence after another in this process) without them, and took
+    them silently."""
+    return [
+        ("--invisible", args.invisible != "box"),
+        ("--on-mismatch", args.on_mismatch != "error"),
+        ("--backend", args.backend != "local"),
+        ("--jobs", args.jobs is not None),
+        ("--address", args.address is not None),
+        ("--max-retries", args.max_retries != 3),
+    ]
 
 
 def run_mot(args: argparse.Namespace) -> int:
@@ -342,14 +367,22 @@ def run_mot(args: argparse.Namespace) -> int:
             ("--reinit", args.reinit),
             ("--max-frames", args.max_frames),
             ("--device", args.device not in (None, "cpu")),
+            ("--seed", args.seed != 0),
+            *_single_target_options(args),
         )
         if used
     ]
     if clash:
+        tracking = {"--trackers", "--max-frames", "--device", "--seed"} & set(clash)
         raise ConfigError(
             f"{', '.join(clash)} do(es) not apply to scoring existing results files (--mot "
-            "with --results); to run the multi-target tracker and score it, give --mot and "
-            "--trackers multi without --results"
+            "with --results)"
+            + (
+                "; to run the multi-target tracker and score it, give --mot and --trackers "
+                "multi without --results"
+                if tracking
+                else ""
+            )
         )
     seen: dict[str, str] = {}  # one results file or folder given twice would be two trackers
     for r in args.results:
@@ -390,7 +423,8 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
     if not args.out:
         raise ConfigError("running trackers with --mot needs -o/--out DIR for their results")
     clash = [f for f, used in (("--sequences", args.sequences), ("--plots", args.plots),
-                               ("--reinit", args.reinit)) if used]  # fmt: skip
+                               ("--reinit", args.reinit), *_single_target_options(args))
+             if used]  # fmt: skip
     if clash:
         raise ConfigError(f"{', '.join(clash)} do(es) not apply to --mot")
     specs = []

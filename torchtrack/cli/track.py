@@ -807,6 +807,15 @@ def build_tracker(args: argparse.Namespace, auto: bool):
 
         params["generator"] = torch.Generator(device=device_of(args)).manual_seed(args.seed)
     tracker = create_tracker(name, **params)
+    if args.particles and not hasattr(tracker, "particle_boxes"):  # drew nothing, silently
+        raise ConfigError(
+            f"--particles draws a particle filter's particles: tracker {name!r} has none (the "
+            "particle filters: "
+            + ", ".join(
+                n for n in tracker_names() if hasattr(tracker_info(n).factory, "particle_boxes")
+            )
+            + ")"
+        )
     if not auto and args.detect is not None and "model" not in accepted:
         raise ConfigError(
             f"--detect is used to find the target when no --box is given and by trackers that "

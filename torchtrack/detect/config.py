@@ -388,6 +388,11 @@ class TrainConfig:
             raise ConfigError(
                 f"learn.variant must be 'discrete', 'real' or 'gentle', got {lr.variant!r}"
             )
+        if lr.variant is not None and lr.classifier == "svm":  # it was taken and ignored
+            raise ConfigError(
+                f"learn.variant = {lr.variant!r} is the boosting variant: learn.classifier = "
+                "'svm' trains no boosted classifier (leave the variant out, or train adaboost)"
+            )
         for name in ("n_trees", "tree_depth"):
             if not _posint(getattr(lr, name)):
                 raise ConfigError(

@@ -514,6 +514,8 @@ class MotSequence:
         det_path: the public detections (``det/det.txt``) when present.
         width, height: frame size in pixels when known.
         frame_rate: frames per second when known.
+        im_dir: the frames' folder a MOTChallenge folder names (``img1/`` or ``seqinfo.ini``'s
+            ``imDir``), whether or not it exists; ``None`` for a video.
     """
 
     name: str
@@ -527,6 +529,7 @@ class MotSequence:
     width: int | None = None
     height: int | None = None
     frame_rate: float | None = None
+    im_dir: Path | None = None
 
     @property
     def source(self) -> Path | list[Path] | None:
@@ -540,8 +543,11 @@ class MotSequence:
             VideoError: the sequence has no frames here (ground truth only).
         """
         if self.source is None:
+            # the folder looked for: seqinfo.ini's imDir may name another than img1/ (which
+            # the message named even when it was there)
+            where = f"{self.im_dir}/" if self.im_dir is not None else "img1/"
             raise VideoError(
-                f"sequence {self.name} has no frames here (no img1/ folder and no video)"
+                f"sequence {self.name} has no frames here (no {where} folder and no video)"
             )
         return FrameSource(self.source, color=color)
 
@@ -588,14 +594,16 @@ def load_mot_sequence(
 
     Raises:
         SequenceError: neither a MOTChallenge folder nor a video, a video without ``gt``, a
-            frame count that disagrees with ``seqinfo.ini``, frame sizes of a different shape.
+            frame count that disagrees with ``seqinfo.ini``, frame sizes of a different shape,
+            a folder's first frame of another size than ``seqinfo.ini``'s ``imWidth`` x
+            ``imHeight`` (unless ``scale`` is given).
         MotFormatError: a malformed ground-truth file or ``seqinfo.ini``, GT rows beyond the
             sequence's frames.
         VideoError: the video cannot be opened.
     """
     p = Path(path)
     if p.is_dir():
-        return _load_folder(p, gt, _resolve_scale(scale))
+        return _load_folder(p, gt, _resolve_scale(scale), check_size=scale is None)
     if p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS:
         if gt is None:
             raise SequenceError(
@@ -610,7 +618,9 @@ def load_mot_sequence(
     )
 
 
-def _load_folder(d: Path, gt: str | os.PathLike | None, scale: float) -> MotSequence:
+def _load_folder(
+    d: Path, gt: str | os.PathLike | None, scale: float, check_size: bool = True
+) -> MotSequence:
     info = read_seqinfo(d / "seqinfo.ini") if (d / "seqinfo.ini").is_file() else None
     img_dir = d / (info.im_dir if info else "img1")
     frames = list_image_files(img_dir) if img_dir.is_dir() else None
@@ -624,6 +634,8 @@ def _load_folder(d: Path, gt: str | os.PathLike | None, scale: float) -> MotSequ
             f"{img_dir} holds {len(frames)} frames but {d / 'seqinfo.ini'} says "
             f"seqLength={info.seq_length}"
         )
+    if check_size and info is not None and frames and info.im_width and info.im_height:
+        _check_frame_size(frames[0], info, d / "seqinfo.ini")
     gt_path = Path(gt) if gt is not None else d / "gt" / "gt.txt"
     if not gt_path.is_file():
         raise SequenceError(f"{d} has no ground truth ({gt_path} does not exist)")
@@ -640,7 +652,30 @@ def _load_folder(d: Path, gt: str | os.PathLike | None, scale: float) -> MotSequ
         width=None if info is None else info.im_width,
         height=None if info is None else info.im_height,
         frame_rate=None if info is None else info.frame_rate,
+        im_dir=img_dir,
     )
+
+
+def _check_frame_size(first: Path, info: SeqInfo, ini: Path) -> None:
+    """:class:`SequenceError` when the first frame's size is not ``seqinfo.ini``'s ``imWidth``
+    x ``imHeight``: the ground truth is in those pixels, so frames resized since (half size
+    for speed) were scored against boxes twice their size, with no warning (the warnings
+    measure the frames by ``seqinfo.ini``). An unreadable first frame is left to the reader;
+    an explicit ``scale`` skips the check."""
+    from torchtrack.errors import DataError
+    from torchtrack.io.video import decode_image
+
+    try:
+        img = decode_image(first)
+    except DataError:
+        return
+    h, w = int(img.shape[0]), int(img.shape[1])
+    if (w, h) != (info.im_width, info.im_height):
+        raise SequenceError(
+            f"{first} is {w}x{h} but {ini} says imWidth={info.im_width} "
+            f"imHeight={info.im_height}, the ground truth's pixels (frames resized since?): give "
+            "the ground-truth scale explicitly (eval --gt-scale)"
+        )
 
 
 def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:

@@ -141,6 +141,7 @@ class Tracker(abc.ABC):
     def __init__(self) -> None:
         self._initialised = False
         self.frame_size: tuple[int, int] | None = None
+        self._channels: int | None = None
 
     # -- public API ----------------------------------------------------------------------------
     def init(self, frame: torch.Tensor, box: torch.Tensor | None = None) -> TrackState:
@@ -187,6 +188,7 @@ class Tracker(abc.ABC):
                     f"instance, got {boxes.shape[0]} boxes; create one tracker per target"
                 )
         self.frame_size = (h, w)
+        self._channels = int(frame.shape[0])
         state = self._init(frame, boxes)
         self._initialised = True
         return self._visible_in_frame(state)
@@ -205,6 +207,12 @@ class Tracker(abc.ABC):
             raise ShapeError(
                 f"frame size changed from {self.frame_size} to {tuple(frame.shape[-2:])} "
                 "(H, W) during tracking"
+            )
+        channels = getattr(self, "_channels", None)  # a gray frame after RGB ones was taken
+        if channels is not None and int(frame.shape[0]) != channels:
+            raise ShapeError(
+                f"frame channels changed from {channels} to {int(frame.shape[0])} during "
+                "tracking: give every frame in the first one's colour mode (1 gray, 3 RGB)"
             )
         return self._visible_in_frame(self._update(frame))
 

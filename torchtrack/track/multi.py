@@ -197,6 +197,7 @@ class MultiTargetTracker:
         self.frame_index = -1
         # the frames' size as given, and inside the tracker (min_frame_height: upsampled)
         self.input_size: tuple[int, int] | None = None
+        self._channels: int | None = None  # the first frame's, kept (1 gray, 3 RGB)
         self.frame_size: tuple[int, int] | None = None
         self.upsample = 1
         self._external = False  # detections come from outside (no scan, their own thresholds)
@@ -575,12 +576,20 @@ class MultiTargetTracker:
         size = (int(frame.shape[-2]), int(frame.shape[-1]))
         if self.input_size is None:
             self.input_size = size
+            self._channels = int(frame.shape[0])
             self.upsample = self._upsampling(size[0])
             self.frame_size = (size[0] * self.upsample, size[1] * self.upsample)
         elif size != self.input_size:
             raise ShapeError(
                 f"frame size changed from {self.input_size} to {size} (H, W) at frame "
                 f"{self.frame_index + 1}"
+            )
+        elif int(frame.shape[0]) != self._channels:
+            # a gray frame after RGB ones was taken, its colour appearance compared with theirs
+            raise ShapeError(
+                f"frame channels changed from {self._channels} to {int(frame.shape[0])} at frame "
+                f"{self.frame_index + 1}: give every frame in the first one's colour mode "
+                "(1 gray, 3 RGB)"
             )
 
     @staticmethod
