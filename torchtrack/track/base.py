@@ -208,10 +208,9 @@ class Tracker(abc.ABC):
                 f"frame size changed from {self.frame_size} to {tuple(frame.shape[-2:])} "
                 "(H, W) during tracking"
             )
-        channels = getattr(self, "_channels", None)  # a gray frame after RGB ones was taken
-        if channels is not None and int(frame.shape[0]) != channels:
+        if int(frame.shape[0]) != self._channels:  # a gray frame after RGB ones was taken
             raise ShapeError(
-                f"frame channels changed from {channels} to {int(frame.shape[0])} during "
+                f"frame channels changed from {self._channels} to {int(frame.shape[0])} during "
                 "tracking: give every frame in the first one's colour mode (1 gray, 3 RGB)"
             )
         return self._visible_in_frame(self._update(frame))
