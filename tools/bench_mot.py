@@ -219,14 +219,17 @@ def our_detections(
     Returns the rows, how the boxes were read, and the command."""
     from torchtrack.cli import build_parser
     from torchtrack.cli import detect as detect_cli
-    from torchtrack.detect.bundled import load_model
+    from torchtrack.detect.bundled import load_model, resolve_model
+    from torchtrack.detect.model_file import read_model_metadata
 
     version = subprocess.run([*tt, "--version"], capture_output=True, text=True).stdout.strip()
-    # the scan the command makes is the key (its defaults included): a changed default rescans
+    # the scan the command makes is the key (its defaults included): a changed default rescans,
+    # and so does a changed model (the digest of its tensors and description, not its signature)
     det = load_model("pedestrian")
+    model = read_model_metadata(resolve_model("pedestrian"))["sha256"]
     args = build_parser().parse_args(["detect", "pedestrian", str(spec.source), *spec.det_args])
     scan_kw = detect_cli.scan_kwargs(args, det)
-    key = cache_key(spec.det_args, version, tt, *sorted(scan_kw.items()))
+    key = cache_key(spec.det_args, version, tt, model, *sorted(scan_kw.items()))
     jsonl = cache / f"ttdetect_{spec.name}_{key}.jsonl"
     cmd = [*tt, "detect", "pedestrian", str(spec.source), *spec.det_args, "--threads", str(threads)]
     cmd += ["--no-progress", "-o", str(jsonl)]

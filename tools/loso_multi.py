@@ -91,6 +91,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from torchtrack.detect.bundled import resolve_model  # noqa: E402
+from torchtrack.detect.model_file import read_model_metadata  # noqa: E402
 from torchtrack.errors import ConfigError  # noqa: E402
 from torchtrack.eval.mot import gt_as_detections, score_mot  # noqa: E402
 from torchtrack.io.mot import (  # noqa: E402
@@ -385,7 +387,11 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
     probabilities)."""
     scan_params = {k: v for k, v in (params or {}).items() if k in SCAN_KEYS}
     cfg = MultiTrackerConfig(**scan_params)
-    key = "_".join([seq.name, *(str(getattr(cfg, k)) for k in SCAN_KEYS)])  # every scan setting
+    # every scan setting, and the digest of the model's content (its tensors and description,
+    # not its signature): a retrained or edited model of the same name never reads the scans
+    # of the one before
+    digest = read_model_metadata(resolve_model(cfg.model))["sha256"][:12]
+    key = "_".join([seq.name, *(str(getattr(cfg, k)) for k in SCAN_KEYS), digest])
     path = cache / f"own_{key}.txt"
     if path.is_file():
         return read_mot(path, 1.0, seq.n_frames, kind="det")

@@ -118,6 +118,12 @@ def write_readme(models_dir: Path) -> Path:
         "written; `torchtrack sign --check NAME` shows the signer. The tests fail while a bundled",
         "model is unsigned.",
         "",
+        "The project key was replaced on 2026-11-28 (key id `245a92be6d1edce7`; before it",
+        "`69b32dff516fca49`, whose private half was lost): both files were signed again, their",
+        'tensors and descriptions unchanged. A copy signed with the old key now reports "signed by',
+        'key 69b32dff516fca49, which is not trusted here": it loads where signatures are optional',
+        "and is refused where they are required.",
+        "",
     ]
     for f in sorted(models_dir.glob("*.safetensors")):
         meta = read_model_metadata(f)
