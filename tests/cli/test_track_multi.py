@@ -237,3 +237,43 @@ def test_a_run_that_fails_midway_leaves_no_output(tmp_path, capsys, extra):
     err = capsys.readouterr().err
     assert "frame size changed" in err and "0002.png" in err and "Traceback" not in err
     assert {p.name for p in tmp_path.iterdir()} == {"frames"}
+
+
+def test_gaps_filled_and_boxes_smoothed(clip, tmp_path):
+    """A walker whose detections stop for three frames: without ``fill_gaps`` it is not
+    reported there; with it the gap gets interpolated rows (``detected`` 0) under the same
+    identity, every output still in frame order, and the video keeps every frame (the held
+    frames are written at the end)."""
+    dets = tmp_path / "gap.txt"
+    lines = []
+    for f in range(1, 13):
+        for k, (x0, y0) in enumerate(((20, 50), (200, 80))):
+            if k == 0 and 6 <= f <= 8:
+                continue  # the first walker unseen on frames 6-8 (5-7 counted from 0)
+            x = x0 + 3 * f if k == 0 else x0 - 2 * f
+            lines.append(f"{f},-1,{x + 1},{y0 + 1},20,60,0.97,-1,-1,-1")
+    dets.write_text("\n".join(lines) + "\n")
+
+    def run(extra, name):
+        out, vid = tmp_path / f"{name}.csv", tmp_path / f"{name}.avi"
+        argv = ["track", str(clip), "--detections", str(dets), "--out", str(out)]
+        assert main([*argv, "--video", str(vid), "--no-progress", *extra]) == 0
+        rows = np.loadtxt(out, delimiter=",", skiprows=1, ndmin=2)
+        cap = cv2.VideoCapture(str(vid))
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        cap.release()
+        return rows, n
+
+    plain, n_plain = run([], "plain")
+    filled, n_filled = run(["--tracker", "multi:fill_gaps=5,smooth_sigma=1"], "filled")
+    assert n_plain == n_filled == 12
+    one = plain[:, 1] == plain[0, 1]
+    seen = {5, 6, 7} & set(plain[one, 0].astype(int).tolist())  # the CSV counts from 0
+    assert len(seen) < 3  # the plain run misses the walker somewhere in the gap
+    f1 = filled[filled[:, 1] == plain[0, 1]]
+    assert {5, 6, 7} <= set(f1[:, 0].astype(int).tolist())  # filled, same identity
+    inside = f1[np.isin(f1[:, 0], sorted({5, 6, 7} - seen))]
+    assert len(inside) and (inside[:, 7] == 0).all()  # filled rows are not detections
+    assert (np.diff(filled[:, 0]) >= 0).all()  # frame order kept
+    # smoothed and filled boxes stay on the walker (x = 20 + 3 (f + 1) px at 0-based frame f)
+    assert np.abs(f1[:, 2] - (23 + 3 * f1[:, 0])).max() < 6

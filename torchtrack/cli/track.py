@@ -583,6 +583,7 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
 
 
 def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
+    import collections
     import itertools
     import sys
     import time
@@ -610,23 +611,39 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     trails = Trails() if vid is not None else None
     n_frames, t_track, t0 = 0, 0.0, time.perf_counter()
     seen: set[int] = set()
-    n_max = args.max_frames
-    items = itertools.takewhile(lambda p: n_max is None or p[0] < n_max, src.items())
-    with (
-        # without workers the scans run here, on the device, a batch of frames at a time
-        ScanAhead(
-            mt, workers if dets is None else 0, batch=default_scan_batch(device), device=device
-        ) as ahead,
-        _Outputs(src, _progress(src, args), (csv, motw, vid)) as run,
-    ):
-        # With outside detections the tracker does not scan: the frames pass on without one.
-        frames = ahead.frames(items) if dets is None else ((i, f, None) for i, f in items)
+    # the reports pass through the tracker's smoother (gaps filled, boxes smoothed: each
+    # frame is written `lag` frames late); the frames wait with them for the video
+    smoother = mt.smoother()
+    held: collections.deque = collections.deque()
+
+    def emit(i: int, res) -> None:
+        frame, parts = held.popleft()
+        if res is None:  # an unreadable frame: no rows, the video keeps the source's timing
+            if vid is not None:
+                vid.repeat()
+            return
+        seen.update(res.ids.tolist())
+        if csv is not None:
+            csv.write_targets(i, res)
+        if motw is not None:
+            motw.write_targets(i, res)
+        if vid is not None:
+            trails.add(i, res)
+            vid.write(draw_multi(frame, res, trails, parts))
+
+    def report(i: int, frame, res) -> None:
+        parts = mt.particle_boxes() if (vid is not None and args.particles) else None
+        held.append((frame if vid is not None else None, parts))
+        for j, r in smoother.push(i, res) if smoother.active else [(i, res)]:
+            emit(j, r)
+
+    def _track_frames(frames) -> None:
+        nonlocal n_frames, t_track
         for i, frame, scan in frames:
             run.index = i
             run.progress.update(1)
             if frame is None:
-                if vid is not None:
-                    vid.repeat()  # the video keeps the source's timing
+                report(i, None, None)
                 continue
             if n_frames == 0 and dets is not None:
                 _check_detections_fit(args.detections, det_boxes, frame)
@@ -638,15 +655,27 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
             t_track += time.perf_counter() - t1
             n_frames += 1
             run.tracked = n_frames
-            seen.update(res.ids.tolist())
-            if csv is not None:
-                csv.write_targets(i, res)
-            if motw is not None:
-                motw.write_targets(i, res)
-            if vid is not None:
-                trails.add(i, res)
-                parts = mt.particle_boxes() if args.particles else None
-                vid.write(draw_multi(frame, res, trails, parts))
+            report(i, frame, res)
+
+    n_max = args.max_frames
+    items = itertools.takewhile(lambda p: n_max is None or p[0] < n_max, src.items())
+    with (
+        # without workers the scans run here, on the device, a batch of frames at a time
+        ScanAhead(
+            mt, workers if dets is None else 0, batch=default_scan_batch(device), device=device
+        ) as ahead,
+        _Outputs(src, _progress(src, args), (csv, motw, vid)) as run,
+    ):
+        # With outside detections the tracker does not scan: the frames pass on without one.
+        frames = ahead.frames(items) if dets is None else ((i, f, None) for i, f in items)
+        try:
+            _track_frames(frames)
+        except KeyboardInterrupt:  # Ctrl-C / SIGTERM keep the rows so far: the held ones too
+            for j, r in smoother.flush():
+                emit(j, r)
+            raise
+        for j, r in smoother.flush():
+            emit(j, r)
     status = run.status
     if n_frames == 0 and status == 0:
         raise _no_readable_frame(src)

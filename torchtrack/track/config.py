@@ -317,6 +317,17 @@ class MultiTrackerConfig:
             (the whole classifier), as for :class:`DetectorTrackerConfig`.
         estimator: particle estimate (``mean``, ``mode``, ``best``).
         resample: resampling scheme.
+        fill_gaps: the reported tracks (``torchtrack track``'s files and video,
+            :func:`~torchtrack.track.multi.track_sequence`) get boxes on the frames of a gap of
+            at most this many frames between two reports of one identity, interpolated
+            (:class:`~torchtrack.track.smoothing.TrackSmoother`); 0: none. The output then
+            comes ``fill_gaps`` frames late (plus the smoothing's radius).
+        smooth_sigma: the reported boxes smoothed over time by a local-linear fit with
+            Gaussian weights of this sd in frames (centre and log-size; radius ``int(4 sigma +
+            0.5)`` frames of delay); 0: none. Defaults 10 and 4 (26 frames of delay) by leave
+            one sequence out and the frame-rate copies (docs/multi_target.md, "Smoothing the
+            reported tracks"). :meth:`MultiTargetTracker.update` itself always reports the
+            frame at hand.
     """
 
     model: str = "pedestrian"
@@ -369,9 +380,19 @@ class MultiTrackerConfig:
     likelihood: str = "head"
     estimator: str = "mean"
     resample: str = "systematic"
+    fill_gaps: int = 10
+    smooth_sigma: float = 4.0
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
+        if self.fill_gaps < 0 or self.fill_gaps > MAX_FILL_GAPS:
+            raise ConfigError(
+                f"fill_gaps must be in [0, {MAX_FILL_GAPS}] frames, got {self.fill_gaps}"
+            )
+        if not (math.isfinite(self.smooth_sigma) and 0 <= self.smooth_sigma <= MAX_SMOOTH_SIGMA):
+            raise ConfigError(
+                f"smooth_sigma must be in [0, {MAX_SMOOTH_SIGMA}] frames, got {self.smooth_sigma}"
+            )
         if self.confirm_hits > MAX_CONFIRM_HITS:  # 2e9: no target was ever reported, silently
             raise ConfigError(
                 f"confirm_hits must be in [1, {MAX_CONFIRM_HITS}] (scans in a row), got "
@@ -509,6 +530,11 @@ class MultiTrackerConfig:
 
 #: the most scans in a row a new target must be matched on before it is reported
 MAX_CONFIRM_HITS = 1000
+
+#: the longest gap filled in the reported tracks, and the widest smoothing (frames): the
+#: output waits that long (the lag's frames are held in memory, video frames included)
+MAX_FILL_GAPS = 1000
+MAX_SMOOTH_SIGMA = 250.0
 
 #: the largest detector window over object box height (``context``): the pedestrian windows'
 #: margin is about 1.33; a window ten times the object's height no longer looks at it

@@ -257,6 +257,14 @@ class MultiTargetTracker:
         ):
             setattr(self, name, getattr(self, name)[keep])
 
+    def smoother(self):
+        """A :class:`~torchtrack.track.smoothing.TrackSmoother` for this tracker's reports
+        (``fill_gaps``, ``smooth_sigma`` of its config): the reported tracks of ``torchtrack
+        track`` and :func:`track_sequence` pass through it, ``lag`` frames late."""
+        from torchtrack.track.smoothing import TrackSmoother
+
+        return TrackSmoother(self.config.smooth_sigma, self.config.fill_gaps)
+
     # -- geometry ------------------------------------------------------------------------------
     def _windows(self, states: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
         """Eq. (3): ``states (T, N, 6)`` -> detector windows ``(T, N, 4)``."""
@@ -1399,7 +1407,9 @@ def track_sequence(
             GPU, 1 elsewhere (:func:`~torchtrack.track.scan_ahead.default_scan_batch`).
 
     Returns:
-        :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target.
+        :class:`~torchtrack.io.mot.MotRows` (0-based frames) of every reported target, gaps
+        filled and boxes smoothed as the tracker's ``fill_gaps`` and ``smooth_sigma`` say
+        (:meth:`MultiTargetTracker.smoother`), as ``torchtrack track`` writes them.
     """
     import numpy as np
 
@@ -1419,6 +1429,14 @@ def track_sequence(
         scan_batch = default_scan_batch(device)
     f_, i_, b_, c_ = [], [], [], []
     empty = (torch.zeros((0, 4), dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    smoother = tracker.smoother()
+
+    def collect(i: int, out) -> None:
+        if out is not None and len(out):
+            f_.append(torch.full((len(out),), i, dtype=torch.int64))
+            i_.append(out.ids)
+            b_.append(out.boxes)
+            c_.append(out.confidence)
 
     items = itertools.takewhile(lambda p: max_frames is None or p[0] < max_frames, frames.items())
     with ScanAhead(
@@ -1436,11 +1454,13 @@ def track_sequence(
             if as_scans:
                 d, scan = None, d
             out = tracker.update(frame if device is None else frame.to(device), d, scan=scan)
-            if len(out):
-                f_.append(torch.full((len(out),), i, dtype=torch.int64))
-                i_.append(out.ids)
-                b_.append(out.boxes)
-                c_.append(out.confidence)
+            if smoother.active:
+                for j, o in smoother.push(i, out):
+                    collect(j, o)
+            else:
+                collect(i, out)
+    for j, o in smoother.flush():
+        collect(j, o)
     if not f_:
         return MotRows.empty()
     return MotRows.from_arrays(torch.cat(f_), torch.cat(i_), torch.cat(b_), torch.cat(c_))

@@ -1,0 +1,208 @@
+"""TrackSmoother: the stream equals filling the gaps and smoothing each whole track afterwards
+(SciPy's gaussian_filter1d), frames come out in order and ``lag`` late, memory stays bounded."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_filter1d
+
+from torchtrack.errors import ConfigError
+from torchtrack.track.config import MultiTrackerConfig, apply_overrides
+from torchtrack.track.multi import MultiState
+from torchtrack.track.smoothing import TrackSmoother, gaussian_weights
+
+
+def _tracks(seed: int, n_frames: int = 120, n_ids: int = 5):
+    """Random tracks with gaps of 1-12 frames: ``{id: {frame: (x, y, w, h, conf, det)}}``."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k in range(1, n_ids + 1):
+        start, end = sorted(rng.integers(0, n_frames, 2))
+        rows, f = {}, int(start)
+        x, y, w, h = rng.uniform(0, 400), rng.uniform(0, 300), rng.uniform(10, 40), 0
+        h = 3 * w
+        while f <= end:
+            if rng.random() < 0.1:  # a gap
+                f += int(rng.integers(1, 13))
+                continue
+            x, y = x + rng.normal(0, 3), y + rng.normal(0, 2)
+            w, h = w * np.exp(rng.normal(0, 0.05)), h * np.exp(rng.normal(0, 0.05))
+            rows[f] = (x, y, w, h, float(rng.uniform(0.5, 1)), bool(rng.random() < 0.7))
+            f += 1
+        if rows:
+            out[k] = rows
+    return out
+
+
+def _states(tracks, n_frames):
+    for f in range(n_frames):
+        ks = [k for k in sorted(tracks) if f in tracks[k]]
+        r = [tracks[k][f] for k in ks]
+        yield (
+            f,
+            MultiState(
+                torch.tensor(ks, dtype=torch.int64),
+                torch.tensor([v[:4] for v in r], dtype=torch.float64).reshape(-1, 4),
+                torch.tensor([v[4] for v in r], dtype=torch.float64),
+                torch.tensor([v[5] for v in r], dtype=torch.bool),
+            ),
+        )
+
+
+def _local_linear_reference(v: np.ndarray, sigma: float) -> np.ndarray:
+    """Each row: the intercept of a weighted line fit (numpy.polyfit, Gaussian weights of sd
+    ``sigma`` within ``int(4 sigma + 0.5)`` rows, the run's rows only)."""
+    r, n = int(4 * sigma + 0.5), len(v)
+    out = np.empty_like(v)
+    for t in range(n):
+        lo, hi = max(0, t - r), min(n - 1, t + r)
+        k = np.arange(lo, hi + 1) - t
+        if hi == lo:
+            out[t] = v[t]
+            continue
+        w = np.exp(-0.5 * (k / sigma) ** 2)
+        out[t] = np.polyfit(k, v[lo : hi + 1], 1, w=np.sqrt(w))[1]
+    return out
+
+
+def _offline(tracks, sigma: float, fill: int):
+    """The reference: per identity, gaps of <= fill frames interpolated linearly (centre and
+    log-size), then each run of consecutive frames smoothed by a local-linear Gaussian fit."""
+    out = {}
+    for k, rows in tracks.items():
+        fr = sorted(rows)
+        c = {
+            f: np.array(
+                [
+                    rows[f][0] + rows[f][2] / 2,
+                    rows[f][1] + rows[f][3] / 2,
+                    np.log(rows[f][2]),
+                    np.log(rows[f][3]),
+                ]
+            )
+            for f in fr
+        }
+        for a, b in itertools.pairwise(fr):
+            if 1 < b - a <= fill + 1:
+                for u in range(a + 1, b):
+                    c[u] = c[a] + (c[b] - c[a]) * (u - a) / (b - a)
+        allf = sorted(c)
+        runs, cur = [], [allf[0]]
+        for f in allf[1:]:
+            if f == cur[-1] + 1:
+                cur.append(f)
+            else:
+                runs.append(cur)
+                cur = [f]
+        runs.append(cur)
+        for run in runs:
+            v = np.stack([c[f] for f in run])
+            if sigma > 0:
+                v = _local_linear_reference(v, sigma)
+            for f, row in zip(run, v, strict=True):
+                w, h = np.exp(row[2]), np.exp(row[3])
+                out[(f, k)] = np.array([row[0] - w / 2, row[1] - h / 2, w, h])
+    return out
+
+
+@pytest.mark.parametrize("sigma, fill", [(2.0, 0), (0.0, 5), (4.0, 10), (1.5, 3)])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_stream_equals_offline_smoothing(sigma, fill, seed):
+    n = 150
+    tracks = _tracks(seed, n)
+    sm = TrackSmoother(sigma, fill)
+    assert sm.lag == int(4 * sigma + 0.5) * (sigma > 0) + fill
+    got, order = {}, []
+    for f, st in _states(tracks, n):
+        out = sm.push(f, st)
+        for t, _ in out:
+            assert t + sm.lag <= f  # never earlier than the lag allows
+        for t, s in out + ([] if f < n - 1 else sm.flush()):
+            order.append(t)
+            for k, b, d in zip(s.ids.tolist(), s.boxes, s.detected.tolist(), strict=True):
+                got[(t, k)] = (b.numpy(), d)
+    assert order == list(range(n))  # every frame once, in order
+    ref = _offline(tracks, sigma, fill)
+    assert set(got) == set(ref)
+    for key, (b, d) in got.items():
+        np.testing.assert_allclose(b, ref[key], rtol=1e-9, atol=1e-9)
+        if key[1] not in tracks or key[0] not in tracks[key[1]]:
+            assert d is False  # a filled frame is never "detected"
+    # a filled gap exists in these draws, and it was filled
+    if fill:
+        assert any(key[0] not in tracks[key[1]] for key in got)
+
+
+def test_inactive_and_unreadable_frames():
+    assert not TrackSmoother(0.0, 0).active
+    assert not TrackSmoother(0.1, 0).active  # a kernel of one frame changes nothing
+    sm = TrackSmoother(1.0, 2)
+    box = torch.tensor([[10.0, 20.0, 8.0, 24.0]], dtype=torch.float64)
+    st = MultiState(torch.tensor([1]), box, torch.tensor([0.9]), torch.tensor([True]))
+    out = sm.push(0, st) + sm.push(1, None) + sm.push(2, st) + sm.flush()
+    assert [t for t, _ in out] == [0, 1, 2]
+    assert out[1][1] is None  # an unreadable frame stays without rows
+    torch.testing.assert_close(out[0][1].boxes, box)  # a constant track stays where it is
+    with pytest.raises(ValueError, match="increasing order"):
+        sm.push(2, st)
+
+
+def test_memory_stays_bounded():
+    sm = TrackSmoother(4.0, 10)
+    box = torch.tensor([[10.0, 20.0, 8.0, 24.0]], dtype=torch.float64)
+    for f in range(2000):
+        st = MultiState(torch.tensor([f // 50]), box, torch.tensor([0.9]), torch.tensor([True]))
+        sm.push(f, st)
+        held = sum(len(v) for v in sm._obs.values())
+        assert held <= 2 * sm.lag + 2 and len(sm._pending) <= sm.lag + 1
+
+
+def test_inside_a_run_it_is_the_gaussian_mean_and_a_walk_keeps_its_place():
+    """Far from a run's ends the fit is SciPy's Gaussian filter; at the ends a target moving
+    at constant speed is not pulled back (the Gaussian with repeated ends lags ~0.4 sigma v)."""
+    sm = TrackSmoother(2.0, 0)
+    rng = np.random.default_rng(0)
+    x = 100 + 4.0 * np.arange(60) + rng.normal(0, 2, 60)
+    got = {}
+    for f in range(60):
+        box = torch.tensor([[x[f] - 10, 50.0, 20.0, 60.0]], dtype=torch.float64)
+        st = MultiState(torch.tensor([1]), box, torch.tensor([1.0]), torch.tensor([True]))
+        for t, s in sm.push(f, st) + (sm.flush() if f == 59 else []):
+            got[t] = float(s.boxes[0, 0] + 10)
+    ref = gaussian_filter1d(x, 2.0, mode="nearest", truncate=4.0)
+    inner = range(sm.radius, 60 - sm.radius)
+    np.testing.assert_allclose([got[t] for t in inner], ref[list(inner)], rtol=1e-12)
+    truth = 100 + 4.0 * np.arange(60)
+    assert abs(got[59] - truth[59]) < 3 < abs(ref[59] - truth[59])  # the end keeps up
+
+
+def test_weights_are_scipys():
+    x = np.zeros(41)
+    x[20] = 1.0
+    ref = gaussian_filter1d(x, 3.0, mode="constant", truncate=4.0)[8:33]
+    np.testing.assert_allclose(gaussian_weights(3.0).numpy(), ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "kv, msg",
+    [
+        ({"fill_gaps": -1}, "fill_gaps"),
+        ({"fill_gaps": 2.5}, "integer"),
+        ({"smooth_sigma": float("nan")}, "smooth_sigma"),
+        ({"smooth_sigma": -1.0}, "smooth_sigma"),
+        ({"smooth_sigma": 1e9}, "smooth_sigma"),
+    ],
+)
+def test_config_refuses_bad_values(kv, msg):
+    with pytest.raises(ConfigError, match=msg):
+        apply_overrides(MultiTrackerConfig(), kv)
+
+
+@pytest.mark.parametrize("sigma, fill", [(-1.0, 0), (float("inf"), 0), (0.0, -1), (0.0, 1.5)])
+def test_smoother_refuses_bad_values(sigma, fill):
+    with pytest.raises(ConfigError):
+        TrackSmoother(sigma, fill)
