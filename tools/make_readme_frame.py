@@ -4,8 +4,9 @@ tracker (the README's main job), one frame drawn with each identity's colour and
     python tools/make_readme_frame.py                       # docs/images/tracked_frame.png
     python tools/make_readme_frame.py --frame 60 --seed 0 --out docs/images/tracked_frame.png
 
-The same tracker, config and drawing as ``torchtrack track demo --video tracked.mp4``
-(:class:`torchtrack.track.multi.MultiTargetTracker` with its defaults,
+The same tracker, config, smoothing and drawing as ``torchtrack track demo --video tracked.mp4``
+(:class:`torchtrack.track.multi.MultiTargetTracker` with its defaults, its reports through
+:meth:`~torchtrack.track.multi.MultiTargetTracker.smoother`,
 ``torchtrack.cli._track_io.draw_multi``); the frame is written atomically.
 """
 
@@ -35,16 +36,32 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "images" / "tracked_frame.png")
     args = ap.parse_args()
     tracker = MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed))
+    smoother = tracker.smoother()  # the reported tracks, as the command writes them
     trails = Trails()
     img = None
+    frames: dict[int, torch.Tensor] = {}
+
+    def draw(j: int, out) -> torch.Tensor | None:
+        frame = frames.pop(j)  # held only until written
+        if out is None:
+            return None
+        trails.add(j, out)
+        if j != args.frame:
+            return None
+        print(f"frame {j}: {len(out)} targets, identities {out.ids.tolist()}")
+        return draw_multi(frame, out, trails)
+
     with open_source(demo_clip_path()) as src:
         for i, frame in src.items():
-            out = tracker.update(frame)
-            trails.add(i, out)
-            if i == args.frame:
-                img = draw_multi(frame, out, trails)
-                print(f"frame {i}: {len(out)} targets, identities {out.ids.tolist()}")
+            frames[i] = frame
+            out = tracker.update(frame) if frame is not None else None
+            for j, o in smoother.push(i, out) if smoother.active else [(i, out)]:
+                img = draw(j, o) if img is None else img
+            if img is not None:
                 break
+        if img is None:
+            for j, o in smoother.flush():
+                img = draw(j, o) if img is None else img
     if img is None:
         raise SystemExit(f"the clip has no frame {args.frame}")
     ok, png = cv2.imencode(".png", img)

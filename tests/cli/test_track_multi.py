@@ -241,7 +241,7 @@ def test_a_run_that_fails_midway_leaves_no_output(tmp_path, capsys, extra):
 
 def test_gaps_filled_and_boxes_smoothed(clip, tmp_path):
     """A walker whose detections stop for three frames: without ``fill_gaps`` it is not
-    reported there; with it the gap gets interpolated rows (``detected`` 0) under the same
+    reported there; with it (the default) the gap gets interpolated rows (``detected`` 0) under the same
     identity, every output still in frame order, and the video keeps every frame (the held
     frames are written at the end)."""
     dets = tmp_path / "gap.txt"
@@ -264,8 +264,8 @@ def test_gaps_filled_and_boxes_smoothed(clip, tmp_path):
         cap.release()
         return rows, n
 
-    plain, n_plain = run([], "plain")
-    filled, n_filled = run(["--tracker", "multi:fill_gaps=5,smooth_sigma=1"], "filled")
+    plain, n_plain = run(["--tracker", "multi:fill_gaps=0,smooth_sigma=0"], "plain")
+    filled, n_filled = run([], "filled")  # the defaults: gaps of <= 10 filled, sigma 4
     assert n_plain == n_filled == 12
     one = plain[:, 1] == plain[0, 1]
     seen = {5, 6, 7} & set(plain[one, 0].astype(int).tolist())  # the CSV counts from 0

@@ -483,8 +483,9 @@ def test_track_sequence_uses_cached_scans_on_the_scan_frames_only(unreadable):
         def items(self):
             return ((t, None if t == unreadable else blank()) for t in range(n))
 
-    got = track_sequence(make(scan_every=2), Frames(), rows)
-    mt, want, k = make(scan_every=2), [], 0
+    online = {"scan_every": 2, "fill_gaps": 0, "smooth_sigma": 0.0}  # the frame-by-frame reports
+    got = track_sequence(make(**online), Frames(), rows)
+    mt, want, k = make(**online), [], 0
     for t in range(n):
         if t == unreadable:
             continue
@@ -494,6 +495,28 @@ def test_track_sequence_uses_cached_scans_on_the_scan_frames_only(unreadable):
     assert len(want) > 0
     assert [(int(f), int(i), *b) for f, i, b in zip(got.frames, got.ids, got.boxes.tolist(),
                                                     strict=True)] == want  # fmt: skip
+    # with the defaults, the same reports through the tracker's smoother
+    smoothed = track_sequence(make(scan_every=2), Frames(), rows)
+    sm, again, k = make(scan_every=2).smoother(), [], 0
+    mt = make(scan_every=2)
+    emitted = []
+    for t in range(n):
+        if t == unreadable:
+            continue
+        emitted += sm.push(
+            t, mt.update(blank(), (people(t), torch.ones(3)) if k % 2 == 0 else None)
+        )
+        k += 1
+    for t, out in emitted + sm.flush():
+        again += [(t, int(i), *b.tolist()) for i, b in zip(out.ids, out.boxes, strict=True)]
+    assert (
+        sm.active
+        and [
+            (int(f), int(i), *b)
+            for f, i, b in zip(smoothed.frames, smoothed.ids, smoothed.boxes.tolist(), strict=True)
+        ]
+        == again
+    )
 
 
 def test_reset_forgets_outside_detections():
