@@ -261,3 +261,28 @@ def test_scan_thresholds_nms_and_max_scale_out_of_range_are_refused():
     assert scan_scales((480, 640), (128, 64), max_scale=math.inf) == scan_scales(
         (480, 640), (128, 64)
     )
+
+
+def test_frames_scaled_to_one_warn_that_they_are_read_as_0_255():
+    """A float frame in [0, 1] (torchvision's convention) was scanned as a nearly black 0..255
+    frame: no detection and no word. It cannot be refused (a dark 0..255 frame looks the
+    same), so Detector.scan and scan warn; 0..255 frames, 8-bit frames and an all-black float
+    frame do not."""
+    import warnings
+
+    det = load_model("vehicle")
+    g = torch.Generator().manual_seed(0)
+    frame = torch.randint(0, 256, (3, 60, 120), generator=g).float()
+    unit = frame / 255
+    with pytest.warns(UserWarning, match=r"every value in \[0, 1\]: .* read as 0\.\.255 levels"):
+        det.scan(unit)
+    with pytest.warns(UserWarning, match=r"multiply by 255"):
+        det.scan(unit[None])
+    with pytest.warns(UserWarning, match=r"read as 0\.\.255 levels"):
+        scan(det, unit)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        det.scan(frame)
+        det.scan(frame.to(torch.uint8))
+        det.scan(torch.zeros(3, 60, 120))
+        scan(det, frame)
