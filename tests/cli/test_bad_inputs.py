@@ -290,6 +290,17 @@ def corpus(tmp_path_factory, forge_model):
     (c / "mot" / "RESIZED" / "seqinfo.ini").write_text(
         ini.replace("imWidth=64", "imWidth=640").replace("imHeight=48", "imHeight=480")
     )
+    # seqinfo.ini's numbers and imExt (the ninth sweep): frameRate=inf was taken, seqLength=6.0
+    # was 'not a number', imExt=.png over .jpg frames was ignored
+    for name, text in (
+        ("RATEINF", ini.replace("frameRate=10", "frameRate=inf")),
+        ("LENFLOAT", ini.replace("seqLength=6", "seqLength=6.0")),
+    ):
+        (c / "mot" / name / "gt").mkdir(parents=True)
+        (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
+        (c / "mot" / name / "seqinfo.ini").write_text(text)
+    shutil.copytree(mot, c / "mot" / "PNGEXT")
+    (c / "mot" / "PNGEXT" / "seqinfo.ini").write_text(ini.replace("imExt=.jpg", "imExt=.png"))
     odd = sorted((c / "mot2" / "TOY-02" / "img1").iterdir())[3]
     cv2.imwrite(str(odd), np.zeros((40, 64, 3), np.uint8))
     return c
@@ -1600,6 +1611,24 @@ CASES += [
         "detect-vote-without-nms",  # the scan votes only among what NMS keeps: dropped, silently
         f"{D} --vote-iou 0.7 --nms-iou 1 -o {{o}}/d.jsonl",
         r"--vote-iou 0.7 refines .* with --nms-iou 1 \(off\) there is none",
+    ),
+    # seqinfo.ini (the ninth sweep)
+    E(
+        "eval-mot-seqinfo-frame-rate-inf",
+        "eval --mot {c}/mot/RATEINF --results {c}/res.txt -o {o}/r",
+        r"RATEINF/seqinfo\.ini: frameRate='inf' must be a finite number > 0",
+    ),
+    A(
+        "eval-mot-seqinfo-length-with-a-point",  # was 'not a number'
+        "eval --mot {c}/mot/LENFLOAT --results {c}/res.txt -o {o}/r",
+        "HOTA",
+        ("r/results.json", "r/results.md"),
+    ),
+    E(
+        "eval-mot-seqinfo-imext-not-the-frames",  # imExt was ignored
+        "eval --mot {c}/mot/PNGEXT --results {c}/res.txt -o {o}/r",
+        r"PNGEXT/img1 holds no \.png frame \(the extension .*seqinfo\.ini gives, imExt=\.png\): "
+        r"it holds 6 \.jpg file\(s\)",
     ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
