@@ -40,15 +40,25 @@ def _check_frame_size(frame_size) -> tuple:
     """``(H, W)`` of a frame, as given, once checked to be two finite numbers >= 0.
 
     Raises:
-        ShapeError: anything else (a negative size clipped every box to a mirrored frame).
+        ShapeError: anything else (a negative size clipped every box to a mirrored frame; a
+            bool, ``(True, 64)``, was a 1-pixel side).
     """
     try:
         h, w = (float(v) for v in frame_size)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, RuntimeError):  # RuntimeError: a tensor of several values
         raise ShapeError(f"frame_size must be (H, W), got {frame_size!r}") from None
+    if any(_is_bool(v) for v in frame_size):
+        raise ShapeError(f"frame_size must be (H, W) as numbers, not bool, got {frame_size!r}")
     if not (math.isfinite(h) and math.isfinite(w) and h >= 0 and w >= 0):
         raise ShapeError(f"frame_size must be (H, W) with H, W >= 0 and finite, got {frame_size!r}")
     return frame_size[0], frame_size[1]
+
+
+def _is_bool(v) -> bool:
+    """A Python, NumPy or torch boolean (``float()`` takes each as 0 or 1)."""
+    if isinstance(v, torch.Tensor):
+        return v.dtype == torch.bool
+    return isinstance(v, bool) or type(v).__name__ in ("bool", "bool_")  # numpy 2 and 1
 
 
 def xywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:
@@ -80,8 +90,14 @@ def cxcywh_to_xywh(boxes: torch.Tensor) -> torch.Tensor:
 
 
 def box_area(boxes: torch.Tensor) -> torch.Tensor:
-    """Area of ``(..., 4)`` xywh boxes; negative sizes count as zero."""
+    """Area ``(...)`` of ``(..., 4)`` xywh boxes; negative sizes count as zero.
+
+    float16 / bfloat16 boxes give float32 areas (a 256 x 256 box's area is beyond float16's
+    65504: it came out inf); other dtypes keep theirs.
+    """
     _check_last4(boxes)
+    if _half_dtype(boxes) is not None:
+        boxes = boxes.float()
     return boxes[..., 2].clamp(min=0) * boxes[..., 3].clamp(min=0)
 
 
@@ -136,8 +152,15 @@ def check_boxes(
 
     The message names the first offending box by index. Use :func:`clip_boxes` to bring boxes
     that only stick out of the frame back inside.
+
+    Raises:
+        BoxError: a box as above.
+        ShapeError: ``boxes`` not ``(..., 4)``, or ``frame_size`` not two finite sizes >= 0
+            (a bool among them included).
     """
     _check_last4(boxes, name)
+    if frame_size is not None:
+        _check_frame_size(frame_size)
     if boxes.numel() == 0:
         return
     finite = torch.isfinite(boxes).all(-1)
@@ -166,9 +189,31 @@ def check_boxes(
 def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clip xywh boxes ``(..., 4)`` to a frame of size ``(H, W)``; boxes fully outside get
     zero size at the nearest border. Boxes already inside come back exactly as they are (the
-    corners' round trip would change a fractional box in its last bits)."""
+    corners' round trip would change a fractional box in its last bits). NaN boxes (a target
+    absent) stay NaN.
+
+    Raises:
+        BoxError: a box of negative width or height, named by its (flattened) index: it is
+            no box to clip (one inside the frame came back with its negative size, one
+            outside it as a zero-size box).
+        ShapeError: ``boxes`` not ``(..., 4)``, or ``frame_size`` not two finite sizes >= 0.
+    """
     _check_last4(boxes)
     h_img, w_img = _check_frame_size(frame_size)
+    negative = (boxes[..., 2] < 0) | (boxes[..., 3] < 0)  # NaN compares false: passes
+    if bool(negative.any()):
+        i = int(negative.reshape(-1).nonzero()[0, 0])
+        row = boxes.reshape(-1, 4)[i]
+        side = "width" if float(row[2]) < 0 else "height"
+        raise BoxError(
+            f"boxes[{i}] = {row.tolist()} (x, y, w, h) has a negative {side}: clip_boxes clips "
+            "boxes to the frame, it does not repair them"
+        )
+    return _clip(boxes, h_img, w_img)
+
+
+def _clip(boxes: torch.Tensor, h_img, w_img) -> torch.Tensor:
+    """:func:`clip_boxes` without its checks (negative sizes come back as they are)."""
     xyxy = xywh_to_xyxy(boxes)
     x1 = xyxy[..., 0].clamp(0, w_img)
     y1 = xyxy[..., 1].clamp(0, h_img)
@@ -183,13 +228,14 @@ def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor
 def inside_fraction(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """The fraction ``(...)`` of each xywh box's area ``(..., 4)`` that lies inside a frame of
     size ``(H, W)``: 1 inside, 0 entirely outside; NaN for a box that is not finite or has no
-    area (compare with ``>=`` and such boxes fail)."""
+    area, a negative width or height included (compare with ``>=`` and such boxes fail)."""
     _check_last4(boxes)
     half = _half_dtype(boxes)
     if half is not None:  # as box_iou: the areas in float32, the fractions in the half dtype
         return inside_fraction(boxes.float(), frame_size).to(half)
-    area = boxes[..., 2] * boxes[..., 3]
-    inside = box_area(clip_boxes(boxes, frame_size))
+    h_img, w_img = _check_frame_size(frame_size)
+    area = box_area(boxes)  # negative sizes: 0 (w * h of two negative sizes was > 0)
+    inside = box_area(_clip(boxes, h_img, w_img))
     return torch.where(area > 0, inside / torch.where(area > 0, area, 1), float("nan"))
 
 
