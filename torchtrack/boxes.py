@@ -36,8 +36,9 @@ def _check_last4(boxes: torch.Tensor, name: str = "boxes") -> None:
         raise ShapeError(f"{name} must have shape (..., 4), got {tuple(boxes.shape)}")
 
 
-def _check_frame_size(frame_size) -> tuple:
-    """``(H, W)`` of a frame, as given, once checked to be two finite numbers >= 0.
+def _check_frame_size(frame_size, name: str = "frame_size", positive: bool = False) -> tuple:
+    """``(H, W)`` of a frame (or a window, ``name``), as given, once checked to be two finite
+    numbers >= 0 (> 0 with ``positive``).
 
     Raises:
         ShapeError: anything else (a negative size clipped every box to a mirrored frame; a
@@ -46,11 +47,14 @@ def _check_frame_size(frame_size) -> tuple:
     try:
         h, w = (float(v) for v in frame_size)
     except (TypeError, ValueError, RuntimeError):  # RuntimeError: a tensor of several values
-        raise ShapeError(f"frame_size must be (H, W), got {frame_size!r}") from None
+        raise ShapeError(f"{name} must be (H, W), got {frame_size!r}") from None
     if any(_is_bool(v) for v in frame_size):
-        raise ShapeError(f"frame_size must be (H, W) as numbers, not bool, got {frame_size!r}")
-    if not (math.isfinite(h) and math.isfinite(w) and h >= 0 and w >= 0):
-        raise ShapeError(f"frame_size must be (H, W) with H, W >= 0 and finite, got {frame_size!r}")
+        raise ShapeError(f"{name} must be (H, W) as numbers, not bool, got {frame_size!r}")
+    least = "> 0" if positive else ">= 0"
+    if not (math.isfinite(h) and math.isfinite(w) and h >= 0 and w >= 0) or (
+        positive and not (h > 0 and w > 0)
+    ):
+        raise ShapeError(f"{name} must be (H, W) with H, W {least} and finite, got {frame_size!r}")
     return frame_size[0], frame_size[1]
 
 

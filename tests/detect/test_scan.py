@@ -286,3 +286,23 @@ def test_frames_scaled_to_one_warn_that_they_are_read_as_0_255():
         det.scan(frame.to(torch.uint8))
         det.scan(torch.zeros(3, 60, 120))
         scan(det, frame)
+
+
+def test_window_and_frame_sizes_that_are_not_two_sizes_are_refused():
+    """sliding_windows took a window (True, 8) as 1 x 8 (13,802 windows), a frame (True, 64)
+    as 1 x 64 (no window), a NaN frame side raised a bare ValueError and a zero window side a
+    ZeroDivisionError; scan_scales alike."""
+    from torchtrack.detect.scan import scan_scales
+
+    for fn in (sliding_windows, scan_scales):
+        for frame, window, what in (
+            ((True, 64), (16, 8), "frame_size"),
+            ((float("nan"), 64), (16, 8), "frame_size"),
+            ((48, 64), (True, 8), "window"),
+            ((48, 64), (0, 8), "window"),
+            ((48, 64), (16, float("inf")), "window"),
+            ((48, 64), (16,), "window"),
+        ):
+            with pytest.raises(ShapeError, match=rf"{what} must be \(H, W\)"):
+                fn(frame, window)
+    assert sliding_windows((48, 64), (16, 8)).shape[0] > 0

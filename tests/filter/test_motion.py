@@ -173,3 +173,13 @@ def test_klein_paper_mode_is_eq1_unchanged():
     ref[..., 0:2] += ref[..., 4:6]
     ref[..., 2:4] = (ref[..., 2:4] + e[..., 2:4]).clamp_min(1.0)
     torch.testing.assert_close(m.predict(s, torch.Generator().manual_seed(5)), ref)
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR(window=(15.0, 30.0)), BachooMotion()])
+@pytest.mark.parametrize("size", [(True, 320), (240, -1), (float("nan"), 320), (240,)])
+def test_confine_refuses_a_frame_size_that_is_not_two_sizes(model, size):
+    """confine took (True, 320) as a 1 x 320 frame, a negative or NaN size as given (centres
+    clamped into a mirrored or NaN frame), silently; it checks frame_size like clip_boxes."""
+    s = model.init(torch.tensor([[150.0, 100.0, 30.0, 60.0]], dtype=torch.float64), 5)
+    with pytest.raises(ShapeError, match=r"frame_size must be \(H, W\)"):
+        model.confine(s, size)

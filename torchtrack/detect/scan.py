@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from torchtrack.boxes import xywh_to_xyxy
+from torchtrack.boxes import _check_frame_size, xywh_to_xyxy
 from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
@@ -101,15 +101,18 @@ def sliding_windows(
 
     Returns:
         ``(N, 4)`` float32 boxes x, y, w, h (empty when the window does not fit).
+
+    Raises:
+        ConfigError, ShapeError: as :func:`scan_scales`; a ``stride`` or ``pad`` out of range.
     """
     if not 0.0 < stride <= 1.0:
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
     _check_pad(pad)
-    fh, fw = frame_size
-    h, w = window
     scales = scan_scales(
         frame_size, window, scale_step=scale_step, min_scale=min_scale, max_scale=max_scale
     )
+    fh, fw = frame_size
+    h, w = window
     if not scales:
         return torch.zeros((0, 4))
     out = []
@@ -265,7 +268,11 @@ def scan_scales(
         ConfigError: ``scale_step`` below :data:`MIN_SCALE_STEP` (a step just above 1 would
             ask for millions of scales: a scan that never ends), or not finite; ``min_scale``
             below :data:`MIN_SCALE` or not finite; ``max_scale`` NaN or below ``min_scale``.
+        ShapeError: ``frame_size`` not two finite sizes >= 0 or ``window`` not two finite
+            sizes > 0 (bools refused: ``(True, 8)`` was a 1-pixel side).
     """
+    _check_frame_size(frame_size)
+    _check_frame_size(window, "window", positive=True)
     if not (MIN_SCALE_STEP <= scale_step < math.inf):
         raise ConfigError(
             f"scale_step must be a finite number >= {MIN_SCALE_STEP:g} (a smaller step scans "

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchtrack.boxes import _check_frame_size
 from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.filter._random import GeneratorLike, randn
 
@@ -52,8 +53,12 @@ def _check_states(states: torch.Tensor, d: int, model: str) -> None:
 
 def _clamp_centre(out: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clamp ``out[..., 0:2]`` (box centres) to the frame in place; ``(..., 2)`` bool: which
-    coordinates were moved."""
-    h, w = frame_size
+    coordinates were moved.
+
+    Raises:
+        ShapeError: ``frame_size`` not two finite sizes >= 0 ((True, 320) was a 1 x 320 frame).
+    """
+    h, w = _check_frame_size(frame_size)
     c = out[..., 0:2]
     lo = torch.zeros(2, dtype=out.dtype, device=out.device)
     hi = torch.tensor([float(w), float(h)], dtype=out.dtype, device=out.device)
@@ -330,7 +335,7 @@ class ChateauAR:
     def confine(self, states: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
         """States ``(B, N, 6)`` with ``c_t`` clamped to the frame, ``c_{t-1} = c_t`` on the
         clamped axes (zero velocity) and the region at most twice the frame's size."""
-        h, w = frame_size
+        h, w = _check_frame_size(frame_size)
         out = states.clone()
         moved = _clamp_centre(out, frame_size)
         out[..., 2:4] = torch.where(moved, out[..., 0:2], out[..., 2:4])
