@@ -213,6 +213,18 @@ def corpus(tmp_path_factory, forge_model):
     (c / "tiny.csv").write_text(  # the same ranking at magnitudes whose squares underflow
         "score,label\n" + "".join(f"{float(a) * 1e-300!r},{b}\n" for a, b in zip(m, y, strict=True))
     )
+    # headers naming one of score / label: the first two columns were read by position, so
+    # 'frame,score,y' took the frame numbers as the scores
+    (c / "nolabel.csv").write_text(
+        "frame,score,y\n"
+        + "".join(f"{i},{a},{b}\n" for i, (a, b) in enumerate(zip(m, y, strict=True)))
+    )
+    (c / "noscore.csv").write_text(
+        "label,margin\n" + "".join(f"{b},{a}\n" for a, b in zip(m, y, strict=True))
+    )
+    (c / "labelonly.csv").write_text(  # the named column where the first two put it: read so
+        "margin,label\n" + "".join(f"{a},{b}\n" for a, b in zip(m, y, strict=True))
+    )
     (c / "binary.toml").write_bytes(b"\xff\xfe\x00")  # not UTF-8: no TOML, JSON or name list
     for name, a in (("cal_inverted", 1.43), ("cal_flat", 0.0), ("cal_good", -1.2)):
         doc = {"format": "torchtrack-calibration", "format_version": 1, "tensors": {}}
@@ -1629,6 +1641,24 @@ CASES += [
         "eval --mot {c}/mot/PNGEXT --results {c}/res.txt -o {o}/r",
         r"PNGEXT/img1 holds no \.png frame \(the extension .*seqinfo\.ini gives, imExt=\.png\): "
         r"it holds 6 \.jpg file\(s\)",
+    ),
+    # a header naming the score column and not the label column (or the other way round)
+    E(
+        "cal-scores-header-without-label",
+        "calibrate --scores {c}/nolabel.csv --json {o}/p.json",
+        r"score file '.*nolabel\.csv': its header 'frame,score,y' names column 2 'score' and no "
+        r"column 'label', so the first two columns would be read as score, label",
+    ),
+    E(
+        "cal-scores-header-without-score",
+        "calibrate --scores {c}/noscore.csv --json {o}/p.json",
+        r"noscore\.csv': its header 'label,margin' names column 1 'label' and no column 'score'",
+    ),
+    A(
+        "cal-scores-header-label-only",  # margin,label: read by position, as named
+        "calibrate --scores {c}/labelonly.csv --json {o}/p.json",
+        "wrote",
+        ("p.json",),
     ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),
