@@ -165,7 +165,7 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
                         f"{names.index(name) + 1} {name!r} and no column {other!r}, so the "
                         "first two columns would be read as score, label: name both columns "
                         "'score' and 'label'"
-                    )
+                    ) from None
         rows = rows[1:]
     scores, labels, bad = [], [], []
     for line, r in rows:
