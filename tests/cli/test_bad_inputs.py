@@ -493,17 +493,17 @@ CASES: list[Case] = [
     E(
         "track-particles-neg",
         f"{T} --tracker histogram:n_particles=-5 --box 10,14,14,20",
-        "n_particles",
+        r"histogram tracker: n_particles must be >= 1, got -5",
     ),
     E(
         "track-particles-text",
         f"{T} --tracker histogram:n_particles=many --box 10,14,14,20",
-        "n_particles",
+        r"histogram tracker: 'n_particles' must be an integer, got 'many'",
     ),
     E(
         "track-particles-zero",
         f"{T} --tracker adaptive-haar:n_particles=0 --box 10,14,14,20",
-        "n_particles",
+        r"adaptive-haar tracker: n_particles must be >= 1, got 0",
     ),
     E(
         "track-adapt-wrong-tracker",
@@ -545,7 +545,11 @@ CASES: list[Case] = [
         f"{T} {HB} --out-dir {{o}}/runs --max-retries -1",
         r"--max-retries must be >= 0, got -1",
     ),
-    E("track-particles-no-video", f"{T} {HB} --particles", "--particles draws into"),
+    E(
+        "track-particles-no-video",
+        f"{T} {HB} --particles -o {{o}}/b.csv",
+        r"--particles draws into the annotated video: give --video FILE too$",
+    ),
     E("track-color-bad", f"{T} {HB} --color cmyk", "invalid choice", 2),
     E("track-detect-unknown", f"{T} --detect zebra", "unknown model 'zebra'"),
     E("track-detect-missing-file", f"{T} --detect {{c}}/none.safetensors", "does not exist"),
@@ -1546,6 +1550,18 @@ CASES += [
         "track {c}/frames --no-progress --tracker camshift --box 10,14,14,20 "
         "--video {o}/v.mp4 --particles",
         r"--particles draws a particle filter's particles: tracker 'camshift' has none",
+    ),
+    # cotrain and template are particle filters too: refused as having no particles (the
+    # ninth sweep: they draw them)
+    *(
+        A(
+            f"track-particles-{name}",
+            f"track {{c}}/frames --no-progress --tracker {name} --box 10,14,14,20 "
+            "--video {o}/v.mp4 --particles",
+            "wrote",
+            ("v.mp4",),
+        )
+        for name in ("cotrain", "template")
     ),
     E(
         "eval-mot-results-jobs",  # scored in this process, one after another

@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import ConfigError, TrackerError
 from torchtrack.filter._random import randn
 from torchtrack.filter.particles import uniform_log_weights
 from torchtrack.filter.seir import seir_step
@@ -307,6 +307,15 @@ class CoTrainTracker(Tracker):
         hh, ww = self.frame_size
         self.size = (min(float(ws[k]), 2.0 * ww), min(float(hs[k]), 2.0 * hh))
         self.scale = math.sqrt(self.size[0] * self.size[1])
+
+    def particle_boxes(self) -> torch.Tensor:
+        """Current particles as boxes ``(1, N, 4)`` (for drawing): each particle's centre with
+        the target's current size."""
+        states = getattr(self, "states", None)
+        if states is None:
+            raise TrackerError("particle_boxes() called before init()")
+        size = states.new_tensor(self.size).expand_as(states)
+        return torch.cat([states - size / 2, size], -1)
 
     def _state(self, visible: bool, confidence: float) -> TrackState:
         cx, cy = self.centre

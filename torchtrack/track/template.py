@@ -79,7 +79,7 @@ from typing import Any
 import torch
 
 from torchtrack.boxes import clip_boxes
-from torchtrack.errors import BoxError, ConfigError
+from torchtrack.errors import BoxError, ConfigError, TrackerError
 from torchtrack.filter._random import randn
 from torchtrack.filter.motion import BachooMotion, VelocityHistory
 from torchtrack.filter.sir import sir_step
@@ -339,6 +339,12 @@ class TemplateTracker(Tracker):
         if cfg.d_max_contrast > 0:
             hi = min(hi, max(cfg.d_max_contrast * self._contrast, cfg.d_min))
         self.model.d = min(max(self._scale, cfg.d_min), hi)
+
+    def particle_boxes(self) -> torch.Tensor:
+        """Current particles as boxes ``(1, N, 4)`` (for drawing)."""
+        if self._states is None:
+            raise TrackerError("particle_boxes() called before init()")
+        return self.motion.to_boxes(self._states)
 
     def _state(self, visible: bool, confidence: float) -> TrackState:
         box = self.motion.to_boxes(self._est[None])
