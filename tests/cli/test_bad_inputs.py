@@ -1640,6 +1640,23 @@ CASES += [
         f"{D} --vote-iou 0.7 --nms-iou 1 -o {{o}}/d.jsonl",
         r"--vote-iou 0.7 refines .* with --nms-iou 1 \(off\) there is none",
     ),
+    # sizes of a single-target tracker's tensors and loops (the ninth sweep): 10^9 particles
+    # was torch's allocation error as a traceback, 10^9 co-training passes ran for ever
+    E(
+        "track-single-particles-huge",
+        f"{T} --tracker histogram:n_particles=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"histogram tracker: n_particles must be in \[1, 100000\], got 1000000000$",
+    ),
+    E(
+        "track-template-size-huge",
+        f"{T} --tracker template:template_size=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"n_particles x template_size\^2 = 400 x 1000000000\^2 is more than 33554432 warped",
+    ),
+    E(
+        "track-cotrain-passes-huge",
+        f"{T} --tracker cotrain:init_passes=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"cotrain: init_passes must be in \[1, 100\], got 1000000000",
+    ),
     # seqinfo.ini (the ninth sweep)
     E(
         "eval-mot-seqinfo-frame-rate-inf",

@@ -36,7 +36,7 @@ from torchtrack.filter.sir import StepResult, sir_step
 from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
 from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import check_float_limits
+from torchtrack.track.config import MAX_TRACKER_PARTICLES, check_at_most, check_float_limits
 
 __all__ = ["CoTrainConfig", "CoTrainTracker", "load_cotrain_config"]
 
@@ -132,6 +132,12 @@ class CoTrainConfig:
             )
         if self.particles < 1:
             raise ConfigError(f"cotrain: particles must be >= 1, got {self.particles}")
+        # sizes of tensors and loops: 10^9 asked for gigabytes (a traceback from the CLI) or
+        # ran for ever (init_passes)
+        check_at_most(self, MAX_TRACKER_PARTICLES, "particles", prefix="cotrain: ")
+        check_at_most(self, 100, "n_selectors", "n_candidates", "init_passes", prefix="cotrain: ")
+        check_at_most(self, 255, "opening_size", prefix="cotrain: ")
+        check_at_most(self, 1000, "max_iter", least=0, prefix="cotrain: ")
         for name in ("motion_std", "mutation_std", "gate_scale", "search_scale"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"cotrain: {name} must be > 0, got {getattr(self, name)}")

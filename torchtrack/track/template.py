@@ -94,7 +94,13 @@ from torchtrack.observe.template import (
     to_luma,
 )
 from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import resolve_tracker_config
+from torchtrack.track.config import (
+    MAX_LIKELIHOOD_SAMPLES,
+    MAX_TRACKER_PARTICLES,
+    check_at_most,
+    check_product,
+    resolve_tracker_config,
+)
 
 __all__ = ["TemplateTracker", "TemplateTrackerConfig"]
 
@@ -188,6 +194,13 @@ class TemplateTrackerConfig:
             raise ConfigError(f"template_size must be >= 3, got {self.template_size}")
         if self.lk_iterations < 0:
             raise ConfigError(f"lk_iterations must be >= 0, got {self.lk_iterations}")
+        # sizes of tensors and loops: 10^9 asked for gigabytes (a traceback from the CLI) or
+        # ran for ever (lk_iterations)
+        check_at_most(self, MAX_TRACKER_PARTICLES, "n_particles", "history")
+        check_at_most(self, 1000, "lk_iterations", least=0)
+        check_product(
+            self, MAX_LIKELIHOOD_SAMPLES, "warped pixels", "n_particles", "template_size", 2
+        )
         for k in ("detect_threshold", "update_threshold"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"{k} must be in [0, 1], got {getattr(self, k)}")
