@@ -188,6 +188,10 @@ def corpus(tmp_path_factory, forge_model):
         'window = [16, 16]\nsurprise = 1\n[data]\npositives = ["crops/pos"]\n'
     )
     (c / "tracker_unknown.toml").write_text("n_particles = 50\nsurprise = 2\n")
+    (c / "haar_stride.toml").write_text(  # a bank no model file holds: trained, then refused
+        'window = [16, 16]\n[data]\npositives = ["crops/pos"]\nnegatives = ["crops/neg"]\n'
+        '[features]\nkind = "haar"\nstride = 17\n[learn]\nn_features = 4\n'
+    )
     # scores
     rng = np.random.default_rng(2)
     m = rng.normal(size=200)
@@ -1656,6 +1660,12 @@ CASES += [
         "track-cotrain-passes-huge",
         f"{T} --tracker cotrain:init_passes=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
         r"cotrain: init_passes must be in \[1, 100\], got 1000000000",
+    ),
+    E(
+        "train-haar-stride-beyond-window",  # trained to the end, then 'not writing ...'
+        "train --config {c}/haar_stride.toml -q -o {o}/m.safetensors",
+        r"\[features\]: bank stride must be an integer in \[1, 16\], got 17: no model file may "
+        "hold this bank",
     ),
     # seqinfo.ini (the ninth sweep)
     E(
