@@ -393,3 +393,27 @@ def test_sizes_that_exhaust_memory_are_refused_when_the_tracker_is_made(name, ov
 )
 def test_sizes_at_their_bounds_are_accepted(name, overrides):
     create_tracker(name, **overrides)
+
+
+@pytest.mark.parametrize(
+    "name", ["histogram", "adaptive-haar", "template", "cotrain", "detector", "fused", "multi"]
+)
+def test_a_generator_that_is_not_a_torch_generator_is_refused_when_the_tracker_is_made(name):
+    """generator=5 was 'int' object is not iterable (or has no attribute 'device') on the first
+    frame, a string a 'sequence of 4' generators, and a list of generators worked in some
+    trackers and not in others (adaptive-haar drew its negatives' x and y from the list's two
+    first generators): every tracker takes one torch.Generator or None, as documented."""
+    from torchtrack.track.multi import MultiTargetTracker
+
+    make = (
+        (lambda **k: MultiTargetTracker("pedestrian", **k))
+        if name == "multi"
+        else (lambda **k: create_tracker(name, **k))
+    )
+    for bad, what in ((5, "int"), ("seed", "str"), ([torch.Generator()], "list")):
+        with pytest.raises(
+            ConfigError, match=rf"generator must be a torch.Generator or None, got {what}"
+        ):
+            make(generator=bad)
+    make(generator=torch.Generator().manual_seed(0))
+    make(generator=None)

@@ -136,7 +136,7 @@ from torchtrack.learn.online_gentle import (
 )
 from torchtrack.observe.adaptive_haar import AdaptiveHaarObservation
 from torchtrack.observe.cotrain import CoTrainCue
-from torchtrack.track.base import Tracker, TrackState, register_tracker
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
 from torchtrack.track.config import (
     MAX_TRACKER_PARTICLES,
     _in_unit,
@@ -515,7 +515,7 @@ class AdaptiveHaarTracker(Tracker):
             AdaptiveHaarConfig, config, overrides, where="adaptive-haar tracker"
         )
         self.config = cfg
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         self.pool = cfg.pool()
         self.quarters: torch.Tensor | None = None  # candidates' quarters, set by init
         self.motion = cfg.motion_model()

@@ -35,7 +35,7 @@ from torchtrack.filter.seir import seir_step
 from torchtrack.filter.sir import StepResult, sir_step
 from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
-from torchtrack.track.base import Tracker, TrackState, register_tracker
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
 from torchtrack.track.config import MAX_TRACKER_PARTICLES, check_at_most, check_float_limits
 
 __all__ = ["CoTrainConfig", "CoTrainTracker", "load_cotrain_config"]
@@ -234,7 +234,7 @@ class CoTrainTracker(Tracker):
             self.config = load_cotrain_config(config, **params)
         else:
             self.config = _make_config(dict(params), "cotrain")
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         c = self.config
         self.trainer = CoTrainer(
             mode=c.mode,

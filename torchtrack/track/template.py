@@ -93,7 +93,7 @@ from torchtrack.observe.template import (
     pose_matrices,
     to_luma,
 )
-from torchtrack.track.base import Tracker, TrackState, register_tracker
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
 from torchtrack.track.config import (
     MAX_LIKELIHOOD_SAMPLES,
     MAX_TRACKER_PARTICLES,
@@ -282,7 +282,7 @@ class TemplateTracker(Tracker):
             TemplateTrackerConfig, config, overrides, where="template tracker"
         )
         self.config = cfg
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         self.motion = BachooMotion(
             min_sigma=cfg.min_sigma,
             gain=cfg.gain,
