@@ -142,3 +142,33 @@ def test_a_frame_size_of_bools_is_refused(size):
     for bad in ((48,), "ab", (48, 64, 3), (float("nan"), 64)):
         with pytest.raises(ShapeError, match="frame_size must be"):
             check_boxes(b, bad)
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int8, torch.int16, torch.int32])
+def test_areas_and_iou_of_narrow_integer_boxes_do_not_wrap(dtype):
+    """box_area of a uint8 20 x 20 box was 144 (400 mod 256) and of an int16 300 x 300 box
+    24464, silently; their IoUs were computed from the wrapped areas. Narrow integer boxes are
+    measured in int64 (areas) and float64 (IoU); int64 and float boxes are unchanged."""
+    side = 20 if dtype in (torch.uint8, torch.int8) else 300
+    if dtype == torch.int32:
+        side = 50_000  # 2.5e9: beyond int32
+    a = torch.tensor([[0, 0, side, side]], dtype=dtype)
+    b = torch.tensor([[side // 2, 0, side // 2, side]], dtype=dtype)
+    from torchtrack.boxes import box_area
+
+    assert box_area(a).tolist() == [side * side] and box_area(a).dtype == torch.int64
+    assert box_iou(a, b).item() == pytest.approx(0.5)
+    assert box_iou_matrix(a, b).item() == pytest.approx(0.5)
+    assert inside_fraction(a, (side // 2, side)).item() == pytest.approx(0.5)
+
+
+def test_bool_and_complex_boxes_are_refused():
+    """bool boxes were areas of 0 / 1 in box_area and a RuntimeError in box_iou; complex ones a
+    RuntimeError: boxes are real numbers."""
+    from torchtrack.boxes import box_area
+
+    b = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    for bad in (b.bool(), b.to(torch.complex64)):
+        for fn in (box_area, lambda x: box_iou(x, x), lambda x: clip_boxes(x, (10, 10))):
+            with pytest.raises(ShapeError, match=r"(boxes|a) must hold real numbers, got torch\."):
+                fn(bad)

@@ -34,6 +34,17 @@ def _check_last4(boxes: torch.Tensor, name: str = "boxes") -> None:
         raise ShapeError(f"{name} must be a torch.Tensor, got {type(boxes).__name__}")
     if boxes.ndim == 0 or boxes.shape[-1] != 4:
         raise ShapeError(f"{name} must have shape (..., 4), got {tuple(boxes.shape)}")
+    if boxes.dtype == torch.bool or boxes.is_complex():  # areas of 0 / 1, or a RuntimeError
+        raise ShapeError(f"{name} must hold real numbers, got {boxes.dtype}")
+
+
+#: integer dtypes whose box areas (and corners) wrap: a uint8 20 x 20 box's area was 144
+_NARROW_INTS = (torch.uint8, torch.int8, torch.int16, torch.int32)
+
+
+def _wide(boxes: torch.Tensor) -> torch.Tensor:
+    """``boxes`` in int64 when they are a narrower integer dtype, else as they are."""
+    return boxes.long() if boxes.dtype in _NARROW_INTS else boxes
 
 
 def _check_frame_size(frame_size, name: str = "frame_size", positive: bool = False) -> tuple:
@@ -97,11 +108,13 @@ def box_area(boxes: torch.Tensor) -> torch.Tensor:
     """Area ``(...)`` of ``(..., 4)`` xywh boxes; negative sizes count as zero.
 
     float16 / bfloat16 boxes give float32 areas (a 256 x 256 box's area is beyond float16's
-    65504: it came out inf); other dtypes keep theirs.
+    65504: it came out inf) and integer boxes int64 areas (a uint8 20 x 20 box's was 144);
+    other dtypes keep theirs.
     """
     _check_last4(boxes)
     if _half_dtype(boxes) is not None:
         boxes = boxes.float()
+    boxes = _wide(boxes)
     return boxes[..., 2].clamp(min=0) * boxes[..., 3].clamp(min=0)
 
 
@@ -123,6 +136,7 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     half = _half_dtype(a, b)
     if half is not None:  # areas of boxes from 256 px overflow float16: IoU 0 for one box twice
         return box_iou(a.float(), b.float()).to(half)
+    a, b = _wide(a), _wide(b)  # narrow integers: areas that wrap
     ax1, ay1, ax2, ay2 = xywh_to_xyxy(a).unbind(-1)
     bx1, by1, bx2, by2 = xywh_to_xyxy(b).unbind(-1)
     iw = (torch.minimum(ax2, bx2) - torch.maximum(ax1, bx1)).clamp(min=0)
@@ -204,6 +218,8 @@ def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor
     """
     _check_last4(boxes)
     h_img, w_img = _check_frame_size(frame_size)
+    if boxes.dtype in _NARROW_INTS:  # the corners x + w wrap: clipped in int64
+        return clip_boxes(boxes.long(), frame_size).to(boxes.dtype)
     negative = (boxes[..., 2] < 0) | (boxes[..., 3] < 0)  # NaN compares false: passes
     if bool(negative.any()):
         i = int(negative.reshape(-1).nonzero()[0, 0])
@@ -238,6 +254,7 @@ def inside_fraction(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.T
     if half is not None:  # as box_iou: the areas in float32, the fractions in the half dtype
         return inside_fraction(boxes.float(), frame_size).to(half)
     h_img, w_img = _check_frame_size(frame_size)
+    boxes = _wide(boxes)  # narrow integers: corners and areas that wrap
     area = box_area(boxes)  # negative sizes: 0 (w * h of two negative sizes was > 0)
     inside = box_area(_clip(boxes, h_img, w_img))
     return torch.where(area > 0, inside / torch.where(area > 0, area, 1), float("nan"))
