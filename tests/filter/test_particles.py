@@ -133,7 +133,8 @@ def test_uniform_log_weights_checks_the_states_like_the_rest_of_the_module():
     were read as N rows of D particles, and N = 0 was a bare 'math domain error'."""
     from torchtrack.filter.particles import uniform_log_weights
 
-    assert uniform_log_weights(torch.zeros(2, 3, 4)).tolist() == [[-math.log(3)] * 3] * 2
+    ok = torch.zeros(2, 3, 4, dtype=torch.float64)
+    assert uniform_log_weights(ok).tolist() == [[-math.log(3)] * 3] * 2
     with pytest.raises(ShapeError, match=r"states must be floating point .*got torch.int64"):
         uniform_log_weights(torch.zeros(1, 3, 2, dtype=torch.long))
     with pytest.raises(ShapeError, match=r"states must be a \(B, N, D\) tensor, got \(3, 2\)"):
