@@ -86,3 +86,89 @@ def test_half_precision_boxes_of_ordinary_size(dtype):
     assert box_iou_matrix(a, b).float().item() == pytest.approx(want.item(), abs=5e-3)
     frac = inside_fraction(a, (150, 1000))
     assert frac.dtype == dtype and frac.float().item() == pytest.approx(0.5, abs=5e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_box_area_is_float32(dtype):
+    """box_area of a float16 300 x 300 box overflowed to inf (box_iou and inside_fraction
+    already took their areas in float32): the areas of 16-bit boxes come back in float32,
+    which holds them, exactly for whole-pixel sizes."""
+    from torchtrack.boxes import box_area
+
+    b = torch.tensor([[0.0, 0.0, 300.0, 300.0], [1.0, 1.0, 2.0, -3.0]], dtype=dtype)
+    area = box_area(b)
+    assert area.dtype == torch.float32 and area.tolist() == [90000.0, 0.0]
+    assert box_area(b.float()).dtype == torch.float32
+    assert box_area(b.double()).dtype == torch.float64
+
+
+def test_clip_boxes_refuses_negative_sizes_naming_the_row():
+    """A box of negative width or height is not a box: one inside the frame came back as it
+    was (negative size), one outside it as a zero-size box, silently. clip_boxes refuses it,
+    naming the row; NaN boxes (a target absent) still pass through; inside_fraction gives such
+    a box NaN like any box without area (it gave 0 or NaN by the signs)."""
+    ok = torch.tensor([[1.0, 1.0, 4.0, 4.0]])
+    bad = torch.tensor([[1.0, 1.0, 4.0, 4.0], [10.0, 10.0, -5.0, 5.0]])
+    with pytest.raises(BoxError, match=r"boxes\[1\] = \[10.0, 10.0, -5.0, 5.0\] .* negative width"):
+        clip_boxes(bad, (48, 64))
+    with pytest.raises(BoxError, match=r"boxes\[3\] = \[9.0, 9.0, 2.0, -1.0\] .* negative height"):
+        clip_boxes(
+            torch.tensor([[[1.0, 1, 4, 4], [2, 2, 3, 3]], [[0, 0, 1, 1], [9, 9, 2, -1]]]), (48, 64)
+        )
+    nan = torch.tensor([[float("nan"), 1.0, 4.0, 4.0]])
+    assert torch.isnan(clip_boxes(nan, (48, 64))).any()
+    assert clip_boxes(torch.tensor([[70.0, 1.0, 0.0, 4.0]]), (48, 64)).tolist() == [
+        [64.0, 1.0, 0.0, 4.0]
+    ]
+    frac = inside_fraction(
+        torch.tensor([[10.0, 10.0, -5.0, -5.0], [10, 10, -5, 5], [1, 1, 4, 4]]), (48, 64)
+    )
+    assert torch.isnan(frac[:2]).all() and frac[2].item() == 1.0
+    assert clip_boxes(ok, (48, 64)).tolist() == ok.tolist()
+
+
+@pytest.mark.parametrize("size", [(True, 64), (48, False), (torch.tensor(True), 64)])
+def test_a_frame_size_of_bools_is_refused(size):
+    """(True, 64) was a 1 x 64 frame: clip_boxes clipped to it and check_boxes (which did not
+    check its frame_size: (48,) was a bare ValueError) measured boxes against it."""
+    import numpy as np
+
+    b = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    for fn in (clip_boxes, inside_fraction, lambda b, s: check_boxes(b, s)):
+        with pytest.raises(ShapeError, match=r"frame_size must be \(H, W\) .*not bool"):
+            fn(b, size)
+    with pytest.raises(ShapeError, match="not bool"):
+        clip_boxes(b, (np.bool_(True), 64))
+    for bad in ((48,), "ab", (48, 64, 3), (float("nan"), 64)):
+        with pytest.raises(ShapeError, match="frame_size must be"):
+            check_boxes(b, bad)
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int8, torch.int16, torch.int32])
+def test_areas_and_iou_of_narrow_integer_boxes_do_not_wrap(dtype):
+    """box_area of a uint8 20 x 20 box was 144 (400 mod 256) and of an int16 300 x 300 box
+    24464, silently; their IoUs were computed from the wrapped areas. Narrow integer boxes are
+    measured in int64 (areas) and float64 (IoU); int64 and float boxes are unchanged."""
+    side = 20 if dtype in (torch.uint8, torch.int8) else 300
+    if dtype == torch.int32:
+        side = 50_000  # 2.5e9: beyond int32
+    a = torch.tensor([[0, 0, side, side]], dtype=dtype)
+    b = torch.tensor([[side // 2, 0, side // 2, side]], dtype=dtype)
+    from torchtrack.boxes import box_area
+
+    assert box_area(a).tolist() == [side * side] and box_area(a).dtype == torch.int64
+    assert box_iou(a, b).item() == pytest.approx(0.5)
+    assert box_iou_matrix(a, b).item() == pytest.approx(0.5)
+    assert inside_fraction(a, (side // 2, side)).item() == pytest.approx(0.5)
+
+
+def test_bool_and_complex_boxes_are_refused():
+    """bool boxes were areas of 0 / 1 in box_area and a RuntimeError in box_iou; complex ones a
+    RuntimeError: boxes are real numbers."""
+    from torchtrack.boxes import box_area
+
+    b = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    for bad in (b.bool(), b.to(torch.complex64)):
+        for fn in (box_area, lambda x: box_iou(x, x), lambda x: clip_boxes(x, (10, 10))):
+            with pytest.raises(ShapeError, match=r"(boxes|a) must hold real numbers, got torch\."):
+                fn(bad)

@@ -34,21 +34,46 @@ def _check_last4(boxes: torch.Tensor, name: str = "boxes") -> None:
         raise ShapeError(f"{name} must be a torch.Tensor, got {type(boxes).__name__}")
     if boxes.ndim == 0 or boxes.shape[-1] != 4:
         raise ShapeError(f"{name} must have shape (..., 4), got {tuple(boxes.shape)}")
+    if boxes.dtype == torch.bool or boxes.is_complex():  # areas of 0 / 1, or a RuntimeError
+        raise ShapeError(f"{name} must hold real numbers, got {boxes.dtype}")
 
 
-def _check_frame_size(frame_size) -> tuple:
-    """``(H, W)`` of a frame, as given, once checked to be two finite numbers >= 0.
+#: integer dtypes whose box areas (and corners) wrap: a uint8 20 x 20 box's area was 144
+_NARROW_INTS = (torch.uint8, torch.int8, torch.int16, torch.int32)
+
+
+def _wide(boxes: torch.Tensor) -> torch.Tensor:
+    """``boxes`` in int64 when they are a narrower integer dtype, else as they are."""
+    return boxes.long() if boxes.dtype in _NARROW_INTS else boxes
+
+
+def _check_frame_size(frame_size, name: str = "frame_size", positive: bool = False) -> tuple:
+    """``(H, W)`` of a frame (or a window, ``name``), as given, once checked to be two finite
+    numbers >= 0 (> 0 with ``positive``).
 
     Raises:
-        ShapeError: anything else (a negative size clipped every box to a mirrored frame).
+        ShapeError: anything else (a negative size clipped every box to a mirrored frame; a
+            bool, ``(True, 64)``, was a 1-pixel side).
     """
     try:
         h, w = (float(v) for v in frame_size)
-    except (TypeError, ValueError):
-        raise ShapeError(f"frame_size must be (H, W), got {frame_size!r}") from None
-    if not (math.isfinite(h) and math.isfinite(w) and h >= 0 and w >= 0):
-        raise ShapeError(f"frame_size must be (H, W) with H, W >= 0 and finite, got {frame_size!r}")
+    except (TypeError, ValueError, RuntimeError):  # RuntimeError: a tensor of several values
+        raise ShapeError(f"{name} must be (H, W), got {frame_size!r}") from None
+    if any(_is_bool(v) for v in frame_size):
+        raise ShapeError(f"{name} must be (H, W) as numbers, not bool, got {frame_size!r}")
+    least = "> 0" if positive else ">= 0"
+    if not (math.isfinite(h) and math.isfinite(w) and h >= 0 and w >= 0) or (
+        positive and not (h > 0 and w > 0)
+    ):
+        raise ShapeError(f"{name} must be (H, W) with H, W {least} and finite, got {frame_size!r}")
     return frame_size[0], frame_size[1]
+
+
+def _is_bool(v) -> bool:
+    """A Python, NumPy or torch boolean (``float()`` takes each as 0 or 1)."""
+    if isinstance(v, torch.Tensor):
+        return v.dtype == torch.bool
+    return isinstance(v, bool) or type(v).__name__ in ("bool", "bool_")  # numpy 2 and 1
 
 
 def xywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:
@@ -80,8 +105,16 @@ def cxcywh_to_xywh(boxes: torch.Tensor) -> torch.Tensor:
 
 
 def box_area(boxes: torch.Tensor) -> torch.Tensor:
-    """Area of ``(..., 4)`` xywh boxes; negative sizes count as zero."""
+    """Area ``(...)`` of ``(..., 4)`` xywh boxes; negative sizes count as zero.
+
+    float16 / bfloat16 boxes give float32 areas (a 256 x 256 box's area is beyond float16's
+    65504: it came out inf) and integer boxes int64 areas (a uint8 20 x 20 box's was 144);
+    other dtypes keep theirs.
+    """
     _check_last4(boxes)
+    if _half_dtype(boxes) is not None:
+        boxes = boxes.float()
+    boxes = _wide(boxes)
     return boxes[..., 2].clamp(min=0) * boxes[..., 3].clamp(min=0)
 
 
@@ -103,6 +136,7 @@ def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     half = _half_dtype(a, b)
     if half is not None:  # areas of boxes from 256 px overflow float16: IoU 0 for one box twice
         return box_iou(a.float(), b.float()).to(half)
+    a, b = _wide(a), _wide(b)  # narrow integers: areas that wrap
     ax1, ay1, ax2, ay2 = xywh_to_xyxy(a).unbind(-1)
     bx1, by1, bx2, by2 = xywh_to_xyxy(b).unbind(-1)
     iw = (torch.minimum(ax2, bx2) - torch.maximum(ax1, bx1)).clamp(min=0)
@@ -136,8 +170,15 @@ def check_boxes(
 
     The message names the first offending box by index. Use :func:`clip_boxes` to bring boxes
     that only stick out of the frame back inside.
+
+    Raises:
+        BoxError: a box as above.
+        ShapeError: ``boxes`` not ``(..., 4)``, or ``frame_size`` not two finite sizes >= 0
+            (a bool among them included).
     """
     _check_last4(boxes, name)
+    if frame_size is not None:
+        _check_frame_size(frame_size)
     if boxes.numel() == 0:
         return
     finite = torch.isfinite(boxes).all(-1)
@@ -166,9 +207,33 @@ def check_boxes(
 def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clip xywh boxes ``(..., 4)`` to a frame of size ``(H, W)``; boxes fully outside get
     zero size at the nearest border. Boxes already inside come back exactly as they are (the
-    corners' round trip would change a fractional box in its last bits)."""
+    corners' round trip would change a fractional box in its last bits). NaN boxes (a target
+    absent) stay NaN.
+
+    Raises:
+        BoxError: a box of negative width or height, named by its (flattened) index: it is
+            no box to clip (one inside the frame came back with its negative size, one
+            outside it as a zero-size box).
+        ShapeError: ``boxes`` not ``(..., 4)``, or ``frame_size`` not two finite sizes >= 0.
+    """
     _check_last4(boxes)
     h_img, w_img = _check_frame_size(frame_size)
+    if boxes.dtype in _NARROW_INTS:  # the corners x + w wrap: clipped in int64
+        return clip_boxes(boxes.long(), frame_size).to(boxes.dtype)
+    negative = (boxes[..., 2] < 0) | (boxes[..., 3] < 0)  # NaN compares false: passes
+    if bool(negative.any()):
+        i = int(negative.reshape(-1).nonzero()[0, 0])
+        row = boxes.reshape(-1, 4)[i]
+        side = "width" if float(row[2]) < 0 else "height"
+        raise BoxError(
+            f"boxes[{i}] = {row.tolist()} (x, y, w, h) has a negative {side}: clip_boxes clips "
+            "boxes to the frame, it does not repair them"
+        )
+    return _clip(boxes, h_img, w_img)
+
+
+def _clip(boxes: torch.Tensor, h_img, w_img) -> torch.Tensor:
+    """:func:`clip_boxes` without its checks (negative sizes come back as they are)."""
     xyxy = xywh_to_xyxy(boxes)
     x1 = xyxy[..., 0].clamp(0, w_img)
     y1 = xyxy[..., 1].clamp(0, h_img)
@@ -183,13 +248,15 @@ def clip_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor
 def inside_fraction(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """The fraction ``(...)`` of each xywh box's area ``(..., 4)`` that lies inside a frame of
     size ``(H, W)``: 1 inside, 0 entirely outside; NaN for a box that is not finite or has no
-    area (compare with ``>=`` and such boxes fail)."""
+    area, a negative width or height included (compare with ``>=`` and such boxes fail)."""
     _check_last4(boxes)
     half = _half_dtype(boxes)
     if half is not None:  # as box_iou: the areas in float32, the fractions in the half dtype
         return inside_fraction(boxes.float(), frame_size).to(half)
-    area = boxes[..., 2] * boxes[..., 3]
-    inside = box_area(clip_boxes(boxes, frame_size))
+    h_img, w_img = _check_frame_size(frame_size)
+    boxes = _wide(boxes)  # narrow integers: corners and areas that wrap
+    area = box_area(boxes)  # negative sizes: 0 (w * h of two negative sizes was > 0)
+    inside = box_area(_clip(boxes, h_img, w_img))
     return torch.where(area > 0, inside / torch.where(area > 0, area, 1), float("nan"))
 
 

@@ -188,6 +188,10 @@ def corpus(tmp_path_factory, forge_model):
         'window = [16, 16]\nsurprise = 1\n[data]\npositives = ["crops/pos"]\n'
     )
     (c / "tracker_unknown.toml").write_text("n_particles = 50\nsurprise = 2\n")
+    (c / "haar_stride.toml").write_text(  # a bank no model file holds: trained, then refused
+        'window = [16, 16]\n[data]\npositives = ["crops/pos"]\nnegatives = ["crops/neg"]\n'
+        '[features]\nkind = "haar"\nstride = 17\n[learn]\nn_features = 4\n'
+    )
     # scores
     rng = np.random.default_rng(2)
     m = rng.normal(size=200)
@@ -212,6 +216,18 @@ def corpus(tmp_path_factory, forge_model):
     )
     (c / "tiny.csv").write_text(  # the same ranking at magnitudes whose squares underflow
         "score,label\n" + "".join(f"{float(a) * 1e-300!r},{b}\n" for a, b in zip(m, y, strict=True))
+    )
+    # headers naming one of score / label: the first two columns were read by position, so
+    # 'frame,score,y' took the frame numbers as the scores
+    (c / "nolabel.csv").write_text(
+        "frame,score,y\n"
+        + "".join(f"{i},{a},{b}\n" for i, (a, b) in enumerate(zip(m, y, strict=True)))
+    )
+    (c / "noscore.csv").write_text(
+        "label,margin\n" + "".join(f"{b},{a}\n" for a, b in zip(m, y, strict=True))
+    )
+    (c / "labelonly.csv").write_text(  # the named column where the first two put it: read so
+        "margin,label\n" + "".join(f"{a},{b}\n" for a, b in zip(m, y, strict=True))
     )
     (c / "binary.toml").write_bytes(b"\xff\xfe\x00")  # not UTF-8: no TOML, JSON or name list
     for name, a in (("cal_inverted", 1.43), ("cal_flat", 0.0), ("cal_good", -1.2)):
@@ -290,6 +306,17 @@ def corpus(tmp_path_factory, forge_model):
     (c / "mot" / "RESIZED" / "seqinfo.ini").write_text(
         ini.replace("imWidth=64", "imWidth=640").replace("imHeight=48", "imHeight=480")
     )
+    # seqinfo.ini's numbers and imExt (the ninth sweep): frameRate=inf was taken, seqLength=6.0
+    # was 'not a number', imExt=.png over .jpg frames was ignored
+    for name, text in (
+        ("RATEINF", ini.replace("frameRate=10", "frameRate=inf")),
+        ("LENFLOAT", ini.replace("seqLength=6", "seqLength=6.0")),
+    ):
+        (c / "mot" / name / "gt").mkdir(parents=True)
+        (c / "mot" / name / "gt" / "gt.txt").write_text((mot / "gt" / "gt.txt").read_text())
+        (c / "mot" / name / "seqinfo.ini").write_text(text)
+    shutil.copytree(mot, c / "mot" / "PNGEXT")
+    (c / "mot" / "PNGEXT" / "seqinfo.ini").write_text(ini.replace("imExt=.jpg", "imExt=.png"))
     odd = sorted((c / "mot2" / "TOY-02" / "img1").iterdir())[3]
     cv2.imwrite(str(odd), np.zeros((40, 64, 3), np.uint8))
     return c
@@ -470,17 +497,17 @@ CASES: list[Case] = [
     E(
         "track-particles-neg",
         f"{T} --tracker histogram:n_particles=-5 --box 10,14,14,20",
-        "n_particles",
+        r"histogram tracker: n_particles must be >= 1, got -5",
     ),
     E(
         "track-particles-text",
         f"{T} --tracker histogram:n_particles=many --box 10,14,14,20",
-        "n_particles",
+        r"histogram tracker: 'n_particles' must be an integer, got 'many'",
     ),
     E(
         "track-particles-zero",
         f"{T} --tracker adaptive-haar:n_particles=0 --box 10,14,14,20",
-        "n_particles",
+        r"adaptive-haar tracker: n_particles must be >= 1, got 0",
     ),
     E(
         "track-adapt-wrong-tracker",
@@ -522,7 +549,11 @@ CASES: list[Case] = [
         f"{T} {HB} --out-dir {{o}}/runs --max-retries -1",
         r"--max-retries must be >= 0, got -1",
     ),
-    E("track-particles-no-video", f"{T} {HB} --particles", "--particles draws into"),
+    E(
+        "track-particles-no-video",
+        f"{T} {HB} --particles -o {{o}}/b.csv",
+        r"--particles draws into the annotated video: give --video FILE too$",
+    ),
     E("track-color-bad", f"{T} {HB} --color cmyk", "invalid choice", 2),
     E("track-detect-unknown", f"{T} --detect zebra", "unknown model 'zebra'"),
     E("track-detect-missing-file", f"{T} --detect {{c}}/none.safetensors", "does not exist"),
@@ -1524,6 +1555,18 @@ CASES += [
         "--video {o}/v.mp4 --particles",
         r"--particles draws a particle filter's particles: tracker 'camshift' has none",
     ),
+    # cotrain and template are particle filters too: refused as having no particles (the
+    # ninth sweep: they draw them)
+    *(
+        A(
+            f"track-particles-{name}",
+            f"track {{c}}/frames --no-progress --tracker {name} --box 10,14,14,20 "
+            "--video {o}/v.mp4 --particles",
+            "wrote",
+            ("v.mp4",),
+        )
+        for name in ("cotrain", "template")
+    ),
     E(
         "eval-mot-results-jobs",  # scored in this process, one after another
         "eval --mot {c}/mot/TOY-01 --results {c}/res.txt --jobs 2 -o {o}/r",
@@ -1600,6 +1643,65 @@ CASES += [
         "detect-vote-without-nms",  # the scan votes only among what NMS keeps: dropped, silently
         f"{D} --vote-iou 0.7 --nms-iou 1 -o {{o}}/d.jsonl",
         r"--vote-iou 0.7 refines .* with --nms-iou 1 \(off\) there is none",
+    ),
+    # sizes of a single-target tracker's tensors and loops (the ninth sweep): 10^9 particles
+    # was torch's allocation error as a traceback, 10^9 co-training passes ran for ever
+    E(
+        "track-single-particles-huge",
+        f"{T} --tracker histogram:n_particles=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"histogram tracker: n_particles must be in \[1, 100000\], got 1000000000$",
+    ),
+    E(
+        "track-template-size-huge",
+        f"{T} --tracker template:template_size=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"n_particles x template_size\^2 = 400 x 1000000000\^2 is more than 33554432 warped",
+    ),
+    E(
+        "track-cotrain-passes-huge",
+        f"{T} --tracker cotrain:init_passes=1000000000 --box 10,14,14,20 -o {{o}}/b.csv",
+        r"cotrain: init_passes must be in \[1, 100\], got 1000000000",
+    ),
+    E(
+        "train-haar-stride-beyond-window",  # trained to the end, then 'not writing ...'
+        "train --config {c}/haar_stride.toml -q -o {o}/m.safetensors",
+        r"\[features\]: bank stride must be an integer in \[1, 16\], got 17: no model file may "
+        "hold this bank",
+    ),
+    # seqinfo.ini (the ninth sweep)
+    E(
+        "eval-mot-seqinfo-frame-rate-inf",
+        "eval --mot {c}/mot/RATEINF --results {c}/res.txt -o {o}/r",
+        r"RATEINF/seqinfo\.ini: frameRate='inf' must be a finite number > 0",
+    ),
+    A(
+        "eval-mot-seqinfo-length-with-a-point",  # was 'not a number'
+        "eval --mot {c}/mot/LENFLOAT --results {c}/res.txt -o {o}/r",
+        "HOTA",
+        ("r/results.json", "r/results.md"),
+    ),
+    E(
+        "eval-mot-seqinfo-imext-not-the-frames",  # imExt was ignored
+        "eval --mot {c}/mot/PNGEXT --results {c}/res.txt -o {o}/r",
+        r"PNGEXT/img1 holds no \.png frame \(the extension .*seqinfo\.ini gives, imExt=\.png\): "
+        r"it holds 6 \.jpg file\(s\)",
+    ),
+    # a header naming the score column and not the label column (or the other way round)
+    E(
+        "cal-scores-header-without-label",
+        "calibrate --scores {c}/nolabel.csv --json {o}/p.json",
+        r"score file '.*nolabel\.csv': its header 'frame,score,y' names column 2 'score' and no "
+        r"column 'label', so the first two columns would be read as score, label",
+    ),
+    E(
+        "cal-scores-header-without-score",
+        "calibrate --scores {c}/noscore.csv --json {o}/p.json",
+        r"noscore\.csv': its header 'label,margin' names column 1 'label' and no column 'score'",
+    ),
+    A(
+        "cal-scores-header-label-only",  # margin,label: read by position, as named
+        "calibrate --scores {c}/labelonly.csv --json {o}/p.json",
+        "wrote",
+        ("p.json",),
     ),
     # the top level
     E("top-unknown-command", "frobnicate", "invalid choice", 2),

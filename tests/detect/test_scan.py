@@ -261,3 +261,48 @@ def test_scan_thresholds_nms_and_max_scale_out_of_range_are_refused():
     assert scan_scales((480, 640), (128, 64), max_scale=math.inf) == scan_scales(
         (480, 640), (128, 64)
     )
+
+
+def test_frames_scaled_to_one_warn_that_they_are_read_as_0_255():
+    """A float frame in [0, 1] (torchvision's convention) was scanned as a nearly black 0..255
+    frame: no detection and no word. It cannot be refused (a dark 0..255 frame looks the
+    same), so Detector.scan and scan warn; 0..255 frames, 8-bit frames and an all-black float
+    frame do not."""
+    import warnings
+
+    det = load_model("vehicle")
+    g = torch.Generator().manual_seed(0)
+    frame = torch.randint(0, 256, (3, 60, 120), generator=g).float()
+    unit = frame / 255
+    with pytest.warns(UserWarning, match=r"every value in \[0, 1\]: .* read as 0\.\.255 levels"):
+        det.scan(unit)
+    with pytest.warns(UserWarning, match=r"multiply by 255"):
+        det.scan(unit[None])
+    with pytest.warns(UserWarning, match=r"read as 0\.\.255 levels"):
+        scan(det, unit)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        det.scan(frame)
+        det.scan(frame.to(torch.uint8))
+        det.scan(torch.zeros(3, 60, 120))
+        scan(det, frame)
+
+
+def test_window_and_frame_sizes_that_are_not_two_sizes_are_refused():
+    """sliding_windows took a window (True, 8) as 1 x 8 (13,802 windows), a frame (True, 64)
+    as 1 x 64 (no window), a NaN frame side raised a bare ValueError and a zero window side a
+    ZeroDivisionError; scan_scales alike."""
+    from torchtrack.detect.scan import scan_scales
+
+    for fn in (sliding_windows, scan_scales):
+        for frame, window, what in (
+            ((True, 64), (16, 8), "frame_size"),
+            ((float("nan"), 64), (16, 8), "frame_size"),
+            ((48, 64), (True, 8), "window"),
+            ((48, 64), (0, 8), "window"),
+            ((48, 64), (16, float("inf")), "window"),
+            ((48, 64), (16,), "window"),
+        ):
+            with pytest.raises(ShapeError, match=rf"{what} must be \(H, W\)"):
+                fn(frame, window)
+    assert sliding_windows((48, 64), (16, 8)).shape[0] > 0

@@ -172,3 +172,36 @@ def test_haar_detector_scan_with_pad_scores_the_continued_frame(car_folders):
     padded = torch.nn.functional.pad(frame.float(), (p, p, p, p), mode="replicate")
     ref = det.decision_function(padded, (wins + torch.tensor([p, p, 0.0, 0.0]))[None])[0]
     torch.testing.assert_close(m, ref, atol=1e-4, rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        ({"stride": 101}, r"bank stride must be an integer in \[1, 100\], got 101"),
+        (
+            {"min_std": 1e-4},
+            r"bank min_std must be a finite number in \[0.001, 255.0\], got 0.0001",
+        ),
+    ],
+)
+def test_a_haar_bank_no_model_file_holds_is_refused_before_any_data_is_read(
+    tmp_path, monkeypatch, edit, match
+):
+    """A stride beyond the window or a min_std under 1e-3 passed the config's checks, trained
+    to the end and was refused when the model was written ('not writing ...'): the model
+    file's own bank check now runs on the bank before the crops are read."""
+    import torchtrack.detect.training as training
+    from torchtrack.errors import ConfigError
+
+    (tmp_path / "pos").mkdir()
+    (tmp_path / "neg").mkdir()
+    cfg = small_config(tmp_path)
+    for k, v in edit.items():
+        setattr(cfg.features, k, v)
+
+    def read_nothing(*a, **k):
+        raise AssertionError("the crops were read before the bank was checked")
+
+    monkeypatch.setattr(training, "load_training_data", read_nothing)
+    with pytest.raises(ConfigError, match=rf"\[features\]: {match}: no model file may hold"):
+        train_detector(cfg)

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import BoxError, ConfigError, ShapeError
 from torchtrack.filter.motion import BachooMotion, ChateauAR, KleinAR
 
 BOXES = torch.tensor([[10.0, 20.0, 30.0, 60.0], [100.0, 50.0, 8.0, 16.0]], dtype=torch.float64)
@@ -95,9 +95,9 @@ def test_bachoo_noise_adapts_and_inflates_on_occlusion():
     assert ((q[..., 2] / 30.0)[0].std() - 0.01).abs() < 0.001  # eq. (2) relative scale
     with pytest.raises(ShapeError, match="history is for B=2 targets"):
         m.predict(s[:1], None, history=h2)
-    with pytest.raises(ConfigError, match="history must be >= 1"):
+    with pytest.raises(ConfigError, match=r"history must be an integer in \[1, 100000\]"):
         BachooMotion(history=0)
-    with pytest.raises(ConfigError, match="min_sigma must be >= 0"):
+    with pytest.raises(ConfigError, match="min_sigma must be a finite number >= 0"):
         BachooMotion(min_sigma=-1)
 
 
@@ -173,3 +173,70 @@ def test_klein_paper_mode_is_eq1_unchanged():
     ref[..., 0:2] += ref[..., 4:6]
     ref[..., 2:4] = (ref[..., 2:4] + e[..., 2:4]).clamp_min(1.0)
     torch.testing.assert_close(m.predict(s, torch.Generator().manual_seed(5)), ref)
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR(window=(15.0, 30.0)), BachooMotion()])
+@pytest.mark.parametrize("size", [(True, 320), (240, -1), (float("nan"), 320), (240,)])
+def test_confine_refuses_a_frame_size_that_is_not_two_sizes(model, size):
+    """confine took (True, 320) as a 1 x 320 frame, a negative or NaN size as given (centres
+    clamped into a mirrored or NaN frame), silently; it checks frame_size like clip_boxes."""
+    s = model.init(torch.tensor([[150.0, 100.0, 30.0, 60.0]], dtype=torch.float64), 5)
+    with pytest.raises(ShapeError, match=r"frame_size must be \(H, W\)"):
+        model.confine(s, size)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: KleinAR(sigma_xy=float("inf")), r"sigma_xy must be a finite number >= 0, got inf"),
+        (lambda: KleinAR(sigma_wh=True), r"sigma_wh must be a finite number >= 0, got True"),
+        (lambda: KleinAR(min_size="1"), r"min_size must be a finite number >= 0, got '1'"),
+        (lambda: KleinAR(damping=True), r"damping must be in \[0, 1\], got True"),
+        (lambda: BachooMotion(gain=float("inf")), r"gain must be a finite number >= 0"),
+        (lambda: BachooMotion(history=2.5), r"history must be an integer in \[1, 100000\]"),
+        (lambda: BachooMotion(history=True), r"history must be an integer in \[1, 100000\]"),
+        (lambda: BachooMotion(history=10**12), r"history must be an integer in \[1, 100000\]"),
+        (lambda: ChateauAR(window=(float("inf"), 30.0)), r"window must be \(w, h\) > 0 and finite"),
+        (lambda: ChateauAR(min_scale=float("inf")), r"min_scale must be a finite number >= 0"),
+        (
+            lambda: ChateauAR(A=torch.full((6, 6), float("nan"))),
+            r"ChateauAR: A must be finite",
+        ),
+        (
+            lambda: ChateauAR(B=torch.full((6, 3), float("inf"))),
+            r"ChateauAR: B must be finite",
+        ),
+    ],
+)
+def test_motion_settings_that_are_not_finite_numbers_are_refused(make, match):
+    """KleinAR(sigma_xy=inf) and the like were taken (every particle then inf, reset to the
+    frame centre by confine), True as 1, '1' as 1.0; BachooMotion(history=2.5) ran with 2 and
+    history=10^12 asked for 16 TB at new_history; ChateauAR took an infinite window and NaN
+    matrices (NaN particles)."""
+    with pytest.raises(ConfigError, match=match):
+        make()
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR(window=(15.0, 30.0)), BachooMotion()])
+def test_motion_init_refuses_bad_counts_and_boxes(model):
+    """init(boxes, -1) was torch's RuntimeError, n=True one particle and n=2.5 a TypeError deep
+    in torch; a NaN or infinite box, or one of size <= 0, gave NaN or negative-size particles,
+    silently."""
+    box = torch.tensor([[150.0, 100.0, 30.0, 60.0]], dtype=torch.float64)
+    assert model.init(box, 3).shape[:2] == (1, 3)
+    for n in (0, -1, True, 2.5):
+        with pytest.raises(ConfigError, match=r"n must be an integer >= 1 \(particles per box\)"):
+            model.init(box, n)
+    for bad, what in (
+        ([[150.0, float("nan"), 30.0, 60.0]], "not finite"),
+        ([[150.0, 100.0, float("inf"), 60.0]], "not finite"),
+        ([[150.0, 100.0, -30.0, 60.0]], "a width or height <= 0"),
+        ([[150.0, 100.0, 30.0, 0.0]], "a width or height <= 0"),
+    ):
+        boxes = torch.tensor([[1.0, 2.0, 3.0, 4.0], *bad], dtype=torch.float64)
+        with pytest.raises(
+            BoxError, match=rf"boxes\[1\] = .* is {what}|boxes\[1\] = .* has {what}"
+        ):
+            model.init(boxes, 3)
+        with pytest.raises(BoxError, match=r"boxes\[1\]"):
+            model.from_boxes(boxes)

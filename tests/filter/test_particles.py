@@ -126,3 +126,18 @@ def test_has_nan_or_posinf_fast_path_edge_cases():
     assert has_nan_or_posinf(torch.tensor([math.inf, -math.inf]))  # sum is NaN
     assert has_nan_or_posinf(torch.tensor([1.0, math.inf]))
     assert has_nan_or_posinf(torch.tensor([1.0, math.nan]))
+
+
+def test_uniform_log_weights_checks_the_states_like_the_rest_of_the_module():
+    """Integer states gave log-weights of -1 for any N (-log N truncated), 2-D states (N, D)
+    were read as N rows of D particles, and N = 0 was a bare 'math domain error'."""
+    from torchtrack.filter.particles import uniform_log_weights
+
+    ok = torch.zeros(2, 3, 4, dtype=torch.float64)
+    assert uniform_log_weights(ok).tolist() == [[-math.log(3)] * 3] * 2
+    with pytest.raises(ShapeError, match=r"states must be floating point .*got torch.int64"):
+        uniform_log_weights(torch.zeros(1, 3, 2, dtype=torch.long))
+    with pytest.raises(ShapeError, match=r"states must be a \(B, N, D\) tensor, got \(3, 2\)"):
+        uniform_log_weights(torch.zeros(3, 2))
+    with pytest.raises(ShapeError, match=r"at least one particle per batch row \(N >= 1\)"):
+        uniform_log_weights(torch.zeros(1, 0, 2))

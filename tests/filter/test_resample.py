@@ -326,3 +326,19 @@ def test_random_helpers_draw_torchs_numbers_on_the_cpu():
         torch.multinomial(w, 25, replacement=True, generator=gen()),
     )
     assert _random.randperm(5, None).device.type == "cpu"
+
+
+def test_a_generator_that_is_no_generator_or_sequence_of_generators_is_refused():
+    """generator=5 was 'int' object is not iterable, a string was taken as a 'sequence of 4'
+    generators and [None] reached torch: the message names what a generator may be."""
+    from torchtrack.errors import ConfigError
+    from torchtrack.filter.resample import systematic
+
+    w = torch.tensor([[0.2, 0.3, 0.5]])
+    for bad, what in ((5, "int 5"), ("abc", "str 'abc'"), ([None], r"a sequence holding NoneType")):
+        with pytest.raises(
+            ConfigError,
+            match=rf"generator must be None, a torch.Generator or a sequence of torch.Generator .*got {what}",
+        ):
+            systematic(w, bad)
+    systematic(w, [torch.Generator()])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -348,3 +350,70 @@ def test_frames_folder_named_by_imdir_is_the_one_reported_missing(tmp_path):
     assert seq.frames is None and seq.im_dir == d / "frames"
     with pytest.raises(VideoError, match=r"no .*[/\\]s[/\\]frames/ folder and no video"):
         seq.open()
+
+
+def test_seqinfo_numbers_as_written(tmp_path):
+    """seqLength=6.0 was 'not a number' (int() of the text) and frameRate=inf was taken; now a
+    whole number written with a decimal point is that number, a non-finite frame rate is
+    refused by name, and what Python reads but a number in a file is not (1_0, Arabic-Indic
+    digits) is refused."""
+    info = read_seqinfo(
+        _write(tmp_path / "a.ini", "[Sequence]\nseqLength=6.0\nimWidth=64.\nimHeight=4.8e1\n")
+    )
+    assert (info.seq_length, info.im_width, info.im_height) == (6, 64, 48)
+    assert isinstance(info.seq_length, int) and isinstance(info.im_width, int)
+    assert (
+        read_seqinfo(
+            _write(tmp_path / "b.ini", "[Sequence]\nseqLength=3\nframeRate=29.97\n")
+        ).frame_rate
+        == 29.97
+    )
+    for key, value, match in (
+        ("frameRate", "inf", r"frameRate='inf' must be a finite number > 0"),
+        ("frameRate", "-inf", r"frameRate='-inf' must be a finite number > 0"),
+        ("frameRate", "nan", r"frameRate='nan' must be a finite number > 0"),
+        ("frameRate", "1e999", r"frameRate='1e999' must be a finite number > 0"),
+        ("frameRate", "0", r"frameRate='0' must be a finite number > 0"),
+        ("imWidth", "6.5", r"imWidth='6.5' must be a whole number"),
+        ("imWidth", "inf", r"imWidth='inf' must be a whole number"),
+        ("imHeight", "1_0", r"imHeight='1_0' is not a number"),
+        ("imHeight", "\u0661\u0662", r"imHeight='\u0661\u0662' is not a number"),
+    ):
+        with pytest.raises(MotFormatError, match=match):
+            read_seqinfo(_write(tmp_path / "c.ini", f"[Sequence]\nseqLength=3\n{key}={value}\n"))
+    with pytest.raises(MotFormatError, match=r"seqLength='6.5' must be a whole number"):
+        read_seqinfo(_write(tmp_path / "d.ini", "[Sequence]\nseqLength=6.5\n"))
+
+
+def test_seqinfo_imext_names_the_frames(tmp_path):
+    """imExt was read and ignored: a folder of .png frames under imExt=.jpg was taken, and a
+    folder holding both a .jpg and a .png of every frame was 'twice seqLength'. Now the frames
+    are the imDir files with that extension (what the MOTChallenge devkit reads), a folder
+    without any is refused naming imExt, and an imExt that is not an image extension is
+    refused; without imExt every image file is a frame, as before."""
+    import cv2
+
+    d = _mot_folder(tmp_path / "png")  # imExt=.png, .png frames
+    assert [f.suffix for f in load_mot_sequence(d).frames] == [".png"] * 3
+    for k in range(1, 4):  # a .jpg copy of every frame beside it
+        cv2.imwrite(str(d / "img1" / f"{k:06d}.jpg"), np.full((12, 16, 3), k, np.uint8))
+    seq = load_mot_sequence(d)
+    assert [f.name for f in seq.frames] == ["000001.png", "000002.png", "000003.png"]
+    ini = d / "seqinfo.ini"
+    ini.write_text(ini.read_text().replace("imExt=.png", "imExt=.JPG"))
+    assert [f.suffix for f in load_mot_sequence(d).frames] == [".jpg"] * 3
+    for f in (d / "img1").glob("*.jpg"):
+        f.unlink()
+    with pytest.raises(
+        SequenceError, match=r"img1 holds no \.JPG frame .*imExt=\.JPG.* it holds 3 \.png file"
+    ):
+        load_mot_sequence(d)
+    for bad in ("png", ".txt", ""):
+        ini.write_text(ini.read_text().split("imExt=")[0] + f"imExt={bad}\n")
+        with pytest.raises(
+            MotFormatError, match=f"imExt='{re.escape(bad)}' is not an image file extension"
+        ):
+            load_mot_sequence(d)
+    ini.write_text(ini.read_text().split("imExt=")[0])
+    assert read_seqinfo(ini).im_ext is None
+    assert len(load_mot_sequence(d).frames) == 3

@@ -298,3 +298,16 @@ def test_a_broken_symbolic_link_is_an_unreadable_frame_in_its_place(tmp_path):
     assert seen == [(0, 0), (1, 40), (2, None), (3, 120)]
     (bad,) = source.bad_frames
     assert bad.index == 2 and "2.png is a broken symbolic link" in bad.reason
+
+
+def test_a_source_that_is_no_path_list_or_camera_index_is_refused():
+    """open_source(True) opened camera 1 (a bool is an int to Python); None, a float or bytes
+    were a bare TypeError from pathlib."""
+    from torchtrack.io.video import open_source
+
+    for bad in (True, False):
+        with pytest.raises(VideoError, match=r"a bool is not a camera index, got True|got False"):
+            open_source(bad)
+    for bad, name in ((None, "NoneType"), (1.5, "float"), (b"frames", "bytes")):
+        with pytest.raises(VideoError, match=rf"source must be a path .* got {name}"):
+            open_source(bad)

@@ -114,3 +114,12 @@ def test_margins_are_the_detector_margins_and_map_to_the_probabilities(frame):
     )
     with pytest.raises(ShapeError, match=r"\(B, N, 4\)"):
         obs.margins(frame[None], boxes[0])
+
+
+def test_scorable_boxes_refuses_a_frame_size_that_is_not_two_sizes():
+    """(True, 64) was a 1 x 64 frame and a NaN size kept no box, silently."""
+    b = torch.tensor([[1.0, 1.0, 5.0, 5.0]])
+    assert scorable_boxes(b, (48, 64)).tolist() == [True]
+    for bad in ((True, 64), (float("nan"), 64), (48,)):
+        with pytest.raises(ShapeError, match=r"frame_size must be \(H, W\)"):
+            scorable_boxes(b, bad)

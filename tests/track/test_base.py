@@ -320,3 +320,100 @@ def test_colour_trackers_follow_a_gray_sequence(name, params):
         st = tr.update(f)
     gt = torch.tensor([28.0, 20.0, 16.0, 20.0], dtype=torch.float64)
     assert float(box_iou(st.box[0].to(torch.float64), gt)) > 0.5
+
+
+_HUGE = 10**9
+
+
+@pytest.mark.parametrize(
+    "name, overrides, match",
+    [
+        # particles: 10^9 asked for 48 GB at init() (a RuntimeError traceback from the CLI);
+        # 10^6 for up to 7.5 GB in one frame
+        ("histogram", {"n_particles": _HUGE}, r"n_particles must be in \[1, 100000\]"),
+        ("adaptive-haar", {"n_particles": _HUGE}, r"n_particles must be in \[1, 100000\]"),
+        ("detector", {"n_particles": _HUGE}, r"n_particles must be in \[1, 100000\]"),
+        ("template", {"n_particles": _HUGE}, r"n_particles must be in \[1, 100000\]"),
+        ("fused", {"n_particles": _HUGE}, r"n_particles must be in \[1, 100000\]"),
+        ("cotrain", {"particles": _HUGE}, r"particles must be in \[1, 100000\]"),
+        (
+            "detector",
+            {"n_particles": 1000, "n_targets": 1000},
+            r"n_particles x n_targets = 1000 x 1000 is more than 100000 particles",
+        ),
+        # sizes of per-frame samples, histograms, pools and buffers
+        ("histogram", {"n_h": _HUGE}, r"n_h must be in \[1, 256\]"),
+        ("histogram", {"n_s": 257}, r"n_s must be in \[1, 256\]"),
+        ("histogram", {"n_v": _HUGE}, r"n_v must be in \[1, 256\]"),
+        ("histogram", {"grid": _HUGE}, r"n_particles x grid\^2 = 2000 x 1000000000\^2 is more"),
+        ("adaptive-haar", {"n_weak": _HUGE}, r"n_weak must be in \[1, 1024\]"),
+        (
+            "adaptive-haar",
+            {"n_weak": 1024, "n_particles": 100000},
+            r"n_particles x n_weak = 100000 x 1024 is more than 16777216",
+        ),
+        ("adaptive-haar", {"pos_max": _HUGE}, r"pos_max must be in \[1, 10000\]"),
+        ("adaptive-haar", {"neg_max": _HUGE}, r"neg_max must be in \[1, 10000\]"),
+        ("adaptive-haar", {"neg_candidates": _HUGE}, r"neg_candidates must be in \[1, 100000\]"),
+        ("template", {"template_size": _HUGE}, r"n_particles x template_size\^2 = 400 x"),
+        ("template", {"history": _HUGE}, r"history must be in \[1, 100000\]"),
+        ("template", {"lk_iterations": _HUGE}, r"lk_iterations must be in \[0, 1000\]"),
+        ("cotrain", {"n_selectors": _HUGE}, r"n_selectors must be in \[1, 100\]"),
+        ("cotrain", {"n_candidates": _HUGE}, r"n_candidates must be in \[1, 100\]"),
+        ("cotrain", {"opening_size": _HUGE}, r"opening_size must be in \[1, 255\]"),
+        ("cotrain", {"init_passes": _HUGE}, r"init_passes must be in \[1, 100\]"),  # hung
+        ("cotrain", {"max_iter": _HUGE}, r"max_iter must be in \[0, 1000\]"),
+        ("fused", {"n_selectors": _HUGE}, r"n_selectors must be in \[1, 100\]"),
+        ("fused", {"n_candidates": _HUGE}, r"n_candidates must be in \[1, 100\]"),
+    ],
+)
+def test_sizes_that_exhaust_memory_are_refused_when_the_tracker_is_made(name, overrides, match):
+    """Counts that size a tracker's tensors were bounded only by 2^31 - 1: 10^9 particles,
+    histogram bins, weak classifiers, training examples, template pixels or boosting
+    selectors asked for gigabytes to exabytes at init() or on the first frame (the CLI
+    printed torch's allocation error as a traceback), and 10^9 co-training passes or
+    Lucas-Kanade steps ran for ever. They are refused when the tracker is made, naming the
+    setting and its bound; the bounds are far above the papers' values (the particle bound
+    50 times the largest, 2000) and were run on the corpus clip within 3.5 GB."""
+    with pytest.raises(ConfigError, match=match):
+        create_tracker(name, **overrides)
+
+
+@pytest.mark.parametrize(
+    "name, overrides",
+    [
+        ("histogram", {"n_particles": 100000, "n_h": 256, "n_s": 256, "n_v": 256}),
+        ("histogram", {"n_particles": 2000, "grid": 128}),
+        ("adaptive-haar", {"n_weak": 512, "n_particles": 32768, "pos_max": 10000}),
+        ("detector", {"n_particles": 100000}),
+        ("template", {"n_particles": 400, "template_size": 289, "history": 100000}),
+        ("cotrain", {"particles": 100000, "n_selectors": 100, "n_candidates": 100}),
+        ("fused", {"n_particles": 100000, "n_selectors": 100, "n_candidates": 100}),
+    ],
+)
+def test_sizes_at_their_bounds_are_accepted(name, overrides):
+    create_tracker(name, **overrides)
+
+
+@pytest.mark.parametrize(
+    "name", ["histogram", "adaptive-haar", "template", "cotrain", "detector", "fused", "multi"]
+)
+def test_a_generator_that_is_not_a_torch_generator_is_refused_when_the_tracker_is_made(name):
+    """generator=5 was 'int' object is not iterable (or has no attribute 'device') on the first
+    frame, a string a 'sequence of 4' generators, and a list of generators worked in some
+    trackers and not in others (adaptive-haar drew its negatives' x and y from the list's two
+    first generators): every tracker takes one torch.Generator or None, as documented."""
+    from torchtrack.track.multi import MultiTargetTracker
+
+    make = (
+        (lambda **k: MultiTargetTracker("pedestrian", **k))
+        if name == "multi"
+        else (lambda **k: create_tracker(name, **k))
+    )
+    for bad, what in ((5, "int"), ("seed", "str"), ([torch.Generator()], "list")):
+        with pytest.raises(
+            ConfigError, match=rf"generator must be a torch.Generator or None, got {what}"
+        ):
+            make(generator=bad)
+    make(generator=torch.Generator().manual_seed(0))
+    make(generator=None)

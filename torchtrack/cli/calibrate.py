@@ -6,7 +6,8 @@ Two inputs (Chateau et al. 2006, section 2.4):
   scored by the detector, a calibrator is fitted to the margins and written into the model
   (atomically; ``-o`` writes a copy) or, with ``--json``, to a JSON file (with both ``-o`` and
   ``--json``, to both);
-* a CSV of ``score,label`` rows (header optional; labels two distinct numbers, the larger is
+* a CSV of ``score,label`` rows (header optional: it names both columns, or neither and the
+  first two are read, or one where those put it; labels two distinct numbers, the larger is
   positive): the calibrator is written to ``--json``.
 
 It prints NLL, Brier score and ECE (equal-width bins, default 15) before calibration, after it
@@ -114,7 +115,8 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
 
     A first line that does not parse as numbers is a header; it may name the columns ``score``
     and ``label`` in any order (other columns are ignored), otherwise the first two columns are
-    used. Blank lines and lines starting with ``#`` are skipped.
+    used (a header naming only one of them must name it where those put it: ``score`` first or
+    ``label`` second). Blank lines and lines starting with ``#`` are skipped.
 
     Returns:
         ``(scores (n,) float64, labels (n,) float64)`` torch tensors.
@@ -155,6 +157,15 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
         names = [c.lower() for c in first]
         if "score" in names and "label" in names:
             si, li = names.index("score"), names.index("label")
+        else:  # read by position: a column named otherwise there ('frame,score,y') is refused
+            for name, other, pos in (("score", "label", 0), ("label", "score", 1)):
+                if name in names and names.index(name) != pos:
+                    raise DataError(
+                        f"score file {str(p)!r}: its header {','.join(first)!r} names column "
+                        f"{names.index(name) + 1} {name!r} and no column {other!r}, so the "
+                        "first two columns would be read as score, label: name both columns "
+                        "'score' and 'label'"
+                    ) from None
         rows = rows[1:]
     scores, labels, bad = [], [], []
     for line, r in rows:

@@ -311,6 +311,11 @@ class Detector:
         ``frames (C, H, W)`` -> ``(boxes (K, 4), probabilities (K,))``;
         ``frames (B, C, H, W)`` -> a list of B such pairs (batched integral images).
 
+        Frames hold 0..255 levels, uint8 or float (C = 1 or RGB). Float frames scaled to
+        [0, 1] must be multiplied by 255 first: read as levels they are a nearly black frame,
+        in which nothing is found. They cannot be told from a dark 0..255 frame, so they are
+        not refused: a float frame whose values all lie in [0, 1] (not all 0) warns.
+
         Args:
             windows: report the detector windows instead of the object boxes (by default the
                 boxes are :meth:`window_to_object` of the windows, and non-maximum suppression
@@ -318,14 +323,22 @@ class Detector:
                 margins of their windows).
             kwargs: threshold, stride, scale_step, min_scale, max_scale, nms_iou, cascade, ...
                 of :func:`torchtrack.detect.scan.scan_batch`.
+
+        Raises:
+            ShapeError: not ``(C, H, W)`` or ``(B, C, H, W)``, or smaller than the window.
+            DataError: a pixel not finite or outside [0, 255].
+
+        Warns:
+            UserWarning: float frames whose values all lie in [0, 1] (not all 0).
         """
-        from torchtrack.detect.scan import scan_batch
+        from torchtrack.detect.scan import scan_batch, warn_unit_range
 
         if not isinstance(frames, torch.Tensor) or frames.ndim not in (3, 4):
             got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
             raise ShapeError(f"scan takes frames (C, H, W) or (B, C, H, W), got {got}")
         single = frames.ndim == 3
         batch = frames[None] if single else frames
+        warn_unit_range(batch)
         kwargs.setdefault("nms_on", "window" if windows else "object")
         out = scan_batch(self, batch, **kwargs)
         if not windows:

@@ -26,11 +26,12 @@ uses both (0.1 and 0.5).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 
 import torch
 
-from torchtrack.boxes import xywh_to_xyxy
+from torchtrack.boxes import _check_frame_size, xywh_to_xyxy
 from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
@@ -53,6 +54,27 @@ MIN_WINDOW_PX = 8
 #: tall for the 128 px pedestrian model); 0.01 asked for a lattice of tens of GB, 1e-308
 #: overflowed the count of scales
 MIN_SCALE = 1 / 16
+
+
+def warn_unit_range(frames: torch.Tensor, stacklevel: int = 3) -> None:
+    """Warn (``UserWarning``) when floating-point ``frames`` hold no value above 1 and some
+    above 0: the scan reads pixels as 0..255 levels, so frames scaled to [0, 1] (torchvision's
+    convention) are scanned as a nearly black frame and yield nothing. A warning, not an
+    error: a dark 0..255 frame (every level 0 or 1, a fade to black) looks the same. 8-bit
+    frames and an all-zero frame never warn; NaN is left to the pixel check."""
+    if not isinstance(frames, torch.Tensor) or not frames.is_floating_point():
+        return
+    if frames.numel() == 0:
+        return
+    hi = float(frames.max())
+    if 0.0 < hi <= 1.0:
+        warnings.warn(
+            f"frames {tuple(frames.shape)} are floating point with every value in [0, {hi:g}]: "
+            "pixels are read as 0..255 levels, so this is scanned as a nearly black frame "
+            "(frames scaled to [0, 1]: multiply by 255 first)",
+            UserWarning,
+            stacklevel=stacklevel,
+        )
 
 
 def sliding_windows(
@@ -79,15 +101,18 @@ def sliding_windows(
 
     Returns:
         ``(N, 4)`` float32 boxes x, y, w, h (empty when the window does not fit).
+
+    Raises:
+        ConfigError, ShapeError: as :func:`scan_scales`; a ``stride`` or ``pad`` out of range.
     """
     if not 0.0 < stride <= 1.0:
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
     _check_pad(pad)
-    fh, fw = frame_size
-    h, w = window
     scales = scan_scales(
         frame_size, window, scale_step=scale_step, min_scale=min_scale, max_scale=max_scale
     )
+    fh, fw = frame_size
+    h, w = window
     if not scales:
         return torch.zeros((0, 4))
     out = []
@@ -243,7 +268,11 @@ def scan_scales(
         ConfigError: ``scale_step`` below :data:`MIN_SCALE_STEP` (a step just above 1 would
             ask for millions of scales: a scan that never ends), or not finite; ``min_scale``
             below :data:`MIN_SCALE` or not finite; ``max_scale`` NaN or below ``min_scale``.
+        ShapeError: ``frame_size`` not two finite sizes >= 0 or ``window`` not two finite
+            sizes > 0 (bools refused: ``(True, 8)`` was a 1-pixel side).
     """
+    _check_frame_size(frame_size)
+    _check_frame_size(window, "window", positive=True)
     if not (MIN_SCALE_STEP <= scale_step < math.inf):
         raise ConfigError(
             f"scale_step must be a finite number >= {MIN_SCALE_STEP:g} (a smaller step scans "
@@ -553,7 +582,9 @@ def scan(
 
     Args:
         detector: a :class:`~torchtrack.detect.Detector`.
-        frame: ``(C, H, W)`` or ``(1, C, H, W)``, 0..255 (C = 1 or RGB; scored on luma).
+        frame: ``(C, H, W)`` or ``(1, C, H, W)``, 0..255 (C = 1 or RGB; scored on luma),
+            uint8 or float; a float frame with every value in [0, 1] warns (see
+            :func:`warn_unit_range`: it is read as a nearly black 0..255 frame).
         threshold: keep windows scoring at least this (``None``: keep all).
         margin: score with raw classifier margins instead of calibrated probabilities.
         scale_step, stride, min_scale, max_scale: see :func:`sliding_windows`; ``min_scale``
@@ -591,13 +622,22 @@ def scan(
 
     Raises:
         ShapeError: not one frame, or a frame smaller than the window at ``min_scale``.
+        DataError: a pixel not finite or outside [0, 255].
+
+    Warns:
+        UserWarning: a floating-point frame whose values all lie in [0, 1] (not all 0).
     """
+    if not isinstance(frame, torch.Tensor):
+        raise ShapeError(
+            f"scan takes one frame (C, H, W) or (1, C, H, W), got {type(frame).__name__}"
+        )
     if frame.ndim == 3:
         frame = frame[None]
     if frame.ndim != 4 or frame.shape[0] != 1:
         raise ShapeError(
             f"scan takes one frame (C, H, W) or (1, C, H, W), got {tuple(frame.shape)}"
         )
+    warn_unit_range(frame)
     return scan_batch(
         detector,
         frame,

@@ -45,7 +45,7 @@ from torchtrack.detect.config import TrainConfig, read_name_list
 from torchtrack.detect.detector import Detector
 from torchtrack.detect.evaluate import crop_scores, detection_rate_at_fpr, roc_auc
 from torchtrack.detect.scan import sliding_windows
-from torchtrack.errors import DataError
+from torchtrack.errors import ConfigError, DataError
 from torchtrack.features.haar import HaarBank, haar_bank, haar_features_dense, integrals
 from torchtrack.io.crops import (
     CropSet,
@@ -344,6 +344,23 @@ def mine_hard_negatives(
     return CropSet(torch.from_numpy(out)[:, None], srcs)
 
 
+def _check_bank_fits_a_model_file(bank: Any, window: tuple[int, int]) -> None:
+    """The model file's own check of a Haar bank (stride within the window, ``min_std`` in
+    [1e-3, 255], at most ``LIMITS.bank_features`` features), before any crop is read: such a
+    bank trained to the end, then the model was refused when written.
+
+    Raises:
+        ConfigError: ``[features]: <the model file's reason>: no model file may hold it``.
+    """
+    from torchtrack.detect.model_checks import _check_haar_bank
+    from torchtrack.errors import ModelFormatError
+
+    try:
+        _check_haar_bank(bank.to_dict(), window)
+    except ModelFormatError as exc:
+        raise ConfigError(f"[features]: {exc}: no model file may hold this bank") from None
+
+
 def train_detector(
     cfg: TrainConfig,
     *,
@@ -387,6 +404,7 @@ def train_detector(
         stride=f.stride,
         min_std=f.min_std,
     )
+    _check_bank_fits_a_model_file(bank, window)
     t_start = time.perf_counter()
     data = load_training_data(cfg, generator=gen, progress=progress)
     log(

@@ -15,9 +15,37 @@ import torch
 
 from torchtrack.errors import ConfigError
 
-__all__ = ["GeneratorLike", "multinomial", "rand", "randint", "randn", "randperm", "subset"]
+__all__ = [
+    "GeneratorLike",
+    "check_generator",
+    "multinomial",
+    "rand",
+    "randint",
+    "randn",
+    "randperm",
+    "subset",
+]
 
 GeneratorLike = torch.Generator | Sequence[torch.Generator] | None
+
+
+def check_generator(generator: object) -> None:
+    """ConfigError unless ``generator`` is None, a ``torch.Generator`` or a sequence of them
+    (one per batch row): 5 was 'int' object is not iterable, a string a 'sequence of 4'
+    generators, ``[None]`` reached torch."""
+    if generator is None or isinstance(generator, torch.Generator):
+        return
+    if isinstance(generator, Sequence) and not isinstance(generator, (str, bytes)):
+        odd = [g for g in generator if not isinstance(g, torch.Generator)]
+        if not odd:
+            return
+        got = f"a sequence holding {type(odd[0]).__name__}"
+    else:
+        got = f"{type(generator).__name__} {generator!r}"
+    raise ConfigError(
+        "generator must be None, a torch.Generator or a sequence of torch.Generator (one per "
+        f"batch row), got {got}"
+    )
 
 
 def _draw(
@@ -35,6 +63,7 @@ def _draw(
             return fn(shape, generator=generator, out=out)
         got = _one(fn, shape, generator, dtype, device)
         return got if out is None else out.copy_(got)
+    check_generator(generator)
     gens = list(generator)
     if len(gens) != shape[0]:
         raise ConfigError(

@@ -26,11 +26,14 @@ Models (all states carry the box centre, so a change of size keeps the centre):
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 
 import torch
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.boxes import _check_frame_size
+from torchtrack.errors import BoxError, ConfigError, ShapeError
 from torchtrack.filter._random import GeneratorLike, randn
 
 __all__ = ["BachooMotion", "ChateauAR", "KleinAR", "VelocityHistory"]
@@ -52,8 +55,12 @@ def _check_states(states: torch.Tensor, d: int, model: str) -> None:
 
 def _clamp_centre(out: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clamp ``out[..., 0:2]`` (box centres) to the frame in place; ``(..., 2)`` bool: which
-    coordinates were moved."""
-    h, w = frame_size
+    coordinates were moved.
+
+    Raises:
+        ShapeError: ``frame_size`` not two finite sizes >= 0 ((True, 320) was a 1 x 320 frame).
+    """
+    h, w = _check_frame_size(frame_size)
     c = out[..., 0:2]
     lo = torch.zeros(2, dtype=out.dtype, device=out.device)
     hi = torch.tensor([float(w), float(h)], dtype=out.dtype, device=out.device)
@@ -70,10 +77,41 @@ def _clamp_size(out: torch.Tensor, frame_size: tuple[int, int], min_size: float)
 
 
 def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not value >= 0.0:
-        raise ConfigError(f"{name} must be >= 0, got {value}")
-    return value
+    """``value`` as a float once it is a finite real number >= 0 (inf was taken: every particle
+    went to inf; True was 1 and '1' 1.0)."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, numbers.Real)
+        or not (0.0 <= float(value) < math.inf)
+    ):
+        raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+    return float(value)
+
+
+#: the longest velocity history (frames) of :class:`BachooMotion`: 10^12 asked for 16 TB
+MAX_HISTORY = 100_000
+
+
+def _check_count(n) -> int:
+    """The particles per box of ``init``: an integer >= 1 (-1 was torch's RuntimeError, True
+    one particle, 2.5 a TypeError inside torch)."""
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ConfigError(f"n must be an integer >= 1 (particles per box), got {n!r}")
+    return int(n)
+
+
+def _check_box_values(boxes: torch.Tensor) -> None:
+    """BoxError naming the first box that is not finite or has a width or height <= 0 (they
+    became NaN or negative-size particles, silently)."""
+    if boxes.numel() == 0:
+        return
+    finite = torch.isfinite(boxes).all(1)
+    sized = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
+    bad = ~(finite & sized)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        what = "is not finite" if not bool(finite[i]) else "has a width or height <= 0"
+        raise BoxError(f"boxes[{i}] = {boxes[i].tolist()} (x, y, w, h) {what}")
 
 
 class KleinAR:
@@ -111,14 +149,20 @@ class KleinAR:
         self.min_size = _positive("min_size", min_size)
         self.relative = bool(relative)
         self.aspect = _positive("aspect", aspect)
-        if not 0.0 <= float(damping) <= 1.0:
+        if isinstance(damping, bool) or not 0.0 <= float(damping) <= 1.0:
             raise ConfigError(f"damping must be in [0, 1], got {damping}")
         self.damping = float(damping)
         self.min_sigma = _positive("min_sigma", min_sigma)
 
     def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
-        """``(B, 4)`` x, y, w, h -> ``(B, 6)`` states with zero velocity."""
+        """``(B, 4)`` x, y, w, h -> ``(B, 6)`` states with zero velocity.
+
+        Raises:
+            ShapeError: not ``(B, 4)`` floating point.
+            BoxError: a box not finite or of width or height <= 0.
+        """
         _check_boxes(boxes)
+        _check_box_values(boxes)
         x, y, w, h = boxes.unbind(1)
         z = torch.zeros_like(x)
         return torch.stack([x + w / 2, y + h / 2, w, h, z, z], 1)
@@ -141,6 +185,7 @@ class KleinAR:
         Returns:
             ``(B, n, 6)``.
         """
+        n = _check_count(n)
         s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
         noise = randn((boxes.shape[0], n, 2), generator, boxes.dtype, boxes.device)
         s[..., 4:6] = noise * self._velocity_sigma(s)
@@ -244,8 +289,11 @@ class ChateauAR:
             self._L = torch.linalg.cholesky(0.5 * (self.Sigma + self.Sigma.T) + jitter)
         except RuntimeError:
             raise ConfigError("ChateauAR: Sigma must be symmetric positive semi-definite") from None
-        if len(window) != 2 or not (window[0] > 0 and window[1] > 0):
-            raise ConfigError(f"ChateauAR: window must be (w, h) > 0, got {window!r}")
+        for name, m in (("A", self.A), ("B", self.B)):
+            if not bool(torch.isfinite(m).all()):  # NaN / inf particles, silently
+                raise ConfigError(f"ChateauAR: {name} must be finite, got {m.tolist()}")
+        if len(window) != 2 or not all(0 < float(v) < math.inf for v in window):
+            raise ConfigError(f"ChateauAR: window must be (w, h) > 0 and finite, got {window!r}")
         self.window = (float(window[0]), float(window[1]))
         self.min_scale = _positive("min_scale", min_scale)
 
@@ -269,8 +317,14 @@ class ChateauAR:
 
     def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
         """``(B, 4)`` x, y, w, h -> ``(B, 6)``, with ``c_{t-1} = c_t`` and ``s_{t-1} = s_t``;
-        ``s = sqrt(w h / (window_w window_h))`` (geometric mean of the two ratios)."""
+        ``s = sqrt(w h / (window_w window_h))`` (geometric mean of the two ratios).
+
+        Raises:
+            ShapeError: not ``(B, 4)`` floating point.
+            BoxError: a box not finite or of width or height <= 0.
+        """
         _check_boxes(boxes)
+        _check_box_values(boxes)
         x, y, w, h = boxes.unbind(1)
         cx, cy = x + w / 2, y + h / 2
         s = torch.sqrt(w * h / (self.window[0] * self.window[1]))
@@ -284,6 +338,7 @@ class ChateauAR:
 
     def init(self, boxes: torch.Tensor, n: int, generator: GeneratorLike = None) -> torch.Tensor:
         """``n`` particles on the first box, spread by one step of process noise: ``(B, n, 6)``."""
+        n = _check_count(n)
         s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
         return s + self._noise(s, generator)
 
@@ -330,7 +385,7 @@ class ChateauAR:
     def confine(self, states: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
         """States ``(B, N, 6)`` with ``c_t`` clamped to the frame, ``c_{t-1} = c_t`` on the
         clamped axes (zero velocity) and the region at most twice the frame's size."""
-        h, w = frame_size
+        h, w = _check_frame_size(frame_size)
         out = states.clone()
         moved = _clamp_centre(out, frame_size)
         out[..., 2:4] = torch.where(moved, out[..., 0:2], out[..., 2:4])
@@ -412,16 +467,28 @@ class BachooMotion:
         self.min_sigma = _positive("min_sigma", min_sigma)
         self.gain = _positive("gain", gain)
         self.occluded_sigma = _positive("occluded_sigma", occluded_sigma)
-        if int(history) < 1:
-            raise ConfigError(f"history must be >= 1 frame, got {history}")
+        if (
+            isinstance(history, bool)
+            or not isinstance(history, numbers.Integral)
+            or not 1 <= history <= MAX_HISTORY
+        ):  # 2.5 ran with 2, 10^12 asked for 16 TB at new_history
+            raise ConfigError(
+                f"history must be an integer in [1, {MAX_HISTORY}] (frames), got {history!r}"
+            )
         self.history = int(history)
         self.sigma_scale = _positive("sigma_scale", sigma_scale)
         self.sigma_rot = _positive("sigma_rot", sigma_rot)
         self.min_size = _positive("min_size", min_size)
 
     def from_boxes(self, boxes: torch.Tensor) -> torch.Tensor:
-        """``(B, 4)`` -> ``(B, 7)`` with zero velocity and rotation."""
+        """``(B, 4)`` -> ``(B, 7)`` with zero velocity and rotation.
+
+        Raises:
+            ShapeError: not ``(B, 4)`` floating point.
+            BoxError: a box not finite or of width or height <= 0.
+        """
         _check_boxes(boxes)
+        _check_box_values(boxes)
         x, y, w, h = boxes.unbind(1)
         z = torch.zeros_like(x)
         return torch.stack([x + w / 2, y + h / 2, w, h, z, z, z], 1)
@@ -476,6 +543,7 @@ class BachooMotion:
 
     def init(self, boxes: torch.Tensor, n: int, generator: GeneratorLike = None) -> torch.Tensor:
         """``n`` particles on the first box with position noise ``min_sigma``: ``(B, n, 7)``."""
+        n = _check_count(n)
         s = self.from_boxes(boxes).unsqueeze(1).repeat(1, n, 1)
         e = randn((boxes.shape[0], n, 2), generator, boxes.dtype, boxes.device)
         s[..., 0:2] += e * self.min_sigma

@@ -118,7 +118,13 @@ def has_nan_or_posinf(x: torch.Tensor) -> bool:
 
 
 def uniform_log_weights(states: torch.Tensor) -> torch.Tensor:
-    """``(B, N)`` log-weights ``-log N`` for ``states (B, N, D)``, same dtype and device."""
+    """``(B, N)`` log-weights ``-log N`` for ``states (B, N, D)``, same dtype and device.
+
+    Raises:
+        ShapeError: ``states`` not ``(B, N, D)`` floating point with N >= 1 (integer states gave
+            -1 for any N, 2-D states were read as N rows, N = 0 a 'math domain error').
+    """
+    check_particles(states)
     b, n = states.shape[:2]
     return torch.full((b, n), -math.log(n), dtype=states.dtype, device=states.device)
 

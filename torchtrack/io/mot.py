@@ -57,7 +57,12 @@ import numpy as np
 
 from torchtrack.errors import MotFormatError, SequenceError, ShapeError, VideoError
 from torchtrack.io.atomic import atomic_write
-from torchtrack.io.video import VIDEO_EXTENSIONS, FrameSource, list_image_files
+from torchtrack.io.video import (
+    IMAGE_EXTENSIONS,
+    VIDEO_EXTENSIONS,
+    FrameSource,
+    list_image_files,
+)
 
 __all__ = [
     "MotRows",
@@ -424,15 +429,27 @@ class SeqInfo:
     frame_rate: float | None = None
     im_width: int | None = None
     im_height: int | None = None
-    im_ext: str = ".jpg"
+    #: the frames' extension (``imExt``, e.g. ``".jpg"``); ``None`` when not given (every image
+    #: file of ``im_dir`` is then a frame)
+    im_ext: str | None = None
+
+
+#: a number as written in a file: ASCII digits, an optional fraction and exponent (Python's
+#: float() also reads '1_0', Arabic-Indic digits, 'inf' and 'nan')
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
 
 
 def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
     """Read a ``seqinfo.ini``.
 
+    Numbers are written with ASCII digits; ``seqLength``, ``imWidth`` and ``imHeight`` are
+    whole numbers (``6`` or ``6.0``), ``frameRate`` a finite number; all are > 0. ``imExt``,
+    when given, is an image file extension with its dot (``.jpg``).
+
     Raises:
-        MotFormatError: unreadable, no ``[Sequence]`` section, a missing ``seqLength`` or a
-            value that is not a positive number.
+        MotFormatError: unreadable, no ``[Sequence]`` section, a missing ``seqLength``, a
+            value that is not a number, not finite, not whole where a count is expected or not
+            > 0, or an ``imExt`` that is not an image file extension.
     """
     p = Path(path)
     cp = configparser.ConfigParser(interpolation=None)  # values as written ('%' included)
@@ -459,12 +476,33 @@ def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
             if required:
                 raise MotFormatError(f"{p}: [Sequence] has no {key}")
             return None
+        text = sec[key].strip()
         try:
-            v = cast(sec[key])
+            v = float(text)
         except ValueError:
-            raise MotFormatError(f"{p}: {key}={sec[key]!r} is not a number") from None
+            v = None
+        if v is None or (_NUMBER.fullmatch(text) is None and math.isfinite(v)):
+            # int() read '6.0' as 'not a number'; float() reads '1_0' and other digits
+            raise MotFormatError(f"{p}: {key}={sec[key]!r} is not a number")
+        if cast is int:
+            if not (math.isfinite(v) and v.is_integer()):
+                raise MotFormatError(f"{p}: {key}={sec[key]!r} must be a whole number")
+            v = int(v)
+        elif not math.isfinite(v) or not v > 0:  # frameRate=inf was taken
+            raise MotFormatError(f"{p}: {key}={sec[key]!r} must be a finite number > 0")
         if not v > 0:
             raise MotFormatError(f"{p}: {key}={sec[key]!r} must be > 0")
+        return v
+
+    def extension() -> str | None:
+        if "imExt" not in sec:
+            return None
+        v = sec["imExt"].strip()
+        if v.lower() not in IMAGE_EXTENSIONS:
+            raise MotFormatError(
+                f"{p}: imExt={v!r} is not an image file extension (one of "
+                f"{', '.join(sorted(IMAGE_EXTENSIONS))}, with its dot)"
+            )
         return v
 
     def component(key: str, default: str) -> str:
@@ -491,7 +529,7 @@ def read_seqinfo(path: str | os.PathLike) -> SeqInfo:
         frame_rate=num("frameRate", float),
         im_width=num("imWidth", int),
         im_height=num("imHeight", int),
-        im_ext=sec.get("imExt", ".jpg"),
+        im_ext=extension(),
     )
 
 
@@ -624,6 +662,8 @@ def _load_folder(
     info = read_seqinfo(d / "seqinfo.ini") if (d / "seqinfo.ini").is_file() else None
     img_dir = d / (info.im_dir if info else "img1")
     frames = list_image_files(img_dir) if img_dir.is_dir() else None
+    if frames is not None and info is not None and info.im_ext is not None:
+        frames = _frames_of_extension(frames, info.im_ext, img_dir, d / "seqinfo.ini")
     if info is None and frames is None:
         raise SequenceError(
             f"{d} is not a MOTChallenge folder: it has neither seqinfo.ini nor an img1/ folder, "
@@ -654,6 +694,27 @@ def _load_folder(
         frame_rate=None if info is None else info.frame_rate,
         im_dir=img_dir,
     )
+
+
+def _frames_of_extension(frames: list[Path], ext: str, img_dir: Path, ini: Path) -> list[Path]:
+    """The frames whose extension is ``seqinfo.ini``'s ``imExt`` (any case): what the
+    MOTChallenge devkit reads (it was ignored: frames of another extension were taken, and a
+    folder with a copy of every frame in another format was 'twice seqLength').
+
+    Raises:
+        SequenceError: no frame has that extension.
+    """
+    kept = [f for f in frames if f.suffix.lower() == ext.lower()]
+    if not kept:
+        from collections import Counter
+
+        held = Counter(f.suffix.lower() for f in frames)
+        listed = ", ".join(f"{n} {e} file(s)" for e, n in sorted(held.items()))
+        raise SequenceError(
+            f"{img_dir} holds no {ext} frame (the extension {ini} gives, imExt={ext}): it holds "
+            f"{listed}"
+        )
+    return kept
 
 
 def _check_frame_size(first: Path, info: SeqInfo, ini: Path) -> None:

@@ -298,7 +298,8 @@ class FrameSource:
         ended_early: ``True`` when a video stopped before the frame count its header announced.
 
     Raises:
-        VideoError: the source cannot be opened.
+        VideoError: the source cannot be opened, or is none of the above (a bool, ``None``,
+            a float, bytes).
     """
 
     def __init__(
@@ -310,6 +311,13 @@ class FrameSource:
         self.ended_early = False
         self._cap: cv2.VideoCapture | None = None
         self._files: list[Path] | None = None
+        if isinstance(source, bool):  # an int to Python: True opened camera 1
+            raise VideoError(f"a bool is not a camera index, got {source!r}")
+        if not isinstance(source, (str, os.PathLike, int, list, tuple)):
+            raise VideoError(  # None, a float or bytes: a bare TypeError from pathlib
+                "source must be a path (a video file or a frame folder), a list of image paths "
+                f"or a camera index, got {type(source).__name__} {source!r}"
+            )
         if isinstance(source, (list, tuple)):
             if not source:
                 raise VideoError("the list of frame files is empty")

@@ -24,6 +24,7 @@ import math
 
 import torch
 
+from torchtrack.boxes import _check_frame_size
 from torchtrack.errors import ShapeError
 
 __all__ = ["DetectorObservation", "scorable_boxes"]
@@ -31,8 +32,12 @@ __all__ = ["DetectorObservation", "scorable_boxes"]
 
 def scorable_boxes(boxes: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """``(..., 4)`` x, y, w, h -> ``(...)`` bool: finite, at least one pixel wide and high, and
-    overlapping a frame of size ``(H, W)`` (what :func:`torchtrack.boxes.check_boxes` demands)."""
-    fh, fw = frame_size
+    overlapping a frame of size ``(H, W)`` (what :func:`torchtrack.boxes.check_boxes` demands).
+
+    Raises:
+        ShapeError: ``frame_size`` not two finite sizes >= 0 (a bool among them included).
+    """
+    fh, fw = _check_frame_size(frame_size)
     x, y, w, h = boxes.unbind(-1)
     return (
         torch.isfinite(boxes).all(-1)

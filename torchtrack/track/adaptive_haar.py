@@ -136,8 +136,15 @@ from torchtrack.learn.online_gentle import (
 )
 from torchtrack.observe.adaptive_haar import AdaptiveHaarObservation
 from torchtrack.observe.cotrain import CoTrainCue
-from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import _in_unit, _positive_int, resolve_tracker_config
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
+from torchtrack.track.config import (
+    MAX_TRACKER_PARTICLES,
+    _in_unit,
+    _positive_int,
+    check_at_most,
+    check_product,
+    resolve_tracker_config,
+)
 
 __all__ = ["ADAPT_MODES", "MOTIONS", "AdaptiveHaarConfig", "AdaptiveHaarTracker"]
 
@@ -314,6 +321,11 @@ class AdaptiveHaarConfig:
             self, "n_particles", "n_weak", "pos_max", "neg_max", "n_best", "neg_candidates",
             "search_top", "redetect_every", "redetect_top", "max_search_boxes",
         )  # fmt: skip
+        # sizes of tensors: 10^9 of any asked for gigabytes (a traceback from the CLI)
+        check_at_most(self, MAX_TRACKER_PARTICLES, "n_particles", "neg_candidates")
+        check_at_most(self, 1024, "n_weak")
+        check_at_most(self, 10_000, "pos_max", "neg_max")
+        check_product(self, 2**24, "particle features per frame", "n_particles", "n_weak")
         if not 0 <= self.init_positives < self.pos_max:
             raise ConfigError(
                 f"init_positives must be in [0, pos_max) = [0, {self.pos_max}), "
@@ -503,7 +515,7 @@ class AdaptiveHaarTracker(Tracker):
             AdaptiveHaarConfig, config, overrides, where="adaptive-haar tracker"
         )
         self.config = cfg
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         self.pool = cfg.pool()
         self.quarters: torch.Tensor | None = None  # candidates' quarters, set by init
         self.motion = cfg.motion_model()

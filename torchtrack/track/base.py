@@ -116,6 +116,22 @@ class TrackState:
         )
 
 
+def check_tracker_generator(generator: object) -> torch.Generator | None:
+    """``generator`` once it is a ``torch.Generator`` or None, what every tracker takes (5 was
+    'int' object is not iterable on the first frame; a list of generators worked in some
+    trackers and drew the wrong rows in others).
+
+    Raises:
+        ConfigError: anything else.
+    """
+    if generator is None or isinstance(generator, torch.Generator):
+        return generator
+    raise ConfigError(
+        f"generator must be a torch.Generator or None, got {type(generator).__name__} "
+        f"{generator!r}"[:200]
+    )
+
+
 class Tracker(abc.ABC):
     """Base class of every tracker: validate inputs, then delegate to ``_init`` / ``_update``.
 

@@ -99,6 +99,8 @@ class DetectorTrackerConfig:
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "init_top_n", "n_targets")
+        check_at_most(self, MAX_TRACKER_PARTICLES, "n_particles")
+        check_product(self, MAX_TRACKER_PARTICLES, "particles", "n_particles", "n_targets")
         _in_unit(self, "visible_threshold", "scan_threshold")
         if not 0.0 <= self.likelihood_floor < 1.0:
             raise ConfigError(f"likelihood_floor must be in [0, 1), got {self.likelihood_floor}")
@@ -154,6 +156,9 @@ class HistogramTrackerConfig:
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "n_h", "n_s", "n_v", "grid")
+        check_at_most(self, MAX_TRACKER_PARTICLES, "n_particles")
+        check_at_most(self, 256, "n_h", "n_s", "n_v")  # more bins than 8-bit levels: none
+        check_product(self, MAX_LIKELIHOOD_SAMPLES, "samples", "n_particles", "grid", 2)
         _in_unit(self, "update_rate", "visible_threshold")
         if not (self.lam > 0 and math.isfinite(self.lam)):
             raise ConfigError(f"lam must be a finite number > 0, got {self.lam}")
@@ -565,6 +570,34 @@ def _positive_int(cfg: Any, *names: str) -> None:
             raise ConfigError(f"{n} must be >= 1, got {getattr(cfg, n)}")
 
 
+def check_at_most(cfg: Any, limit: int, *names: str, least: int = 1, prefix: str = "") -> None:
+    """Every integer field ``names`` of ``cfg`` in ``[least, limit]`` (the sizes of a tracker's
+    tensors and loops: see :data:`MAX_TRACKER_PARTICLES`).
+
+    Raises:
+        ConfigError: ``{prefix}key must be in [least, limit], got value``.
+    """
+    for n in names:
+        v = getattr(cfg, n)
+        if not least <= v <= limit:
+            raise ConfigError(f"{prefix}{n} must be in [{least}, {limit}], got {v}")
+
+
+def check_product(cfg: Any, limit: int, what: str, name: str, other: str, power: int = 1) -> None:
+    """``cfg.name x cfg.other ** power`` at most ``limit`` (``what``: the unit, e.g. 'particles').
+
+    Raises:
+        ConfigError: ``name x other^power = a x b^power is more than limit what``.
+    """
+    a, b = getattr(cfg, name), getattr(cfg, other)
+    if a * b**power > limit:
+        sq = f"^{power}" if power != 1 else ""
+        raise ConfigError(
+            f"{name} x {other}{sq} = {a} x {b}{sq} is more than {limit} {what} (their tensors "
+            "would not fit in memory)"
+        )
+
+
 def _in_unit(cfg: Any, *names: str) -> None:
     for n in names:
         if not 0.0 <= getattr(cfg, n) <= 1.0:
@@ -623,6 +656,16 @@ def _estimator_and_scheme(cfg: Any) -> None:
 #: the most particles the multi-target tracker may hold (n_particles x max_targets): 10^7
 #: states of 6 float64 are 0.45 GiB, before the per-particle work of every frame
 MAX_PARTICLES = 10_000_000
+
+#: the most particles a single-target tracker may hold (``n_particles``; the detector tracker's
+#: ``n_particles x n_targets``): 10^5, 50 times the papers' largest (2000). 10^9 asked for 48 GB
+#: at init (a traceback from the CLI); at 10^6 one frame of the detector tracker asked for 7.5 GB
+MAX_TRACKER_PARTICLES = 100_000
+
+#: the most samples a particle filter's likelihood reads per frame: the histogram tracker's
+#: ``n_particles x grid^2`` colour samples, the template tracker's ``n_particles x
+#: template_size^2`` warped pixels (2^25: 2000 particles x a 128 x 128 grid ran in 2.4 GB)
+MAX_LIKELIHOOD_SAMPLES = 2**25
 
 #: the largest magnitude of a number a tracker setting takes: far beyond any real setting (pixels,
 #: weights, rates, factors), small enough that the products, powers and areas made of it stay

@@ -28,15 +28,15 @@ from typing import Any
 
 import torch
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import ConfigError, TrackerError
 from torchtrack.filter._random import randn
 from torchtrack.filter.particles import uniform_log_weights
 from torchtrack.filter.seir import seir_step
 from torchtrack.filter.sir import StepResult, sir_step
 from torchtrack.learn.cotrain import CoTrainer, region_around
 from torchtrack.observe.cotrain import CoTrainLikelihood
-from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import check_float_limits
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
+from torchtrack.track.config import MAX_TRACKER_PARTICLES, check_at_most, check_float_limits
 
 __all__ = ["CoTrainConfig", "CoTrainTracker", "load_cotrain_config"]
 
@@ -132,6 +132,12 @@ class CoTrainConfig:
             )
         if self.particles < 1:
             raise ConfigError(f"cotrain: particles must be >= 1, got {self.particles}")
+        # sizes of tensors and loops: 10^9 asked for gigabytes (a traceback from the CLI) or
+        # ran for ever (init_passes)
+        check_at_most(self, MAX_TRACKER_PARTICLES, "particles", prefix="cotrain: ")
+        check_at_most(self, 100, "n_selectors", "n_candidates", "init_passes", prefix="cotrain: ")
+        check_at_most(self, 255, "opening_size", prefix="cotrain: ")
+        check_at_most(self, 1000, "max_iter", least=0, prefix="cotrain: ")
         for name in ("motion_std", "mutation_std", "gate_scale", "search_scale"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"cotrain: {name} must be > 0, got {getattr(self, name)}")
@@ -228,7 +234,7 @@ class CoTrainTracker(Tracker):
             self.config = load_cotrain_config(config, **params)
         else:
             self.config = _make_config(dict(params), "cotrain")
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         c = self.config
         self.trainer = CoTrainer(
             mode=c.mode,
@@ -307,6 +313,15 @@ class CoTrainTracker(Tracker):
         hh, ww = self.frame_size
         self.size = (min(float(ws[k]), 2.0 * ww), min(float(hs[k]), 2.0 * hh))
         self.scale = math.sqrt(self.size[0] * self.size[1])
+
+    def particle_boxes(self) -> torch.Tensor:
+        """Current particles as boxes ``(1, N, 4)`` (for drawing): each particle's centre with
+        the target's current size."""
+        states = getattr(self, "states", None)
+        if states is None:
+            raise TrackerError("particle_boxes() called before init()")
+        size = states.new_tensor(self.size).expand_as(states)
+        return torch.cat([states - size / 2, size], -1)
 
     def _state(self, visible: bool, confidence: float) -> TrackState:
         cx, cy = self.centre

@@ -53,7 +53,7 @@ from torchtrack.filter._random import multinomial
 from torchtrack.filter.motion import ChateauAR
 from torchtrack.filter.sir import sir_step
 from torchtrack.observe.detector import DetectorObservation
-from torchtrack.track.base import Tracker, TrackState, register_tracker
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
 from torchtrack.track.config import (
     DetectorTrackerConfig,
     apply_overrides,
@@ -179,7 +179,7 @@ class DetectorTracker(Tracker):
                 cfg = apply_overrides(cfg, {"model": os.fspath(model)}, where="detector tracker")
             self.detector = resolve_detector(cfg.model)
         self.config = cfg
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         self.observation = DetectorObservation(
             self.detector, floor=cfg.likelihood_floor, head=cfg.likelihood == "head"
         )

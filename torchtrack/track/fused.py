@@ -49,7 +49,13 @@ from torchtrack.filter.sir import sir_step
 from torchtrack.learn.cotrain import CoTrainer
 from torchtrack.observe.cotrain import CoTrainCue
 from torchtrack.track.base import TrackState, register_tracker
-from torchtrack.track.config import apply_overrides, check_context, resolve_tracker_config
+from torchtrack.track.config import (
+    MAX_TRACKER_PARTICLES,
+    apply_overrides,
+    check_at_most,
+    check_context,
+    resolve_tracker_config,
+)
 from torchtrack.track.detector_pf import DetectorTracker
 
 __all__ = ["FusedTracker", "FusedTrackerConfig", "fused_log_weights", "minmax_rescale"]
@@ -126,6 +132,8 @@ class FusedTrackerConfig:
         for k in ("n_particles", "n_selectors", "n_candidates"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+        check_at_most(self, MAX_TRACKER_PARTICLES, "n_particles")  # 10^9: 48 GB at init
+        check_at_most(self, 100, "n_selectors", "n_candidates")
         for k in ("det_floor", "cot_floor", "gate_scale"):
             if not getattr(self, k) > 0:
                 raise ConfigError(f"{k} must be > 0, got {getattr(self, k)}")

@@ -25,7 +25,7 @@ import torch
 from torchtrack.filter.motion import KleinAR
 from torchtrack.filter.sir import sir_step
 from torchtrack.observe.histogram import HSVBins, bhattacharyya, box_histograms, hsv_bin_map
-from torchtrack.track.base import Tracker, TrackState, register_tracker
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
 from torchtrack.track.config import (
     HistogramTrackerConfig,
     resolve_tracker_config,
@@ -64,7 +64,7 @@ class HistogramTracker(Tracker):
             HistogramTrackerConfig, config, overrides, where="histogram tracker"
         )
         self.config = cfg
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         self.bins = HSVBins(cfg.n_h, cfg.n_s, cfg.n_v, cfg.s_min, cfg.v_min)
         self.motion = KleinAR(cfg.sigma_xy, cfg.sigma_wh)
         self.reference: torch.Tensor | None = None

@@ -72,6 +72,7 @@ from torchtrack.filter.resample import resample
 from torchtrack.filter.sir import get_estimator
 from torchtrack.observe.detector import DetectorObservation
 from torchtrack.track.association import association_cost, expected_iou, linear_assignment
+from torchtrack.track.base import check_tracker_generator
 from torchtrack.track.config import MultiTrackerConfig, apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import load_dynamics, resolve_detector
 from torchtrack.track.ground import GroundLine, GroundPlane
@@ -168,6 +169,7 @@ class MultiTargetTracker:
                 )
             self.detector = resolve_detector(cfg.model)
         self.config = cfg
+        generator = check_tracker_generator(generator)
         if generator is not None and generator.device.type != "cpu":
             raise ConfigError(
                 f"the multi-target tracker's generator must be a CPU generator, got one on "

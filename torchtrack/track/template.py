@@ -79,7 +79,7 @@ from typing import Any
 import torch
 
 from torchtrack.boxes import clip_boxes
-from torchtrack.errors import BoxError, ConfigError
+from torchtrack.errors import BoxError, ConfigError, TrackerError
 from torchtrack.filter._random import randn
 from torchtrack.filter.motion import BachooMotion, VelocityHistory
 from torchtrack.filter.sir import sir_step
@@ -93,8 +93,14 @@ from torchtrack.observe.template import (
     pose_matrices,
     to_luma,
 )
-from torchtrack.track.base import Tracker, TrackState, register_tracker
-from torchtrack.track.config import resolve_tracker_config
+from torchtrack.track.base import Tracker, TrackState, check_tracker_generator, register_tracker
+from torchtrack.track.config import (
+    MAX_LIKELIHOOD_SAMPLES,
+    MAX_TRACKER_PARTICLES,
+    check_at_most,
+    check_product,
+    resolve_tracker_config,
+)
 
 __all__ = ["TemplateTracker", "TemplateTrackerConfig"]
 
@@ -188,6 +194,13 @@ class TemplateTrackerConfig:
             raise ConfigError(f"template_size must be >= 3, got {self.template_size}")
         if self.lk_iterations < 0:
             raise ConfigError(f"lk_iterations must be >= 0, got {self.lk_iterations}")
+        # sizes of tensors and loops: 10^9 asked for gigabytes (a traceback from the CLI) or
+        # ran for ever (lk_iterations)
+        check_at_most(self, MAX_TRACKER_PARTICLES, "n_particles", "history")
+        check_at_most(self, 1000, "lk_iterations", least=0)
+        check_product(
+            self, MAX_LIKELIHOOD_SAMPLES, "warped pixels", "n_particles", "template_size", 2
+        )
         for k in ("detect_threshold", "update_threshold"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise ConfigError(f"{k} must be in [0, 1], got {getattr(self, k)}")
@@ -269,7 +282,7 @@ class TemplateTracker(Tracker):
             TemplateTrackerConfig, config, overrides, where="template tracker"
         )
         self.config = cfg
-        self.generator = generator
+        self.generator = check_tracker_generator(generator)
         self.motion = BachooMotion(
             min_sigma=cfg.min_sigma,
             gain=cfg.gain,
@@ -339,6 +352,12 @@ class TemplateTracker(Tracker):
         if cfg.d_max_contrast > 0:
             hi = min(hi, max(cfg.d_max_contrast * self._contrast, cfg.d_min))
         self.model.d = min(max(self._scale, cfg.d_min), hi)
+
+    def particle_boxes(self) -> torch.Tensor:
+        """Current particles as boxes ``(1, N, 4)`` (for drawing)."""
+        if self._states is None:
+            raise TrackerError("particle_boxes() called before init()")
+        return self.motion.to_boxes(self._states)
 
     def _state(self, visible: bool, confidence: float) -> TrackState:
         box = self.motion.to_boxes(self._est[None])
