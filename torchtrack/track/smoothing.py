@@ -29,7 +29,6 @@ tracks").
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections import deque
 
@@ -51,27 +50,6 @@ def gaussian_weights(sigma: float) -> torch.Tensor:
     return w / w.sum()
 
 
-def _local_linear(vals: dict, lo: int, hi: int, w: list[float], r: int) -> list[float]:
-    """The value at offset 0 of the weighted least-squares line through ``vals[d]`` (offsets
-    ``lo..hi``, weights ``w[d + r]``) for each of the four box components: the Gaussian mean
-    where the run extends both ways, and no lag towards the run's middle at its ends (a target
-    walking at constant speed keeps its place up to the last frame)."""
-    s0 = s1 = s2 = 0.0
-    t0, t1 = [0.0] * 4, [0.0] * 4
-    for d in range(lo, hi + 1):
-        wd, x = w[d + r], vals[d]
-        s0 += wd
-        s1 += wd * d
-        s2 += wd * d * d
-        for c in range(4):
-            t0[c] += wd * x[c]
-            t1[c] += wd * d * x[c]
-    den = s0 * s2 - s1 * s1
-    if hi == lo or den <= 1e-12 * s0 * s0:  # one frame: the value itself
-        return [t / s0 for t in t0]
-    return [(s2 * a - s1 * b) / den for a, b in zip(t0, t1, strict=True)]
-
-
 class TrackSmoother:
     """Fill short gaps and smooth the boxes of a stream of :class:`MultiState` (module notes).
 
@@ -82,6 +60,9 @@ class TrackSmoother:
     ``push(i, state)`` for every frame index in increasing order (``state`` None for a frame
     that was not tracked, e.g. unreadable) returns the frames now final, as ``(index, state or
     None)`` in order; ``flush()`` returns the rest. A frame pushed as None comes back as None.
+    Each emitted frame is one batch of tensor operations over every identity in reach (no loop
+    over targets): the observations of the frames around it laid out as a dense ``(identities,
+    frames)`` table.
 
     Raises:
         ConfigError: ``sigma`` negative or not finite, ``fill_gaps`` negative.
@@ -96,9 +77,12 @@ class TrackSmoother:
         self.weights = gaussian_weights(self.sigma)
         self.radius = (self.weights.numel() - 1) // 2
         self.lag = self.radius + self.fill_gaps
+        # frame t reads the frames t - reach .. t + lag: the kernel's and a gap's span
+        self._reach = self.radius + self.fill_gaps + 1
         self._pending: deque[tuple[int, bool]] = deque()  # (frame, tracked)
-        # per identity: frame -> (centre x, centre y, log w, log h, confidence, detected)
-        self._obs: dict[int, dict[int, tuple[float, ...]]] = {}
+        # the reported frames in reach: (frame, ids (K,), (K, 6) centre x, centre y, log w,
+        # log h, confidence, detected)
+        self._obs: deque[tuple[int, torch.Tensor, torch.Tensor]] = deque()
         self._last = -1
 
     @property
@@ -111,22 +95,20 @@ class TrackSmoother:
         if i <= self._last:
             raise ValueError(f"frames must be pushed in increasing order: {i} after {self._last}")
         self._last = i
-        if state is not None:
+        if state is not None and len(state):
             b = state.boxes.detach().to("cpu", torch.float64)
-            cx, cy = b[:, 0] + b[:, 2] / 2, b[:, 1] + b[:, 3] / 2
-            lw, lh = b[:, 2].clamp_min(1e-9).log(), b[:, 3].clamp_min(1e-9).log()
-            rows = zip(
-                state.ids.tolist(),
-                cx.tolist(),
-                cy.tolist(),
-                lw.tolist(),
-                lh.tolist(),
-                state.confidence.detach().cpu().double().tolist(),
-                state.detected.cpu().tolist(),
-                strict=True,
+            v = torch.stack(
+                (
+                    b[:, 0] + b[:, 2] / 2,
+                    b[:, 1] + b[:, 3] / 2,
+                    b[:, 2].clamp_min(1e-9).log(),
+                    b[:, 3].clamp_min(1e-9).log(),
+                    state.confidence.detach().to("cpu", torch.float64),
+                    state.detected.detach().to("cpu", torch.float64),
+                ),
+                1,
             )
-            for k, *v in rows:
-                self._obs.setdefault(int(k), {})[i] = tuple(v)
+            self._obs.append((i, state.ids.detach().to("cpu", torch.int64), v))
         self._pending.append((i, state is not None))
         out = []
         while self._pending and self._pending[0][0] + self.lag <= i:
@@ -142,76 +124,78 @@ class TrackSmoother:
 
     # -- internals
     def _trim(self) -> None:
-        """Drop observations no emission can reach any more."""
-        if not self._pending:
-            keep_from = self._last + 1 - self.radius - self.fill_gaps - 1
-        else:
-            keep_from = self._pending[0][0] - self.radius - self.fill_gaps - 1
-        for k in list(self._obs):
-            obs = self._obs[k]
-            for f in [f for f in obs if f < keep_from]:
-                del obs[f]
-            if not obs:
-                del self._obs[k]
-
-    def _value(self, obs: dict, frames: list[int], u: int):
-        """The box of frame ``u`` of one identity: observed, filled (a gap of at most
-        ``fill_gaps`` frames between two observations), or None."""
-        if u in obs:
-            return obs[u]
-        if self.fill_gaps == 0:
-            return None
-        # the last observation before u and the first after it (frames are sorted)
-        j = bisect.bisect_left(frames, u)
-        if j == 0 or j == len(frames):
-            return None
-        a, b = frames[j - 1], frames[j]
-        if b - a - 1 > self.fill_gaps:
-            return None
-        t = (u - a) / (b - a)
-        va, vb = obs[a], obs[b]
-        return (*(x + (y - x) * t for x, y in zip(va[:5], vb[:5], strict=True)), False)
+        """Drop the frames no emission can reach any more."""
+        first = self._pending[0][0] if self._pending else self._last + 1
+        while self._obs and self._obs[0][0] < first - self._reach:
+            self._obs.popleft()
 
     def _emit(self, t: int, tracked: bool):
         from torchtrack.track.multi import MultiState
 
         if not tracked:
             return t, None
-        ids, rows = [], []
-        r, w = self.radius, self.weights.tolist()
-        for k in sorted(self._obs):
-            obs = self._obs[k]
-            frames = sorted(obs)
-            v = self._value(obs, frames, t)
-            if v is None:
-                continue
-            if r:
-                # the run of consecutive frames around t within the kernel, its ends repeated
-                vals = {0: v}
-                lo = 0
-                while lo > -r and (x := self._value(obs, frames, t + lo - 1)) is not None:
-                    lo -= 1
-                    vals[lo] = x
-                hi = 0
-                while hi < r and (x := self._value(obs, frames, t + hi + 1)) is not None:
-                    hi += 1
-                    vals[hi] = x
-                v = (*_local_linear(vals, lo, hi, w, r), v[4], v[5])
-            ids.append(k)
-            rows.append(v)
-        if not rows:
-            return t, MultiState(
-                torch.zeros(0, dtype=torch.int64),
-                torch.zeros((0, 4), dtype=torch.float64),
-                torch.zeros(0, dtype=torch.float64),
-                torch.zeros(0, dtype=torch.bool),
-            )
-        a = torch.tensor([x[:5] for x in rows], dtype=torch.float64)
-        wdt, hgt = a[:, 2].exp(), a[:, 3].exp()
-        boxes = torch.stack((a[:, 0] - wdt / 2, a[:, 1] - hgt / 2, wdt, hgt), 1)
-        return t, MultiState(
-            torch.tensor(ids, dtype=torch.int64),
-            boxes,
-            a[:, 4],
-            torch.tensor([bool(x[5]) for x in rows], dtype=torch.bool),
+        r, fill, reach = self.radius, self.fill_gaps, self._reach
+        near = [o for o in self._obs if t - reach <= o[0] <= t + self.lag]
+        if not near:
+            return t, _empty_state()
+        ids = torch.cat([o[1] for o in near])
+        uniq, row = torch.unique(ids, return_inverse=True)
+        cols = torch.cat([torch.full((o[1].numel(),), o[0] - t + reach) for o in near])
+        width = reach + self.lag + 1  # frames t - reach .. t + lag; t is column `reach`
+        u = uniq.numel()
+        val = torch.zeros((u, width, 6), dtype=torch.float64)
+        seen = torch.zeros((u, width), dtype=torch.bool)
+        val[row, cols] = torch.cat([o[2] for o in near])
+        seen[row, cols] = True
+        col = torch.arange(width)
+        # gaps: the observations before and after each column, and the gap's length
+        before = torch.where(seen, col, -1).cummax(1).values  # (U, W)
+        after = torch.where(seen, col, width).flip(1).cummin(1).values.flip(1)
+        filled = ~seen & (before >= 0) & (after < width) & (after - before - 1 <= fill)
+        a, b = before.clamp(min=0), after.clamp(max=width - 1)
+        frac = ((col - a).double() / (b - a).clamp(min=1).double())[..., None]
+        va, vb = (
+            val.gather(1, a[..., None].expand(-1, -1, 6)),
+            val.gather(1, b[..., None].expand(-1, -1, 6)),
         )
+        x = torch.where(filled[..., None], va + (vb - va) * frac, val)
+        x[..., 5] = torch.where(filled, 0.0, x[..., 5])  # filled rows are not detections
+        have = seen | filled
+        keep = have[:, reach]
+        if not bool(keep.any()):
+            return t, _empty_state()
+        x, have = x[keep], have[keep]
+        out = x[:, reach, :4]
+        if r:
+            # the run of consecutive frames around t, within the kernel: [lo, hi]
+            hole = ~have
+            lo = torch.where(hole[:, : reach + 1], col[: reach + 1], -1).max(1).values + 1
+            hi = torch.where(hole[:, reach:], col[reach:], width).min(1).values - 1
+            lo, hi = lo.clamp(min=reach - r), hi.clamp(max=reach + r)
+            d = (col - reach).to(torch.float64)  # (W,) offsets from t
+            w = torch.zeros(width, dtype=torch.float64)
+            w[reach - r : reach + r + 1] = self.weights
+            m = ((col >= lo[:, None]) & (col <= hi[:, None])).to(torch.float64) * w  # (R, W)
+            s0, s1, s2 = m.sum(1), (m * d).sum(1), (m * d * d).sum(1)
+            t0 = (m[..., None] * x[..., :4]).sum(1)
+            t1 = ((m * d)[..., None] * x[..., :4]).sum(1)
+            den = s0 * s2 - s1 * s1
+            line = (hi > lo) & (den > 1e-12 * s0 * s0)
+            safe = torch.where(line, den, torch.ones_like(den))[:, None]
+            out = torch.where(
+                line[:, None], (s2[:, None] * t0 - s1[:, None] * t1) / safe, t0 / s0[:, None]
+            )
+        wdt, hgt = out[:, 2].exp(), out[:, 3].exp()
+        boxes = torch.stack((out[:, 0] - wdt / 2, out[:, 1] - hgt / 2, wdt, hgt), 1)
+        return t, MultiState(uniq[keep], boxes, x[:, reach, 4], x[:, reach, 5] > 0.5)
+
+
+def _empty_state():
+    from torchtrack.track.multi import MultiState
+
+    return MultiState(
+        torch.zeros(0, dtype=torch.int64),
+        torch.zeros((0, 4), dtype=torch.float64),
+        torch.zeros(0, dtype=torch.float64),
+        torch.zeros(0, dtype=torch.bool),
+    )
