@@ -206,3 +206,23 @@ def test_config_refuses_bad_values(kv, msg):
 def test_smoother_refuses_bad_values(sigma, fill):
     with pytest.raises(ConfigError):
         TrackSmoother(sigma, fill)
+
+
+def test_a_panning_camera_is_taken_out_before_smoothing():
+    """A person still in the scene, filmed by a camera that pans right and back at 6 px a
+    frame: with the camera's offset (as the tracker reports it) the smoothed box stays on the
+    person through each turn; without it the turns are smoothed into the box."""
+    pan = np.concatenate([np.arange(0, 120, 6), np.arange(120, 0, -6)] * 3).astype(float)
+    truth = 200.0 + pan  # where the frame shows the person
+    got = {True: {}, False: {}}
+    for with_offset in (True, False):
+        sm = TrackSmoother(4.0, 10)
+        for f, x in enumerate(truth):
+            box = torch.tensor([[x - 10, 50.0, 20.0, 60.0]], dtype=torch.float64)
+            st = MultiState(torch.tensor([1]), box, torch.tensor([1.0]), torch.tensor([True]))
+            off = (float(pan[f]), 0.0) if with_offset else (0.0, 0.0)
+            done = sm.push(f, st, offset=off)
+            for t, s in done + (sm.flush() if f == len(truth) - 1 else []):
+                got[with_offset][t] = float(s.boxes[0, 0] + 10)
+    err = {k: max(abs(v[t] - truth[t]) for t in v) for k, v in got.items()}
+    assert err[True] < 1e-9 and err[False] > 10

@@ -228,6 +228,10 @@ class MultiTargetTracker:
         self._birth_p = self._lowest_birth_p = self.config.birth_threshold
         self._grays: collections.deque = collections.deque(maxlen=MOTION_LAG + 1)
         self._last_gray: torch.Tensor | None = None  # camera_motion: the previous frame
+        # camera_motion: the camera's translation since the first frame, in the reported boxes'
+        # pixels (a point of the scene is at its first-frame place + this); the smoother of
+        # the reported tracks works in the scene's coordinates with it
+        self.camera_offset: tuple[float, float] = (0.0, 0.0)
         self.ground.reset()
         self._lines: collections.deque = collections.deque(maxlen=GROUND_LAG + 1)
         # the detector's noise, squared (estimated from the video: detection_sigma_rate)
@@ -1126,6 +1130,8 @@ class MultiTargetTracker:
         sx, sy = _camera_translation(old, gray)
         if sx or sy:
             self.stats["frames with a camera shift"] += 1
+            ox, oy = self.camera_offset
+            self.camera_offset = (ox + sx / self.upsample, oy + sy / self.upsample)
             self.states[..., 0:4:2] += sx
             self.states[..., 1:4:2] += sy
             self.obs[..., 0] += sx  # the observations are where the scene now shows them
@@ -1457,7 +1463,7 @@ def track_sequence(
                 d, scan = None, d
             out = tracker.update(frame if device is None else frame.to(device), d, scan=scan)
             if smoother.active:
-                for j, o in smoother.push(i, out):
+                for j, o in smoother.push(i, out, offset=tracker.camera_offset):
                     collect(j, o)
             else:
                 collect(i, out)

@@ -16,6 +16,11 @@ video, the output can wait a few frames and use what came after:
   Gaussian with repeated end values would pull a walking target's box back towards where it
   was, the fitted line keeps it on its way.
 
+A moving camera is taken out first: :meth:`TrackSmoother.push` takes the camera's translation
+since the first frame (the multi-target tracker's ``camera_offset``), and the boxes are
+interpolated and smoothed in the scene's coordinates, then put back where the frame shows them
+(a pan that turns, or a hand-held camera's jolts, would otherwise be smoothed into every box).
+
 Both are exact in a stream: frame ``t`` is emitted once frame ``t + lag`` was pushed, ``lag =
 R + fill_gaps``: whether a frame within the kernel's reach belongs to a gap that will be filled
 is known by then. So the stream gives the same boxes as smoothing the whole track afterwards
@@ -79,7 +84,8 @@ class TrackSmoother:
         self.lag = self.radius + self.fill_gaps
         # frame t reads the frames t - reach .. t + lag: the kernel's and a gap's span
         self._reach = self.radius + self.fill_gaps + 1
-        self._pending: deque[tuple[int, bool]] = deque()  # (frame, tracked)
+        self._pending: deque[tuple[int, bool, tuple[float, float]]] = deque()  # frame, tracked,
+        # the camera's offset on it
         # the reported frames in reach: (frame, ids (K,), (K, 6) centre x, centre y, log w,
         # log h, confidence, detected)
         self._obs: deque[tuple[int, torch.Tensor, torch.Tensor]] = deque()
@@ -91,16 +97,22 @@ class TrackSmoother:
         of one frame): callers then skip it."""
         return self.lag > 0
 
-    def push(self, i: int, state) -> list:
+    def push(self, i: int, state, offset: tuple[float, float] = (0.0, 0.0)) -> list:
+        """Add frame ``i``'s reports; ``offset``: the camera's translation since the first
+        frame (:attr:`MultiTargetTracker.camera_offset`), so that the boxes are smoothed and
+        interpolated where the scene holds them, not where a panning or shaking camera shows
+        them (a pan that turns, or a hand-held camera's jolts, would be smoothed into the
+        targets' boxes). Returns the frames now final."""
         if i <= self._last:
             raise ValueError(f"frames must be pushed in increasing order: {i} after {self._last}")
         self._last = i
         if state is not None and len(state):
             b = state.boxes.detach().to("cpu", torch.float64)
+            ox, oy = (float(v) for v in offset)
             v = torch.stack(
                 (
-                    b[:, 0] + b[:, 2] / 2,
-                    b[:, 1] + b[:, 3] / 2,
+                    b[:, 0] + b[:, 2] / 2 - ox,
+                    b[:, 1] + b[:, 3] / 2 - oy,
                     b[:, 2].clamp_min(1e-9).log(),
                     b[:, 3].clamp_min(1e-9).log(),
                     state.confidence.detach().to("cpu", torch.float64),
@@ -109,7 +121,7 @@ class TrackSmoother:
                 1,
             )
             self._obs.append((i, state.ids.detach().to("cpu", torch.int64), v))
-        self._pending.append((i, state is not None))
+        self._pending.append((i, state is not None, tuple(float(v) for v in offset)))
         out = []
         while self._pending and self._pending[0][0] + self.lag <= i:
             out.append(self._emit(*self._pending.popleft()))
@@ -129,7 +141,7 @@ class TrackSmoother:
         while self._obs and self._obs[0][0] < first - self._reach:
             self._obs.popleft()
 
-    def _emit(self, t: int, tracked: bool):
+    def _emit(self, t: int, tracked: bool, offset: tuple[float, float]):
         from torchtrack.track.multi import MultiState
 
         if not tracked:
@@ -186,7 +198,8 @@ class TrackSmoother:
                 line[:, None], (s2[:, None] * t0 - s1[:, None] * t1) / safe, t0 / s0[:, None]
             )
         wdt, hgt = out[:, 2].exp(), out[:, 3].exp()
-        boxes = torch.stack((out[:, 0] - wdt / 2, out[:, 1] - hgt / 2, wdt, hgt), 1)
+        cx, cy = out[:, 0] + offset[0], out[:, 1] + offset[1]  # back where the frame shows it
+        boxes = torch.stack((cx - wdt / 2, cy - hgt / 2, wdt, hgt), 1)
         return t, MultiState(uniq[keep], boxes, x[:, reach, 4], x[:, reach, 5] > 0.5)
 
 
