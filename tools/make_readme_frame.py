@@ -55,7 +55,12 @@ def main() -> None:
         for i, frame in src.items():
             frames[i] = frame
             out = tracker.update(frame) if frame is not None else None
-            for j, o in smoother.push(i, out) if smoother.active else [(i, out)]:
+            done = (
+                smoother.push(i, out, offset=tracker.camera_offset)
+                if smoother.active
+                else [(i, out)]
+            )
+            for j, o in done:
                 img = draw(j, o) if img is None else img
             if img is not None:
                 break

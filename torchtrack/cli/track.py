@@ -637,8 +637,10 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     def report(i: int, frame, res) -> None:
         parts = mt.particle_boxes() if (vid is not None and args.particles) else None
         held.append((frame if vid is not None else None, parts))
-        pushed = smoother.push(i, res, offset=mt.camera_offset) if smoother.active else None
-        for j, r in pushed if pushed is not None else [(i, res)]:
+        if not smoother.active:  # each frame as tracked
+            emit(i, res)
+            return
+        for j, r in smoother.push(i, res, offset=mt.camera_offset):
             emit(j, r)
 
     def _track_frames(frames) -> None:

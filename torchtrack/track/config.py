@@ -390,10 +390,7 @@ class MultiTrackerConfig:
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
-        if self.fill_gaps < 0 or self.fill_gaps > MAX_FILL_GAPS:
-            raise ConfigError(
-                f"fill_gaps must be in [0, {MAX_FILL_GAPS}] frames, got {self.fill_gaps}"
-            )
+        check_at_most(self, MAX_FILL_GAPS, "fill_gaps", least=0)
         if not (math.isfinite(self.smooth_sigma) and 0 <= self.smooth_sigma <= MAX_SMOOTH_SIGMA):
             raise ConfigError(
                 f"smooth_sigma must be in [0, {MAX_SMOOTH_SIGMA}] frames, got {self.smooth_sigma}"
