@@ -368,6 +368,7 @@ def _copied_rows(rows: MotRows, s: float, every: int, shift: tuple | None = None
 
 SCAN_KEYS = (
     "model",
+    "scan_box_regression",
     "scan_min_scale",
     "scan_max_scale",
     "scan_scale_step",

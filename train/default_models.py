@@ -3,6 +3,8 @@
     python train/default_models.py                 # pedestrian and vehicle
     python train/default_models.py --only vehicle
     python train/default_models.py --readme-only   # rewrite torchtrack/models/README.md
+    python train/default_models.py --box-regression --only pedestrian   # add the box regressor
+                                                   # to the model already shipped (no retraining)
     python train/default_models.py --sign-key /work/keys/torchtrack-models.pem   # and sign them
 
 The bundled models are signed (Ed25519, :mod:`torchtrack.detect.signing`) with the project key
@@ -34,6 +36,7 @@ from torchtrack.detect import Detector, load_detector, save_detector
 from torchtrack.detect.config import TrainConfig, load_train_config
 from torchtrack.detect.model_file import read_model_metadata
 from torchtrack.detect.signing import load_private_key
+from torchtrack.detect.train_channels import fit_box_regression
 from torchtrack.detect.training import portable_config, train_detector
 from torchtrack.io.atomic import write_text_atomic
 
@@ -227,6 +230,22 @@ def write_readme(models_dir: Path) -> Path:
                 )
                 + ")."
             )
+        br = meta.get("box_regression")
+        if br:
+            b = br["summary"]
+            lines.append(
+                f"* Box regressor (where the object lies in a detection window; scans move each "
+                f"kept window by it): ridge regression (alpha {b['alpha']:g}) of the window's "
+                f"move on its {meta['training']['features'].get('used', '?')} selected features, "
+                f"fitted on {b['windows']:,} jittered windows of the {b['crops']:,} training "
+                f"crops (up to {b['jitter'][0]:g} of the width, {b['jitter'][1]:g} of the height, "
+                f"scale exp(+-{b['jitter'][2]:g})); on {b['held_out_groups']} held-out source "
+                "photos the RMS error of (dx, dy, ds) goes from "
+                + " / ".join(f"{v:.3f}" for v in b["held_out_rms_before"])
+                + " to "
+                + " / ".join(f"{v:.3f}" for v in b["held_out_rms_after"])
+                + "."
+            )
         ts = t.get("test_split")
         if ts and "dr_interval_90" in ts:
             lo, hi = ts["dr_interval_90"]
@@ -265,8 +284,29 @@ def main() -> None:
         help="Ed25519 private key to sign the written models with (the project key; never "
         "commit it)",
     )
+    ap.add_argument(
+        "--box-regression",
+        action="store_true",
+        help="instead of training: fit the box regressor of configs/<name>.toml "
+        "(learn.box_regression) on the models already in --out and write them back (the trees, "
+        "the calibration and the test-split metrics unchanged: what training with that key "
+        "adds at its end, with the same seed)",
+    )
     args = ap.parse_args()
     key = load_private_key(args.sign_key) if args.sign_key else None
+    if args.box_regression:
+        for name in args.only:
+            cfg = load_train_config(REPO / "configs" / f"{name}.toml")
+            if not cfg.learn.box_regression:
+                raise SystemExit(f"configs/{name}.toml does not ask for a box regressor")
+            path = args.out / f"{name}.safetensors"
+            det = load_detector(path)
+            det.summary["config"]["learn"]["box_regression"] = True
+            if _norm(det.summary["config"]) != _norm(portable_config(cfg)):
+                raise SystemExit(f"{path} was not trained with configs/{name}.toml as it is now")
+            det = fit_box_regression(cfg, det)
+            save_detector(path, det, signing_key=key).chmod(0o644)
+            print(f"{path}: box regressor {det.box_regressor.summary}")
     for f in args.evaluate or []:
         det = load_detector(f)
         cfg = load_train_config(REPO / "configs" / f"{det.name}.toml")
@@ -277,7 +317,7 @@ def main() -> None:
         path = save_detector(args.out / f"{det.name}.safetensors", det, signing_key=key)
         path.chmod(0o644)
         print(f"{path}: test split {det.summary['test_split']}")
-    if not args.readme_only and not args.evaluate:
+    if not args.readme_only and not args.evaluate and not args.box_regression:
         for name in args.only:
             cfg = load_train_config(REPO / "configs" / f"{name}.toml")
             det = train_detector(

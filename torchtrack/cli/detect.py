@@ -189,6 +189,13 @@ def add_box_refinement(p: argparse.ArgumentParser) -> None:
         help="let windows hang this fraction of their size over the image's edges (the edge "
         f"pixels continued), to find objects the edge cuts (default {PAD:g}; at most 0.5)",
     )
+    p.add_argument(
+        "--no-box-regression",
+        action="store_true",
+        help="report the windows as scanned: without it a model with a box regressor (the "
+        "bundled pedestrian model) moves each detection to where its training crops put the "
+        "object",
+    )
 
 
 def scan_kwargs(args: argparse.Namespace, det) -> dict:
@@ -235,6 +242,7 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
         "windows": args.windows,
         "cascade": not args.no_cascade,
         "cascade_threshold": args.cascade,
+        "refine": not args.no_box_regression,
     }
 
 

@@ -180,6 +180,10 @@ class LearnConfig:
             the first ``tracking_trees`` trees with a Platt calibration of their own, fitted on
             the same held-out windows; the particle-filter trackers score windows with it
             (0, or at least ``n_trees``: no head, trackers use the whole classifier).
+        box_regression: channel detectors: fit a box regressor
+            (:mod:`torchtrack.detect.box_regression`) on jittered copies of the positive crops'
+            windows, so that scans report each detection where the crops put the object
+            (needs positives with context around ``data.region``: INRIA's 96x160 crops).
         cascade_probability, cascade_miss: the held-out positives a cascade must keep:
             those whose calibrated probability reaches ``cascade_probability``, all but a
             ``cascade_miss`` share of them (``"held-out"``: the constant threshold is the
@@ -210,6 +214,7 @@ class LearnConfig:
     cascade: str = "constant"
     cascade_threshold: float = -1.0
     tracking_trees: int = 64
+    box_regression: bool = False
     cascade_probability: float = 0.5
     cascade_miss: float = 0.01
     svm_kernel: str = "rbf"
@@ -427,6 +432,8 @@ class TrainConfig:
             raise ConfigError(
                 f"learn.tracking_trees must be a non-negative integer, got {lr.tracking_trees!r}"
             )
+        if not isinstance(lr.box_regression, bool):
+            raise ConfigError(f"learn.box_regression must be true or false, got {lr.box_regression!r}")
         if not (_isnum(lr.cascade_threshold) and abs(lr.cascade_threshold) <= 1e6):
             raise ConfigError(
                 f"learn.cascade_threshold must be a running margin within +-1e6, got "

@@ -112,6 +112,10 @@ class Detector:
             trees use (:meth:`tracking_model`), so its calibrated probability costs a fraction
             of the full classifier's, and it is smoother around the object (a likelihood that
             still rises as a window nears the object), which a particle filter needs.
+        box_regressor: a :class:`~torchtrack.detect.box_regression.BoxRegressor` on the
+            selected features that moves a detection window to where the training crops put
+            the object (:meth:`refine_windows`; scans apply it to the windows they keep), or
+            ``None``.
 
     Save and load it with :func:`torchtrack.detect.save_detector` /
     :func:`~torchtrack.detect.load_detector`.
@@ -125,6 +129,7 @@ class Detector:
     summary: dict[str, Any] = field(default_factory=dict)
     object_box: tuple[float, float, float, float] | None = None
     tracking_head: tuple[int, Any] | None = None
+    box_regressor: Any = None
 
     def __post_init__(self) -> None:
         if self.object_box is not None:
@@ -145,6 +150,11 @@ class Detector:
         if int(n_in) != k:
             raise ModelFormatError(
                 f"the classifier reads {n_in} features but {k} features are selected"
+            )
+        reg = self.box_regressor
+        if reg is not None and reg.n_features != k:
+            raise ModelFormatError(
+                f"the box regressor reads {reg.n_features} features but {k} features are selected"
             )
 
     @property
@@ -209,6 +219,7 @@ class Detector:
             calibrator=calibrator,
             name=f"{self.name}[:{n_trees}]",
             tracking_head=None,
+            box_regressor=None,  # it reads every selected feature; particles need no refining
         )
 
     @property
@@ -270,6 +281,14 @@ class Detector:
         """
         ints = self.integrals(frames) if isinstance(frames, torch.Tensor) else frames
         return self.bank.features_at(ints, boxes, self.feature_index, check=check)
+
+    def refine_windows(self, frames: Any, windows: torch.Tensor) -> torch.Tensor:
+        """Detection windows ``(B, N, 4)`` moved and scaled by :attr:`box_regressor` to where
+        the object sits in the training crops (read on ``frames (B, C, H, W)`` or their
+        :meth:`integrals`); the windows as they are when the detector has no regressor."""
+        if self.box_regressor is None or windows.shape[-2] == 0:
+            return windows
+        return self.box_regressor.apply(windows, self.features(frames, windows, check=False))
 
     def margin_from_features(self, feats: torch.Tensor) -> torch.Tensor:
         """Raw classifier margins ``m(f)`` of selected features ``(..., K)`` -> ``(...)``."""

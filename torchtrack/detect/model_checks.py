@@ -581,12 +581,38 @@ def _check_tracking_head(meta: dict, entries: dict[str, TensorEntry]) -> None:
         raise ModelFormatError(f"tracking_head: {exc}") from None
 
 
+def _check_box_regression(meta: dict, entries: dict[str, TensorEntry], k: int) -> Callable:
+    """``box_regression``: a linear map of the ``k`` selected features to a window's move
+    (tensors ``box_regression.weight (3, k)`` and ``box_regression.bias (3,)``, float32)."""
+    reg = _mapping(meta["box_regression"], "box_regression", {"limit", "summary"})
+    lim = reg["limit"]
+    if not isinstance(lim, list) or len(lim) != 3:
+        raise ModelFormatError(f"box_regression.limit must be a list of 3 numbers, got {lim!r}")
+    for v in lim:
+        _num_in(v, "box_regression.limit", 0.0, 1.0, open_lo=True)
+    if not isinstance(reg["summary"], dict):
+        raise ModelFormatError("box_regression.summary must be a JSON object")
+    _entry(entries, "box_regression.weight", "F32", (3, k))
+    _entry(entries, "box_regression.bias", "F32", (3,))
+    _no_extra(entries, "box_regression.", {"weight", "bias"})
+
+    def values(t: dict[str, torch.Tensor]) -> None:
+        for name in ("box_regression.weight", "box_regression.bias"):
+            if not bool(torch.isfinite(t[name]).all()):
+                raise ModelFormatError(f"{name} holds values that are not finite")
+
+    return values
+
+
 def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
     """Version 2: the feature bank under ``features`` with a ``kind`` (``haar``: the version 1
     bank plus its ``selected_features``; ``channels``: channel set, lattice and feature tables
     ``features.rects`` / ``features.channel``); classifiers include boosted trees."""
     _mapping(
-        meta, "the description", _V2_KEYS, {"object_box", "selected_features", "tracking_head"}
+        meta,
+        "the description",
+        _V2_KEYS,
+        {"object_box", "selected_features", "tracking_head", "box_regression"},
     )
     name = meta["name"]
     if name_error(name):
@@ -633,9 +659,11 @@ def _validate_v2(meta: dict, entries: dict[str, TensorEntry]) -> Description:
         _no_extra(entries, "calibration.", set())
     if "tracking_head" in meta:
         _check_tracking_head(meta, entries)
-    extra = sorted(
-        n for n in entries if not n.startswith(("features.", "classifier.", "calibration."))
-    )
+    prefixes = ("features.", "classifier.", "calibration.")
+    if "box_regression" in meta:
+        checks["box_regression"] = _check_box_regression(meta, entries, k)
+        prefixes += ("box_regression.",)
+    extra = sorted(n for n in entries if not n.startswith(prefixes))
     if extra:
         raise ModelFormatError(f"unexpected tensor(s) {extra}")
     return Description(2, meta, window, meta["features"], n_bank, bound, k, checks)

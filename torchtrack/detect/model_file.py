@@ -18,6 +18,9 @@ tables ``features.rects`` / ``features.channel`` (channel models), ``classifier.
      "object_box": [x, y, w, h] fractions of the window | absent (the object fills the window),
      "tracking_head": {"trees": n, "calibration": {"kind": "platt", "a", "b"}} | absent
                (boosted trees: the first n trees and their own Platt, for particle filters),
+     "box_regression": {"limit": [dx, dy, ds], "summary": {...}} | absent
+               (tensors box_regression.weight (3, K), .bias (3,): where the object lies in a
+               detection window, :mod:`torchtrack.detect.box_regression`),
      "sha256": hex digest of the JSON without this key plus every tensor's name, dtype, shape
                and bytes}
 
@@ -269,6 +272,10 @@ def save_detector(
         if head_t:
             raise ConfigError("a tracking head's calibration must be Platt (no tensors)")
         meta["tracking_head"] = {"trees": int(n_trees), "calibration": head_m}
+    if det.box_regressor is not None:
+        reg_t, reg_m = det.box_regressor.to_state()
+        tensors.update({f"box_regression.{k}": v.contiguous() for k, v in reg_t.items()})
+        meta["box_regression"] = reg_m
     try:
         meta = json.loads(json.dumps(meta, allow_nan=False))
     except (TypeError, ValueError) as exc:
@@ -362,7 +369,10 @@ def _build(meta: dict, bank: Any, tensors: dict[str, torch.Tensor]) -> Detector:
     cal = None
     if meta["calibration"] is not None:
         cal = calibrator_from_state(_section(tensors, "calibration."), meta["calibration"])
+    from torchtrack.detect.box_regression import BoxRegressor
+
     head = meta.get("tracking_head")
+    reg = meta.get("box_regression")
     det = Detector(
         bank,
         tensors["features.index"],
@@ -375,6 +385,9 @@ def _build(meta: dict, bank: Any, tensors: dict[str, torch.Tensor]) -> Detector:
             None
             if head is None
             else (int(head["trees"]), calibrator_from_state({}, head["calibration"]))
+        ),
+        box_regressor=(
+            None if reg is None else BoxRegressor.from_state(_section(tensors, "box_regression."), reg)
         ),
     )
     if isinstance(bank, HaarBank) and det.selected_features() != meta["selected_features"]:

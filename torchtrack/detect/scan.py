@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 
@@ -416,9 +417,10 @@ def _scan_lattice(
     cascade_threshold: float | None = None,
     keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
     frame_keep: Sequence[Callable[[torch.Tensor], torch.Tensor] | None] | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, Any, tuple[int, int]]:
     """Soft-cascade scan of every lattice window: ``(frame index (M,), windows (M, 4),
-    margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``).
+    margins (M,))`` of the windows that pass the cascade (all windows with ``cascade=False``),
+    then the integral images the windows were read from and their padding ``(py, px)``.
 
     ``frame_keep[b]`` (None: all) then keeps frame ``b``'s windows it accepts, judged on the
     same float64 boxes ``keep_windows`` sees (so a window a single-frame scan with that
@@ -529,7 +531,7 @@ def _scan_lattice(
         score_group(group)
     if not out_f:
         z = torch.zeros(0, device=dev)
-        return z.long(), torch.zeros((0, 4), device=dev), z
+        return z.long(), torch.zeros((0, 4), device=dev), z, ints, (py, px)
     fidx, boxes, marg = torch.cat(out_f), torch.cat(out_b), torch.cat(out_m)
     if frame_keep is not None and any(fk is not None for fk in frame_keep):
         keep = torch.ones(fidx.shape[0], dtype=torch.bool, device=dev)
@@ -538,7 +540,7 @@ def _scan_lattice(
                 sel = fidx == f
                 keep[sel] = fk(boxes[sel]).to(dev)
         fidx, boxes, marg = fidx[keep], boxes[keep], marg[keep]
-    return fidx, boxes.to(torch.float32), marg
+    return fidx, boxes.to(torch.float32), marg, ints, (py, px)
 
 
 def _any_keeps(
@@ -577,6 +579,7 @@ def scan(
     pad: float = 0.0,
     cascade_threshold: float | None = None,
     keep_windows: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    refine: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Detect by scoring every sliding window of one frame.
 
@@ -615,6 +618,11 @@ def scan(
             are scored (called once per scale with that scale's windows, in frame
             coordinates): a region of interest, or the sizes that fit a ground plane (the
             multi-target tracker's ``ground_gate``). None: every window.
+        refine: move each window the NMS keeps (after the voting) to where the training
+            crops put the object, by the detector's :attr:`~Detector.box_regressor` (read on
+            the scan's own integral images); no effect on a detector without one, nor without
+            ``nms_iou`` (every window as scanned). The scores stay those of the windows as
+            scanned.
 
     Returns:
         ``boxes (K, 4)`` (windows, possibly starting at negative coordinates with ``pad``)
@@ -656,6 +664,7 @@ def scan(
         pad=pad,
         cascade_threshold=cascade_threshold,
         keep_windows=keep_windows,
+        refine=refine,
     )[0]
 
 
@@ -680,6 +689,7 @@ def scan_batch(
     keep_windows: Callable[[torch.Tensor], torch.Tensor]
     | Sequence[Callable[[torch.Tensor], torch.Tensor] | None]
     | None = None,
+    refine: bool = True,
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """:func:`scan` over a batch of same-size frames: batched integral images, the same
     windows scored on every frame, then threshold and NMS per frame.
@@ -767,7 +777,7 @@ def scan_batch(
             min_scale=min_scale,
             max_scale=max_scale,
         )
-        fidx, boxes, marg = _scan_lattice(
+        fidx, boxes, marg, ints, (py, px) = _scan_lattice(
             detector,
             frames,
             scales,
@@ -834,6 +844,32 @@ def scan_batch(
         else:
             keep = sc.argsort(descending=True)
         out.append((bx[keep], sc[keep]))
+    if refine and nms_iou is not None and getattr(detector, "box_regressor", None) is not None:
+        out = _refined(detector, ints, (py, px), out, frames.device)
     if host:
         out = [(bx.to(frames.device), sc.to(frames.device)) for bx, sc in out]
     return out
+
+
+def _refined(
+    detector, ints: Any, pad: tuple[int, int], out: list, device: torch.device
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """``out``'s windows moved by the detector's box regressor, read on the scan's integral
+    images ``ints`` of the frames padded by ``pad = (py, px)`` (one call for every frame: the
+    frames' windows padded to one length)."""
+    n = max((bx.shape[0] for bx, _ in out), default=0)
+    if n == 0:
+        return out
+    py, px = pad
+    shift = torch.tensor([float(px), float(py), 0.0, 0.0], device=device)
+    rows = torch.zeros((len(out), n, 4), dtype=torch.float32, device=device)
+    for f, (bx, _) in enumerate(out):
+        k = bx.shape[0]
+        if k:  # a frame with fewer windows repeats its first (its extra rows are dropped)
+            rows[f] = torch.cat((bx, bx[:1].expand(n - k, 4))).to(device=device) + shift
+        else:
+            wh, ww = detector.window
+            rows[f] = torch.tensor([0.0, 0.0, float(ww), float(wh)], device=device) + shift
+    moved = detector.refine_windows(ints, rows) - shift
+    moved = moved.to(out[0][0].device)
+    return [(moved[f, : bx.shape[0]], sc) for f, (bx, sc) in enumerate(out)]

@@ -35,7 +35,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +50,13 @@ from torchtrack.errors import ConfigError, DataError, TrainingWarning
 from torchtrack.features.channels import ChannelBank, channel_bank, window_features
 from torchtrack.io.crops import CropSet, load_crops, load_images, sample_boxes
 
-__all__ = ["WindowSet", "channel_window_features", "mine_windows", "train_channel_detector"]
+__all__ = [
+    "WindowSet",
+    "channel_window_features",
+    "fit_box_regression",
+    "mine_windows",
+    "train_channel_detector",
+]
 
 
 @dataclass
@@ -709,7 +715,7 @@ def train_channel_detector(
     }
     if too_little:
         summary["forced"] = too_little
-    return Detector(
+    det = Detector(
         bank,
         index,
         clf,
@@ -719,3 +725,49 @@ def train_channel_detector(
         object_box=cfg.object_box(),
         tracking_head=head,
     )
+    if lr.box_regression:
+        det = fit_box_regression(cfg, det, progress=progress)
+    return det
+
+
+def fit_box_regression(cfg: TrainConfig, det: Detector, *, progress: bool = False) -> Detector:
+    """``det`` with a box regressor fitted on ``cfg``'s positive crops (their windows in
+    context, ``data.region``, and their mirror images when the region is centred; the
+    config's ``data.exclude`` lists left out), seeded by ``cfg.seed``: what ``learn.box_regression`` adds at the end of
+    training, and what ``train/default_models.py --box-regression`` adds to a trained model.
+
+    Raises:
+        DataError: fewer than 8 positive crops.
+    """
+    from torchtrack.detect.box_regression import fit_box_regressor
+
+    d = cfg.data
+    window = (int(cfg.window[0]), int(cfg.window[1]))
+    exclude: set[str] = set()
+    for f in d.exclude:
+        exclude |= read_name_list(f)
+    region = tuple(d.region) if d.region is not None else None
+    sets = [
+        load_crops(
+            folder,
+            window,
+            region=region,
+            crop_size=tuple(d.crop_size) if d.crop_size is not None else None,
+            exclude=exclude,
+            pattern=pat,
+            strict=d.strict,
+            progress=progress,
+            colour=det.colour,
+            keep_context=True,
+        )
+        for folder, pat in map(_folder_pattern, d.positives)
+    ]
+    pos = CropSet.concat(sets)
+    box = region if region is not None else (0, 0, window[1], window[0])
+    crops = _Crops(pos.images, tuple(int(v) for v in box), pos.sources)
+    mirror = _mirrored(crops)
+    if d.mirror_positives and mirror.region == crops.region:  # a centred window: one region
+        crops = _concat([crops, mirror])
+    groups = [_group_key(s) for s in crops.sources]
+    reg = fit_box_regressor(det, crops.images, crops.region, groups, seed=int(cfg.seed))
+    return replace(det, box_regressor=reg)

@@ -213,6 +213,10 @@ class MultiTrackerConfig:
             chosen by leave-one-sequence-out over 0, -3 and -5 (``docs/multi_target.md``): the
             births are confirmed and weak detections only extend targets, so the tracker can
             use the windows an early cascade exit would have dropped.
+        scan_box_regression: the scan's detections moved and scaled by the model's box
+            regressor to where its training crops put the object (a model without one: no
+            effect). Learnt from the training crops alone: own detections, seeds 0-5, PETS
+            HOTA 51.3 -> ... (docs/multi_target.md, "Box regression").
         scan_pad: windows may hang this fraction of their size over the frame's edges
             (:func:`torchtrack.detect.scan.scan`), so people entering or leaving, cut by the
             edge, are still detected; 0: windows inside the frame.
@@ -348,6 +352,7 @@ class MultiTrackerConfig:
     scan_nms: float = 0.4
     scan_vote: float = 0.0
     scan_pad: float = 0.0
+    scan_box_regression: bool = True
     scan_cascade: float = -3.0
     min_frame_height: int = 360
     detection_threshold: float = 0.1

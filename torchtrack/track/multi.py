@@ -392,6 +392,7 @@ class MultiTargetTracker:
             pad=cfg.scan_pad,
             cascade_threshold=cfg.scan_cascade or None,
             keep_windows=keeps,
+            refine=cfg.scan_box_regression,
             batch=16_384 * frames.shape[0],  # scan's windows per call, for each frame
         )
         # the scan runs on the frames' device; the filter's bookkeeping lives on the CPU
