@@ -965,3 +965,38 @@ def test_channel_sum_is_the_frames_channel_sum():
         f[:, 0, 0] = 255  # the largest sum, 765, fits int16
         s = _channel_sum(f)
         assert s.dtype == torch.int16 and torch.equal(s.long(), f.long().sum(0))
+
+
+def test_reported_boxes_are_moved_by_the_box_regressor_on_the_tracker_s_own_scans():
+    """``report_box_regression``: on its own scans the tracker reports each box where the
+    model's box regressor puts it on that frame (read from the particles' integral images when
+    they cover the box: the same move as from the whole frame), the filter unchanged; with
+    outside detections the boxes are reported as tracked."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+
+    frames = [f for _, f in zip(range(8), open_source(demo_clip_path()), strict=False)]
+    runs = {}
+    for on in (False, True):
+        mt = MultiTargetTracker(
+            "pedestrian", generator=torch.Generator().manual_seed(3), report_box_regression=on
+        )
+        runs[on] = [mt.update(f) for f in frames]
+    det = mt.detector
+    moved_any = False
+    for f, plain, refined in zip(frames, runs[False], runs[True], strict=True):
+        assert plain.ids.tolist() == refined.ids.tolist()
+        if not len(plain):
+            continue
+        win = det.object_to_window(plain.boxes).float()[None]
+        want = det.window_to_object(det.refine_windows(f[None], win)[0].double())
+        assert torch.allclose(refined.boxes, want, atol=1e-3), (refined.boxes, want)
+        moved_any |= not torch.allclose(refined.boxes, plain.boxes, atol=0.5)
+    assert moved_any
+    # outside detections: their boxes, as tracked
+    outs = {}
+    for on in (False, True):
+        mt = make(report_box_regression=on)
+        outs[on] = [mt.update(f, (people(t), torch.ones(3))) for t, f in enumerate(frames)]
+    for a, b in zip(outs[False], outs[True], strict=True):
+        assert torch.equal(a.boxes, b.boxes)

@@ -433,7 +433,9 @@ class TrainConfig:
                 f"learn.tracking_trees must be a non-negative integer, got {lr.tracking_trees!r}"
             )
         if not isinstance(lr.box_regression, bool):
-            raise ConfigError(f"learn.box_regression must be true or false, got {lr.box_regression!r}")
+            raise ConfigError(
+                f"learn.box_regression must be true or false, got {lr.box_regression!r}"
+            )
         if not (_isnum(lr.cascade_threshold) and abs(lr.cascade_threshold) <= 1e6):
             raise ConfigError(
                 f"learn.cascade_threshold must be a running margin within +-1e6, got "

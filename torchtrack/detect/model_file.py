@@ -387,7 +387,9 @@ def _build(meta: dict, bank: Any, tensors: dict[str, torch.Tensor]) -> Detector:
             else (int(head["trees"]), calibrator_from_state({}, head["calibration"]))
         ),
         box_regressor=(
-            None if reg is None else BoxRegressor.from_state(_section(tensors, "box_regression."), reg)
+            None
+            if reg is None
+            else BoxRegressor.from_state(_section(tensors, "box_regression."), reg)
         ),
     )
     if isinstance(bank, HaarBank) and det.selected_features() != meta["selected_features"]:

@@ -80,6 +80,11 @@ class DetectorObservation:
         self.detector = tracking_model() if head and tracking_model is not None else detector
         self.floor = float(floor)
         self.crop = bool(crop)
+        #: the last one-frame call's crop: ``(integrals, (dx, dy) crop origin, (x0, y0, x1, y1)
+        #: the scored windows' hull inside the frame)``; a window inside the hull reads the
+        #: same features from these integrals as from the whole frame (the multi-target
+        #: tracker reads its reported boxes' features from them). None: not cropped.
+        self.last_crop: tuple | None = None
 
     def margins(self, frames: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
         """Uncalibrated classifier margins ``m(f)`` of windows on frames.
@@ -115,8 +120,21 @@ class DetectorObservation:
         # Unscorable windows are replaced by a harmless in-frame one and masked afterwards.
         safe = torch.where(ok.unsqueeze(-1), boxes, boxes.new_tensor([0.0, 0.0, 1.0, 1.0]))
         det = self.detector
+        self.last_crop = None
         if self.crop:
-            ints, safe = det.integrals_for(frames, safe, ok)
+            ints, moved = det.integrals_for(frames, safe, ok)
+            if b == 1:
+                i = int(torch.nonzero(ok[0])[0, 0])
+                dx, dy = (safe[0, i, :2] - moved[0, i, :2]).tolist()
+                x, y, w, h = boxes[0][ok[0]].unbind(-1)
+                hull = (
+                    float(x.clamp(0, fw).min()),
+                    float(y.clamp(0, fh).min()),
+                    float((x + w).clamp(0, fw).max()),
+                    float((y + h).clamp(0, fh).max()),
+                )
+                self.last_crop = (ints, (dx, dy), hull)
+            safe = moved
         else:
             ints = det.integrals(frames)
         feats = det.features(ints, safe, check=False)

@@ -214,9 +214,14 @@ class MultiTrackerConfig:
             births are confirmed and weak detections only extend targets, so the tracker can
             use the windows an early cascade exit would have dropped.
         scan_box_regression: the scan's detections moved and scaled by the model's box
-            regressor to where its training crops put the object (a model without one: no
-            effect). Learnt from the training crops alone: own detections, seeds 0-5, PETS
-            HOTA 51.3 -> ... (docs/multi_target.md, "Box regression").
+            regressor (:mod:`torchtrack.detect.box_regression`) to where its training crops put
+            the object; a model without one: no effect. Learnt from the training crops alone:
+            own detections, seeds 0-5 (cached scans), HOTA PETS 50.8 -> 52.2, TUD 44.4 -> 48.4
+            (docs/multi_target.md, "Box regression").
+        report_box_regression: each reported box moved the same way on its frame (the
+            particles stay where the filter put them), when the tracker scans with its own
+            model; with outside detections (``--detections``) their boxes set the convention,
+            and a model without a regressor has nothing to apply.
         scan_pad: windows may hang this fraction of their size over the frame's edges
             (:func:`torchtrack.detect.scan.scan`), so people entering or leaving, cut by the
             edge, are still detected; 0: windows inside the frame.
@@ -353,6 +358,7 @@ class MultiTrackerConfig:
     scan_vote: float = 0.0
     scan_pad: float = 0.0
     scan_box_regression: bool = True
+    report_box_regression: bool = True
     scan_cascade: float = -3.0
     min_frame_height: int = 360
     detection_threshold: float = 0.1

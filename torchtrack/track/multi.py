@@ -203,6 +203,7 @@ class MultiTargetTracker:
         self.frame_size: tuple[int, int] | None = None
         self.upsample = 1
         self._external = False  # detections come from outside (no scan, their own thresholds)
+        self._crop = (None, None)  # (frame index, the particles' integral-image crop of it)
         self.states = torch.zeros((0, n, 6), dtype=f64)
         self.log_weights = torch.zeros((0, n), dtype=f64)
         self.ref = torch.zeros((0, 2), dtype=f64)  # reference window (w, h) at s = 1
@@ -576,7 +577,10 @@ class MultiTargetTracker:
         if self._ground_on():
             self._lines.append((t, self.ground.line_))
             self.stats["frames with a ground plane"] += self.ground.line_ is not None
-        return self._report()
+        out = self._report()
+        if cfg.report_box_regression and not self._external:
+            out = self._refined_report(frame, out)
+        return out
 
     # -- steps ---------------------------------------------------------------------------------
     def _check_frame(self, frame: torch.Tensor) -> None:
@@ -748,6 +752,7 @@ class MultiTargetTracker:
         wins = self._windows(self.states, self.ref)
         t, n = wins.shape[:2]
         p = self.observation.probabilities(frame[None], wins.reshape(1, t * n, 4).to(frame.device))
+        self._crop = (self.frame_index, self.observation.last_crop)
         return p.reshape(t, n).to("cpu", torch.float64)
 
     def _histograms(self, bin_map: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
@@ -1287,6 +1292,34 @@ class MultiTargetTracker:
                 out[j] |= bool(worse[j, i])
         self._turns = turns  # pairs that stopped overlapping start afresh
         return out
+
+    def _refined_report(self, frame: torch.Tensor, out: MultiState) -> MultiState:
+        """``out`` with each box moved by the detector's box regressor on ``frame`` (the
+        reported boxes only: the particles stay where the filter put them)."""
+        det = self.detector
+        if det.box_regressor is None or not len(out.ids):
+            return out
+        win = det.object_to_window(out.boxes).to(torch.float32)[None]  # (1, K, 4)
+        at, crop = self._crop
+        fh, fw = frame.shape[-2:]
+        x, y, w, h = win[0].unbind(-1)
+        if at == self.frame_index and crop is not None:
+            ints, (dx, dy), (x0, y0, x1, y1) = crop
+            inside = (
+                bool((x.clamp(0, fw) >= x0).all())
+                and bool((y.clamp(0, fh) >= y0).all())
+                and bool(((x + w).clamp(0, fw) <= x1).all())
+                and bool(((y + h).clamp(0, fh) <= y1).all())
+            )
+        else:
+            inside = False
+        if inside:  # the particles' integral images of this frame cover every box: reuse
+            rel = (win - torch.tensor([dx, dy, 0.0, 0.0])).to(frame.device)
+        else:
+            ints, rel = det.integrals_for(frame[None], win)
+        moved = det.refine_windows(ints, rel) + (win.to(rel.device) - rel)
+        boxes = det.window_to_object(moved[0].to(device="cpu", dtype=torch.float64))
+        return MultiState(out.ids, boxes, out.confidence, out.detected)
 
     def _report(self) -> MultiState:
         cfg = self.config
