@@ -174,7 +174,10 @@ def test_fit_learns_the_move_from_training_crops(data_dir):
     det = replace(load_model("pedestrian"), box_regressor=None)
     reg = fit_box_regressor(det, _crops(data_dir, train), (16, 16, 64, 128), per_crop=8, alpha=1e4)
     s = reg.summary
-    assert all(a < b for a, b in zip(s["held_out_rms_after"][:2], s["held_out_rms_before"][:2]))
+    assert all(
+        a < b
+        for a, b in zip(s["held_out_rms_after"][:2], s["held_out_rms_before"][:2], strict=True)
+    )
     crops = _crops(data_dir, _test_split()[:60])
     win, t = jitter_windows(
         (16, 16, 64, 128), 60 * 4, (0.12, 0.06, 0.12), torch.Generator().manual_seed(1)
