@@ -188,6 +188,31 @@ def test_a_looser_cascade_finds_more_and_equals_the_library_scan(capsys):
     assert sum(len(r["boxes"]) for r in found[2]) > sum(len(r["boxes"]) for r in found[0])
 
 
+def test_no_box_regression_reports_the_windows_as_scanned(capsys):
+    """By default the bundled pedestrian model's box regressor moves each detection; with
+    --no-box-regression the records are the scan's boxes with refine=False, the same
+    detections and probabilities, other boxes."""
+    out = {}
+    for extra in ([], ["--no-box-regression"]):
+        args = ["detect", "pedestrian", str(demo_clip_path()), "--max-frames", "1", "--quiet"]
+        assert main(args + extra) == 0
+        out[len(extra)] = records(capsys.readouterr().out)[0]
+    det = load_model("pedestrian")
+    from torchtrack.cli import detect as d
+
+    kw = {"threshold": d.THRESHOLD, "scale_step": d.SCALE_STEP, "stride": d.STRIDE}
+    kw |= {"min_scale": d.MIN_HEIGHT / d.object_height(det), "nms_iou": d.NMS_IOU}
+    kw |= {"nms_overlap": d.NMS_OVERLAP, "vote_iou": d.VOTE_IOU, "pad": d.PAD}
+    with open_source(demo_clip_path()) as src:
+        frame = next(iter(src))
+    for key, refine in ((0, True), (1, False)):
+        boxes, probs = det.scan(frame, refine=refine, **kw)
+        np.testing.assert_allclose(out[key]["boxes"], boxes.numpy().reshape(-1, 4), atol=0.01)
+        np.testing.assert_allclose(out[key]["probabilities"], probs.numpy(), atol=1e-5)
+    assert out[0]["probabilities"] == out[1]["probabilities"]
+    assert not np.allclose(out[0]["boxes"], out[1]["boxes"], atol=0.5)
+
+
 def test_video_that_cannot_be_opened(tmp_path, capsys):
     bad = tmp_path / "broken.mp4"
     bad.write_bytes(b"this is not a video" * 10)
