@@ -210,3 +210,22 @@ def test_scan_refines_only_the_windows_nms_keeps():
     for f in range(2):
         wa, sa = scan(det, frames[f], **kw)
         assert torch.equal(batched[f][0], wa) and torch.equal(batched[f][1], sa)
+
+
+def test_the_shipped_regressor_is_what_its_recipe_fits(data_dir, monkeypatch):
+    """``train/default_models.py --box-regression``: refitting the bundled pedestrian model's
+    regressor from ``configs/pedestrian.toml`` (its crops, its test split left out, its seed)
+    gives the shipped tensors bit for bit."""
+    from pathlib import Path
+
+    from torchtrack.detect.config import load_train_config
+    from torchtrack.detect.train_channels import fit_box_regression
+
+    cfg_path = Path(__file__).resolve().parents[2] / "configs" / "pedestrian.toml"
+    cfg = load_train_config(cfg_path)
+    cfg.data.positives = [str(data_dir / "detection_crops" / "inria_person_96x160" / "pos")]
+    det = load_model("pedestrian")
+    again = fit_box_regression(cfg, replace(det, box_regressor=None)).box_regressor
+    assert torch.equal(again.weight, det.box_regressor.weight)
+    assert torch.equal(again.bias, det.box_regressor.bias)
+    assert again.summary == det.box_regressor.summary

@@ -49,6 +49,7 @@ def small_config(root) -> TrainConfig:
     cfg.mining.stride = 0.125
     cfg.mining.target_fpr = 0.5
     cfg.learn.cascade = "held-out"
+    cfg.learn.box_regression = True
     return cfg.validate()
 
 
@@ -96,6 +97,15 @@ def test_training_summary_and_model_file(trained, frame):
     again = load_detector(path)
     boxes = torch.tensor([[[100.0, 40.0, 40.0, 80.0], [10.5, 3.2, 64.0, 128.0], [200, 10, 30, 60]]])
     torch.testing.assert_close(again.score(frame[None], boxes), det.score(frame[None], boxes))
+    # learn.box_regression: a regressor on the selected features, fitted on the 40 crops and
+    # their mirrors, saved and loaded with the model
+    reg = det.box_regressor
+    assert reg is not None and reg.n_features == det.feature_index.numel()
+    assert reg.summary["crops"] == 80 and reg.summary["windows"] == 80 * 16
+    assert torch.equal(again.box_regressor.weight, reg.weight)
+    torch.testing.assert_close(
+        again.refine_windows(frame[None], boxes), det.refine_windows(frame[None], boxes)
+    )
 
 
 def test_scan_with_pad_scores_windows_over_the_edges_on_the_continued_frame(trained, frame):

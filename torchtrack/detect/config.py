@@ -643,6 +643,14 @@ def apply_override(cfg: TrainConfig, key: str, value: Any) -> None:
     setattr(obj, parts[-1], value)
 
 
+def excluded_names(data: DataConfig) -> set[str]:
+    """The file names of every list in ``data.exclude`` (the held-out test splits)."""
+    out: set[str] = set()
+    for f in data.exclude:
+        out |= read_name_list(f)
+    return out
+
+
 def read_name_list(path: str | os.PathLike) -> set[str]:
     """File names listed one per line (blank lines and ``#`` comments ignored).
 

@@ -42,7 +42,7 @@ from typing import Any
 import torch
 from torch.nn import functional as F
 
-from torchtrack.detect.config import TrainConfig, read_name_list
+from torchtrack.detect.config import TrainConfig, excluded_names
 from torchtrack.detect.detector import Detector
 from torchtrack.detect.evaluate import detection_rate_at_fpr, roc_auc
 from torchtrack.detect.training import _image_paths
@@ -171,19 +171,13 @@ class ChannelData:
     skipped: list[tuple[str, str]]
 
 
-def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelData:
-    """Read the positive crops (with context), negative crops and negative images of ``cfg``.
-
-    Raises:
-        DataError: a missing or empty folder, no usable negative image; with ``data.strict``,
-            any unusable file.
-    """
+def _positive_crops(
+    cfg: TrainConfig, exclude: set[str], colour: bool, progress: bool
+) -> tuple[CropSet, _Crops]:
+    """The positive crops of ``cfg`` with their context, and as :class:`_Crops` with the
+    window's region inside them."""
     d = cfg.data
     window = (int(cfg.window[0]), int(cfg.window[1]))
-    colour = cfg.features.channel_set().colour
-    exclude: set[str] = set()
-    for f in d.exclude:
-        exclude |= read_name_list(f)
     region = tuple(d.region) if d.region is not None else None
     crop_size = tuple(d.crop_size) if d.crop_size is not None else None
     sets = [
@@ -202,9 +196,23 @@ def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelDat
         for folder, pat in map(_folder_pattern, d.positives)
     ]
     pos = CropSet.concat(sets)
-    skipped = list(pos.skipped)
     box = region if region is not None else (0, 0, window[1], window[0])
-    base = _Crops(pos.images, tuple(int(v) for v in box), pos.sources)
+    return pos, _Crops(pos.images, tuple(int(v) for v in box), pos.sources)
+
+
+def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelData:
+    """Read the positive crops (with context), negative crops and negative images of ``cfg``.
+
+    Raises:
+        DataError: a missing or empty folder, no usable negative image; with ``data.strict``,
+            any unusable file.
+    """
+    d = cfg.data
+    window = (int(cfg.window[0]), int(cfg.window[1]))
+    colour = cfg.features.channel_set().colour
+    exclude = excluded_names(d)
+    pos, base = _positive_crops(cfg, exclude, colour, progress)
+    skipped = list(pos.skipped)
     if d.positive_jitter > 0:  # a copy of every crop shifted by up to positive_jitter pixels
         g = torch.Generator().manual_seed(int(cfg.seed) + 7)
         j = int(d.positive_jitter)
@@ -733,40 +741,18 @@ def train_channel_detector(
 def fit_box_regression(cfg: TrainConfig, det: Detector, *, progress: bool = False) -> Detector:
     """``det`` with a box regressor fitted on ``cfg``'s positive crops (their windows in
     context, ``data.region``, and their mirror images when the region is centred; the
-    config's ``data.exclude`` lists left out), seeded by ``cfg.seed``: what ``learn.box_regression`` adds at the end of
-    training, and what ``train/default_models.py --box-regression`` adds to a trained model.
+    config's ``data.exclude`` lists left out), seeded by ``cfg.seed``: what
+    ``learn.box_regression`` adds at the end of training, and what
+    ``train/default_models.py --box-regression`` adds to a trained model.
 
     Raises:
         DataError: fewer than 8 positive crops.
     """
     from torchtrack.detect.box_regression import fit_box_regressor
 
-    d = cfg.data
-    window = (int(cfg.window[0]), int(cfg.window[1]))
-    exclude: set[str] = set()
-    for f in d.exclude:
-        exclude |= read_name_list(f)
-    region = tuple(d.region) if d.region is not None else None
-    sets = [
-        load_crops(
-            folder,
-            window,
-            region=region,
-            crop_size=tuple(d.crop_size) if d.crop_size is not None else None,
-            exclude=exclude,
-            pattern=pat,
-            strict=d.strict,
-            progress=progress,
-            colour=det.colour,
-            keep_context=True,
-        )
-        for folder, pat in map(_folder_pattern, d.positives)
-    ]
-    pos = CropSet.concat(sets)
-    box = region if region is not None else (0, 0, window[1], window[0])
-    crops = _Crops(pos.images, tuple(int(v) for v in box), pos.sources)
+    _, crops = _positive_crops(cfg, excluded_names(cfg.data), det.colour, progress)
     mirror = _mirrored(crops)
-    if d.mirror_positives and mirror.region == crops.region:  # a centred window: one region
+    if cfg.data.mirror_positives and mirror.region == crops.region:  # a centred window
         crops = _concat([crops, mirror])
     groups = [_group_key(s) for s in crops.sources]
     reg = fit_box_regressor(det, crops.images, crops.region, groups, seed=int(cfg.seed))

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchtrack.detect.config import TrainConfig, read_name_list
+from torchtrack.detect.config import TrainConfig, excluded_names
 from torchtrack.detect.detector import Detector
 from torchtrack.detect.evaluate import crop_scores, detection_rate_at_fpr, roc_auc
 from torchtrack.detect.scan import sliding_windows
@@ -119,9 +119,7 @@ def load_training_data(
     """
     d = cfg.data
     window = (int(cfg.window[0]), int(cfg.window[1]))
-    exclude: set[str] = set()
-    for f in d.exclude:
-        exclude |= read_name_list(f)
+    exclude = excluded_names(d)
     region = tuple(d.region) if d.region is not None else None
     crop_size = tuple(d.crop_size) if d.crop_size is not None else None
     pos = CropSet.concat(
