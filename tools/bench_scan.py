@@ -184,7 +184,7 @@ def main() -> None:
         "min_scale": detect_cli.MIN_HEIGHT / detect_cli.object_height(det),
         "nms_iou": detect_cli.NMS_IOU,
         "nms_overlap": detect_cli.NMS_OVERLAP,
-        "vote_iou": args.vote_iou or None,
+        "vote_iou": detect_cli.vote_iou(args) or None,
         "pad": args.pad,
     }
     results = {}
@@ -263,7 +263,11 @@ def main() -> None:
         f"`torchtrack detect` defaults: objects from {detect_cli.MIN_HEIGHT:g} px tall (scale "
         f"{kw['min_scale']:.3f}), scale step {kw['scale_step']}, stride {kw['stride']}, "
         f"P >= {kw['threshold']}, NMS {kw['nms_overlap']} overlap {kw['nms_iou']} on object boxes, "
-        + (f"box voting at IoU {args.vote_iou:g}" if args.vote_iou else "no box voting")
+        + (
+            f"box voting at IoU {detect_cli.vote_iou(args):g}"
+            if detect_cli.vote_iou(args)
+            else "no box voting"
+        )
         + (
             f", windows up to {args.pad:g} of their size over the frame edges. "
             if args.pad

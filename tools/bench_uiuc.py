@@ -158,7 +158,7 @@ def run_set(det, car_data: Path, multi: bool, args) -> dict:
         "threshold": args.min_prob,
         "stride": args.stride,
         "nms_iou": args.nms_iou,
-        "vote_iou": args.vote_iou or None,
+        "vote_iou": detect_cli.vote_iou(args) or None,
         "pad": args.pad,
         "cascade": args.cascade,
         **(
@@ -245,9 +245,9 @@ def main() -> None:
         f"{summ.get('auc', float('nan')):.4f}{cascade_note}). "
         f"Scan: stride {args.stride} x window, NMS IoU {args.nms_iou}, "
         + (
-            f"box voting at IoU {args.vote_iou:g} (each kept window moved to the "
+            f"box voting at IoU {detect_cli.vote_iou(args):g} (each kept window moved to the "
             "probability-weighted mean position and scale of the windows overlapping it), "
-            if args.vote_iou
+            if detect_cli.vote_iou(args)
             else "no box voting, "
         )
         + (f"windows up to {args.pad:g} of their size over the image edges, " if args.pad else "")

@@ -198,6 +198,12 @@ def add_box_refinement(p: argparse.ArgumentParser) -> None:
     )
 
 
+def vote_iou(args: argparse.Namespace) -> float:
+    """``--vote-iou`` as the scan uses it: its default (:data:`VOTE_IOU`) when not given; 0:
+    off (the scan benchmarks read it through this too)."""
+    return VOTE_IOU if args.vote_iou is None else args.vote_iou
+
+
 def scan_kwargs(args: argparse.Namespace, det) -> dict:
     """The :meth:`Detector.scan` arguments of parsed ``torchtrack detect`` options for ``det``
     (the benchmarks that score the command's scan call this too).
@@ -228,7 +234,7 @@ def scan_kwargs(args: argparse.Namespace, det) -> dict:
             f"{det.window[1]} window; at most {1 / MIN_SCALE:g}x: --min-scale {MIN_SCALE:g} or "
             f"more (--min-height {MIN_SCALE * object_height(det):.3g} px or more)"
         )
-    vote = VOTE_IOU if args.vote_iou is None else args.vote_iou
+    vote = vote_iou(args)
     return {
         "threshold": args.threshold,
         "scale_step": args.scale_step,
