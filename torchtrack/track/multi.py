@@ -7,7 +7,8 @@ predicted and weighted in one call per frame. Per frame:
 
 1. **Predict** every target (its motion noise widens while it goes unmatched).
 2. **Detect** every ``scan_every`` frames (or take detections given from outside): the detector
-   scans the frame; its windows become object boxes (:meth:`~torchtrack.detect.Detector.window_to_object`).
+   scans the frame; its windows, moved by the model's box regressor (``scan_box_regression``),
+   become object boxes (:meth:`~torchtrack.detect.Detector.window_to_object`).
    Once the video's ground plane (:class:`~torchtrack.track.ground.GroundPlane`: object height
    against foot row, learnt from the confirmed targets' confident matches) holds, the scan
    scores only the windows whose object box fits it (the line of ``GROUND_LAG`` frames before,
@@ -44,7 +45,8 @@ predicted and weighted in one call per frame. Per frame:
 A confirmed target is reported while it is matched, and for up to ``max_coast`` frames after
 its last match while the filter's evidence (the mean calibrated probability of its particles)
 stays at least ``visible_threshold``. Boxes are object boxes (the person, not the detector
-window with its training margin).
+window with its training margin), moved on their frame by the model's box regressor
+(``report_box_regression``; on the tracker's own scans) while the particles stay as filtered.
 
 Example::
 
