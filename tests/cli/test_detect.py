@@ -309,14 +309,17 @@ def test_bad_options(tmp_path, capsys, args, match):
 
 
 def test_scan_probabilities_match_score():
-    """The probabilities the scan reports are the detector's score of the reported boxes."""
+    """The probabilities the scan reports are the detector's score of the windows it kept, as
+    scanned (``refine=False``); with the box regressor (the default) the same probabilities
+    go with the moved boxes."""
     det = load_model("pedestrian")
     with open_source(demo_clip_path()) as s:
         frame = next(iter(s))
     for cascade, least in ((False, 10), (True, 1)):  # the cascade keeps fewer windows
-        boxes, probs = scan(
-            det, frame, threshold=None, min_scale=0.5, max_scale=0.5, cascade=cascade
-        )
+        kw = dict(threshold=None, min_scale=0.5, max_scale=0.5, cascade=cascade)
+        boxes, probs = scan(det, frame, refine=False, **kw)
         assert boxes.shape[0] > least
         ref = det.score(frame[None], boxes[None])[0]
         torch.testing.assert_close(probs, ref, atol=1e-4, rtol=1e-4)
+        moved, same = scan(det, frame, **kw)
+        assert torch.equal(same, probs) and not torch.allclose(moved, boxes, atol=0.5)
