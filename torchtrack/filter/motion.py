@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchtrack.boxes import _check_frame_size
-from torchtrack.errors import BoxError, ConfigError, ShapeError
+from torchtrack.boxes import _check_frame_size, check_boxes
+from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.filter._random import GeneratorLike, randn
 
 __all__ = ["BachooMotion", "ChateauAR", "KleinAR", "VelocityHistory"]
@@ -100,20 +100,6 @@ def _check_count(n) -> int:
     return int(n)
 
 
-def _check_box_values(boxes: torch.Tensor) -> None:
-    """BoxError naming the first box that is not finite or has a width or height <= 0 (they
-    became NaN or negative-size particles, silently)."""
-    if boxes.numel() == 0:
-        return
-    finite = torch.isfinite(boxes).all(1)
-    sized = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
-    bad = ~(finite & sized)
-    if bool(bad.any()):
-        i = int(bad.nonzero()[0, 0])
-        what = "is not finite" if not bool(finite[i]) else "has a width or height <= 0"
-        raise BoxError(f"boxes[{i}] = {boxes[i].tolist()} (x, y, w, h) {what}")
-
-
 class KleinAR:
     """Klein et al. eq. (1): ``v += N(0, sigma^2)``, ``x += v``; w, h random walks.
 
@@ -159,10 +145,10 @@ class KleinAR:
 
         Raises:
             ShapeError: not ``(B, 4)`` floating point.
-            BoxError: a box not finite or of width or height <= 0.
+            BoxError: a box not finite or under one pixel wide or high.
         """
         _check_boxes(boxes)
-        _check_box_values(boxes)
+        check_boxes(boxes)  # finite and a pixel or more: NaN or negative sizes made particles
         x, y, w, h = boxes.unbind(1)
         z = torch.zeros_like(x)
         return torch.stack([x + w / 2, y + h / 2, w, h, z, z], 1)
@@ -321,10 +307,10 @@ class ChateauAR:
 
         Raises:
             ShapeError: not ``(B, 4)`` floating point.
-            BoxError: a box not finite or of width or height <= 0.
+            BoxError: a box not finite or under one pixel wide or high.
         """
         _check_boxes(boxes)
-        _check_box_values(boxes)
+        check_boxes(boxes)  # finite and a pixel or more: NaN or negative sizes made particles
         x, y, w, h = boxes.unbind(1)
         cx, cy = x + w / 2, y + h / 2
         s = torch.sqrt(w * h / (self.window[0] * self.window[1]))
@@ -485,10 +471,10 @@ class BachooMotion:
 
         Raises:
             ShapeError: not ``(B, 4)`` floating point.
-            BoxError: a box not finite or of width or height <= 0.
+            BoxError: a box not finite or under one pixel wide or high.
         """
         _check_boxes(boxes)
-        _check_box_values(boxes)
+        check_boxes(boxes)  # finite and a pixel or more: NaN or negative sizes made particles
         x, y, w, h = boxes.unbind(1)
         z = torch.zeros_like(x)
         return torch.stack([x + w / 2, y + h / 2, w, h, z, z, z], 1)
