@@ -55,12 +55,7 @@ def main() -> None:
         for i, frame in src.items():
             frames[i] = frame
             out = tracker.update(frame) if frame is not None else None
-            done = (
-                smoother.push(i, out, offset=tracker.camera_offset)
-                if smoother.active
-                else [(i, out)]
-            )
-            for j, o in done:
+            for j, o in smoother.push(i, out, offset=tracker.camera_offset):
                 img = draw(j, o) if img is None else img
             if img is not None:
                 break

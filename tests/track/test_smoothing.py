@@ -149,6 +149,12 @@ def test_inactive_and_unreadable_frames():
     torch.testing.assert_close(out[0][1].boxes, box)  # a constant track stays where it is
     with pytest.raises(ValueError, match="increasing order"):
         sm.push(2, st)
+    # inactive: each frame comes back at once, the same state
+    off = TrackSmoother(0.0, 0)
+    assert off.push(0, st) == [(0, st)] and off.push(1, None) == [(1, None)]
+    assert off.push(2, st)[0][1] is st and off.flush() == []
+    with pytest.raises(ValueError, match="increasing order"):
+        off.push(2, st)
 
 
 def test_memory_stays_bounded():

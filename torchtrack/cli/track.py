@@ -637,10 +637,7 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     def report(i: int, frame, res) -> None:
         parts = mt.particle_boxes() if (vid is not None and args.particles) else None
         held.append((frame if vid is not None else None, parts))
-        if not smoother.active:  # each frame as tracked
-            emit(i, res)
-            return
-        for j, r in smoother.push(i, res, offset=mt.camera_offset):
+        for j, r in smoother.push(i, res, offset=mt.camera_offset):  # inactive: (i, res)
             emit(j, r)
 
     def _track_frames(frames) -> None:

@@ -99,7 +99,7 @@ class BoxRegressor:
             out[i : i + 1024] = (flat[i : i + 1024].to(torch.float64)[:, None, :] * w).sum(-1)
         out = out + self.bias.to(feats.device)
         lim = torch.tensor(self.limit, dtype=out.dtype, device=out.device)
-        out = torch.maximum(torch.minimum(out, lim), -lim).to(torch.float32)
+        out = out.clamp(-lim, lim).to(torch.float32)
         return out.reshape(*feats.shape[:-1], 3)
 
     def apply(self, windows: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
@@ -219,14 +219,13 @@ def fit_box_regressor(
     names = groups if groups is not None else [str(i) for i in range(n)]
     if len(names) != n:
         raise ConfigError(f"groups names {len(names)} crops, got {n} images")
-    uniq = sorted(set(names))
-    perm = torch.randperm(len(uniq), generator=gen).tolist()
-    test = {uniq[i] for i in perm[: max(1, round(held_out * len(uniq)))]}
+    from torchtrack.detect.train_channels import _split_groups  # training's group hold-out
+
+    test = _split_groups(names, held_out, gen)
     rows = torch.tensor([names[i] in test for i in range(n)]).repeat_interleave(per_crop)
     w, b = _ridge(x[~rows], y[~rows], alpha)
-    pred = x[rows] @ w.T + b
     lim = torch.tensor(jitter, dtype=torch.float64)
-    pred = torch.maximum(torch.minimum(pred, lim), -lim)
+    pred = (x[rows] @ w.T + b).clamp(-lim, lim)
     before = y[rows].pow(2).mean(0).sqrt()
     after = (pred - y[rows]).pow(2).mean(0).sqrt()
     w, b = _ridge(x, y, alpha)

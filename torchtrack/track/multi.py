@@ -68,6 +68,7 @@ from typing import Any
 
 import torch
 
+from torchtrack.boxes import xywh_to_xyxy
 from torchtrack.errors import ConfigError, ShapeError, TrackerError
 from torchtrack.filter.particles import normalize_with_lse
 from torchtrack.filter.resample import resample
@@ -1303,18 +1304,14 @@ class MultiTargetTracker:
             return out
         win = det.object_to_window(out.boxes).to(torch.float32)[None]  # (1, K, 4)
         at, crop = self._crop
-        fh, fw = frame.shape[-2:]
-        x, y, w, h = win[0].unbind(-1)
+        inside = False
         if at == self.frame_index and crop is not None:
-            ints, (dx, dy), (x0, y0, x1, y1) = crop
-            inside = (
-                bool((x.clamp(0, fw) >= x0).all())
-                and bool((y.clamp(0, fh) >= y0).all())
-                and bool(((x + w).clamp(0, fw) <= x1).all())
-                and bool(((y + h).clamp(0, fh) <= y1).all())
-            )
-        else:
-            inside = False
+            ints, (dx, dy), hull = crop
+            fh, fw = frame.shape[-2:]
+            size = torch.tensor([fw, fh, fw, fh], dtype=win.dtype)
+            xyxy = torch.minimum(xywh_to_xyxy(win[0]).clamp_min(0), size)  # in-frame parts
+            hull = torch.tensor(hull, dtype=win.dtype)
+            inside = bool((xyxy[:, :2] >= hull[:2]).all() and (xyxy[:, 2:] <= hull[2:]).all())
         if inside:  # the particles' integral images of this frame cover every box: reuse
             rel = (win - torch.tensor([dx, dy, 0.0, 0.0])).to(frame.device)
         else:
@@ -1498,11 +1495,8 @@ def track_sequence(
             if as_scans:
                 d, scan = None, d
             out = tracker.update(frame if device is None else frame.to(device), d, scan=scan)
-            if smoother.active:
-                for j, o in smoother.push(i, out, offset=tracker.camera_offset):
-                    collect(j, o)
-            else:
-                collect(i, out)
+            for j, o in smoother.push(i, out, offset=tracker.camera_offset):
+                collect(j, o)
     for j, o in smoother.flush():
         collect(j, o)
     if not f_:

@@ -93,8 +93,8 @@ class TrackSmoother:
 
     @property
     def active(self) -> bool:
-        """False when it would pass every state through unchanged (no gap to fill and a kernel
-        of one frame): callers then skip it."""
+        """False when it passes every state through unchanged (no gap to fill and a kernel of
+        one frame): :meth:`push` then returns each frame as it comes."""
         return self.lag > 0
 
     def push(self, i: int, state, offset: tuple[float, float] = (0.0, 0.0)) -> list:
@@ -106,6 +106,8 @@ class TrackSmoother:
         if i <= self._last:
             raise ValueError(f"frames must be pushed in increasing order: {i} after {self._last}")
         self._last = i
+        if not self.active:  # nothing to fill or smooth: each frame is final as it comes
+            return [(i, state)]
         if state is not None and len(state):
             b = state.boxes.detach().to("cpu", torch.float64)
             ox, oy = (float(v) for v in offset)
