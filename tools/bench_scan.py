@@ -31,7 +31,12 @@ HOG's on each sequence.
 
 Times: median milliseconds per frame over the scanned frames (the frames are scanned once per
 method, interleaved frame by frame so that machine load hits every method alike), one frame
-per call. Also the vehicle model's scan time at 640x480 (TUD frames). Writes
+per call. The process keeps the memory a frame's work frees for the next frame's, as the
+``torchtrack`` command does (:func:`torchtrack.cli.reuse_freed_memory`; HOG runs in the same
+process with the same allocator): without it every large block comes back as fresh,
+zero-filled pages, and a PETS scan at cascade -4 took ~8% longer in frame-by-frame alternation
+(2026-12-02). ``--default-heap`` measures glibc's default instead (the library called from a
+program that does not set it). Also the vehicle model's scan time at 640x480 (TUD frames). Writes
 ``docs/benchmarks/scan.md`` (atomically) and the side-by-side image
 ``docs/images/pedestrian_detections.png`` (ours left, HOG right, PETS frame ``--image-frame``).
 """
@@ -52,6 +57,7 @@ import torch
 
 from torchtrack.boxes import box_iou_matrix
 from torchtrack.cli import detect as detect_cli
+from torchtrack.cli import reuse_freed_memory
 from torchtrack.detect.bundled import load_model
 from torchtrack.detect.scan import scan_window_count
 from torchtrack.io.atomic import atomic_path, write_text_atomic
@@ -152,6 +158,11 @@ def main() -> None:
     ap.add_argument("--limit", type=int, help="at most this many frames per sequence")
     ap.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads")
     ap.add_argument("--no-hog", action="store_true", help="ours only (main OpenCV wheel)")
+    ap.add_argument(
+        "--default-heap",
+        action="store_true",
+        help="glibc's default allocator, not the command's kept heap (reuse_freed_memory)",
+    )
     ap.add_argument("--image-frame", type=int, default=300, help="PETS frame drawn in the PNG")
     ap.add_argument(
         "--cascades",
@@ -175,6 +186,7 @@ def main() -> None:
         hog = cv2.HOGDescriptor()
         hog.setSVMDetector(cv2.HOGDescriptor_getDefaultPeopleDetector())
     torch.set_num_threads(args.threads)
+    kept_heap = not args.default_heap and reuse_freed_memory()
     cv2.setNumThreads(args.threads)
     det = load_model(args.model)
     kw = {
@@ -256,7 +268,12 @@ def main() -> None:
         "",
         f"Command: `{cmd}` (Python with {'opencv-contrib-python-headless' if hog else 'OpenCV'} "
         f"{cv2.__version__}, torch {torch.__version__}, {args.threads} thread(s) each; load "
-        f"average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end)",
+        f"average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end; "
+        + (
+            "freed memory kept for the next frame, as the `torchtrack` command keeps it)"
+            if kept_heap
+            else "glibc's default allocator)"
+        ),
         "",
         f"Ours: model `{args.model}` ({len(det.bank)} channel features, "
         f"{getattr(det.classifier, 'feature_', torch.zeros(0)).shape[0]} trees, soft cascade), "

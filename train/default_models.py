@@ -119,7 +119,10 @@ def write_readme(models_dir: Path) -> Path:
         "runs at its end, with the config's seed; the trees, the calibration and the test-split",
         "numbers unchanged, the recorded config updated to the key;",
         "`tests/detect/test_box_regression.py` refits it from the config and checks the shipped",
-        "tensors bit for bit).",
+        "tensors bit for bit). On 2026-12-02 it was refitted the same way on the crops at every",
+        "scale the detector trains on (`data.positive_scales`, 1.0 and 0.5: a window around a",
+        "person 48 px tall reads the features of that resolution), where the first fit read them",
+        "at their own size only (docs/multi_target.md, box regression at both scales).",
         "",
         "Both files are signed (Ed25519) with the project key; its public half is",
         "`torchtrack-models.pub` here, always trusted by the loader, and its private half is kept",
@@ -130,10 +133,12 @@ def write_readme(models_dir: Path) -> Path:
         "model is unsigned.",
         "",
         "The project key was replaced on 2026-11-28 (key id `245a92be6d1edce7`; before it",
-        "`69b32dff516fca49`, whose private half was lost): both files were signed again, their",
-        'tensors and descriptions unchanged. A copy signed with the old key now reports "signed by',
-        'key 69b32dff516fca49, which is not trusted here": it loads where signatures are optional',
-        "and is refused where they are required.",
+        "`69b32dff516fca49`, whose private half was lost) and again on 2026-12-02 (key id",
+        "`66efc4d2e1c06d6c`: the private half of `245a92be6d1edce7` was not on the fresh project",
+        "machine either): both files were signed again, the vehicle model's tensors and",
+        "description unchanged. A copy signed with an earlier key reports \"signed by key ..., which",
+        "is not trusted here\": it loads where signatures are optional and is refused where they",
+        "are required.",
         "",
     ]
     for f in sorted(models_dir.glob("*.safetensors")):
@@ -246,8 +251,9 @@ def write_readme(models_dir: Path) -> Path:
                 f"kept window by it): ridge regression (alpha {b['alpha']:g}) of the window's "
                 f"move on its {meta['training']['features'].get('used', '?')} selected features, "
                 f"fitted on {b['windows']:,} jittered windows of the {b['crops']:,} training "
-                f"crops (up to {b['jitter'][0]:g} of the width, {b['jitter'][1]:g} of the height, "
-                f"scale exp(+-{b['jitter'][2]:g})); on {b['held_out_groups']} held-out source "
+                f"crops read at scales {b.get('scales', [1.0])} (up to {b['jitter'][0]:g} of the "
+                f"width, {b['jitter'][1]:g} of the height, scale exp(+-{b['jitter'][2]:g})); on "
+                f"{b['held_out_groups']} held-out source "
                 "photos the RMS error of (dx, dy, ds) goes from "
                 + " / ".join(f"{v:.3f}" for v in b["held_out_rms_before"])
                 + " to "

@@ -141,13 +141,18 @@ def _test_split():
     return [s.strip() for s in path.read_text().splitlines() if s.strip() and not s.startswith("#")]
 
 
-def test_the_shipped_regressor_puts_held_out_people_back_in_place(data_dir):
-    """The held-out test crops (never used to fit it): windows moved off each person by a
-    known amount are moved back; the error left is far below the error put in."""
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_the_shipped_regressor_puts_held_out_people_back_in_place(data_dir, scale):
+    """The held-out test crops (never used to fit it), at their own size and at half size (a
+    person 48 px tall, as the detector also trains: ``data.positive_scales``): windows moved
+    off each person by a known amount are moved back; the error left is far below the error
+    put in."""
+    from torchtrack.detect.train_channels import _scaled_images
+
     det = load_model("pedestrian")
-    crops = _crops(data_dir, _test_split()[:120])
+    assert det.box_regressor.summary["scales"] == [1.0, 0.5]
+    crops, region = _scaled_images(_crops(data_dir, _test_split()[:120]), (16, 16, 64, 128), scale)
     g = torch.Generator().manual_seed(5)
-    region = (16, 16, 64, 128)
     win, t = jitter_windows(region, crops.shape[0] * 4, (0.12, 0.06, 0.12), g)
     win = win.float().view(crops.shape[0], 4, 4)
     pred = det.box_regressor.predict(det.features(crops, win, check=False)).reshape(-1, 3)
@@ -185,6 +190,26 @@ def test_fit_learns_the_move_from_training_crops(data_dir):
     win = win.float().view(60, 4, 4)
     pred = reg.predict(det.features(crops, win, check=False)).reshape(-1, 3)
     assert float((pred.double() - t)[:, :2].pow(2).mean()) < 0.8 * float(t[:, :2].pow(2).mean())
+
+
+def test_fit_reads_the_crops_at_every_scale(data_dir):
+    """``scales``: every crop is also read downscaled (the region with it), its jittered
+    windows join the fit, and the held-out groups hold every scale of their crops."""
+    from pathlib import Path
+
+    test = set(_test_split())
+    folder = Path(data_dir) / "detection_crops" / "inria_person_96x160" / "pos"
+    train = sorted(p.name for p in folder.glob("*.png") if p.name not in test)[:64]
+    det = replace(load_model("pedestrian"), box_regressor=None)
+    crops = _crops(data_dir, train)
+    one = fit_box_regressor(det, crops, (16, 16, 64, 128), per_crop=4)
+    two = fit_box_regressor(det, crops, (16, 16, 64, 128), per_crop=4, scales=(1.0, 0.5))
+    assert one.summary["windows"] == 64 * 4 and one.summary["scales"] == [1.0]
+    assert two.summary["windows"] == 2 * 64 * 4 and two.summary["scales"] == [1.0, 0.5]
+    assert not torch.equal(one.weight, two.weight)
+    for bad in [(), (1.0, 1.0), (0.0,), (1.5,), (0.3,)]:  # 0.3 x 16 px is not whole pixels
+        with pytest.raises(ConfigError, match=r"scales|whole pixels"):
+            fit_box_regressor(det, crops, (16, 16, 64, 128), per_crop=4, scales=bad)
 
 
 def test_scan_refines_only_the_windows_nms_keeps():

@@ -174,6 +174,7 @@ def fit_box_regressor(
     held_out: float = 0.25,
     seed: int = 0,
     chunk: int = 256,
+    scales: tuple[float, ...] = (1.0,),
 ) -> BoxRegressor:
     """Fit a :class:`BoxRegressor` for ``det`` on positive crops.
 
@@ -183,8 +184,13 @@ def fit_box_regressor(
             ``region`` exactly as in training (INRIA: 96x160 crops, region ``(16, 16, 64, 128)``).
         region: the canonical window ``(x, y, w, h)`` inside every crop.
         groups: a source name per crop (a crop and its mirror share one); the held-out
-            residuals are measured on ``held_out`` of the groups, then the regressor is refitted
-            on all of them. None: every crop its own group.
+            residuals are measured on ``held_out`` of the groups (every scale of a crop with
+            it), then the regressor is refitted on all of them. None: every crop its own group.
+        scales: the crops are also read downscaled by each of these (area averaging, the region
+            with them), as training reads them (``data.positive_scales``): a window around a
+            person 48 px tall sees the blur of its own resolution, not the crop's detail, and a
+            regressor fitted at full resolution alone moves it wrongly (half-size PETS 2009:
+            docs/multi_target.md).
         per_crop: jittered windows per crop.
         jitter: see :func:`jitter_windows`.
         alpha: ridge penalty on standardised features.
@@ -205,24 +211,29 @@ def fit_box_regressor(
         raise ConfigError(f"alpha must be a positive number, got {alpha!r}")
     if not 0 < held_out < 1:
         raise ConfigError(f"held_out must be in (0, 1), got {held_out!r}")
-    gen = torch.Generator().manual_seed(int(seed))
-    feats, targets = [], []
-    for i0 in range(0, n, chunk):
-        imgs = images[i0 : i0 + chunk]
-        b = imgs.shape[0]
-        w, t = jitter_windows(region, b * per_crop, tuple(jitter), gen)
-        ints = det.integrals(imgs)
-        f = det.features(ints, w.view(b, per_crop, 4).to(torch.float32), check=False)
-        feats.append(f.reshape(b * per_crop, -1).double())
-        targets.append(t)
-    x, y = torch.cat(feats), torch.cat(targets)
+    scales = tuple(float(q) for q in scales)
+    if not scales or not all(0 < q <= 1 for q in scales) or len(set(scales)) != len(scales):
+        raise ConfigError(f"scales must be distinct numbers in (0, 1], got {scales!r}")
     names = groups if groups is not None else [str(i) for i in range(n)]
     if len(names) != n:
         raise ConfigError(f"groups names {len(names)} crops, got {n} images")
-    from torchtrack.detect.train_channels import _split_groups  # training's group hold-out
+    from torchtrack.detect.train_channels import _scaled_images, _split_groups
 
-    test = _split_groups(names, held_out, gen)
+    gen = torch.Generator().manual_seed(int(seed))
+    feats, targets = [], []
+    for q in scales:
+        for i0 in range(0, n, chunk):
+            imgs, reg = _scaled_images(images[i0 : i0 + chunk], region, q)
+            b = imgs.shape[0]
+            w, t = jitter_windows(reg, b * per_crop, tuple(jitter), gen)
+            ints = det.integrals(imgs)
+            f = det.features(ints, w.view(b, per_crop, 4).to(torch.float32), check=False)
+            feats.append(f.reshape(b * per_crop, -1).double())
+            targets.append(t)
+    x, y = torch.cat(feats), torch.cat(targets)
+    test = _split_groups(names, held_out, gen)  # training's group hold-out
     rows = torch.tensor([names[i] in test for i in range(n)]).repeat_interleave(per_crop)
+    rows = rows.repeat(len(scales))
     w, b = _ridge(x[~rows], y[~rows], alpha)
     lim = torch.tensor(jitter, dtype=torch.float64)
     pred = (x[rows] @ w.T + b).clamp(-lim, lim)
@@ -236,6 +247,7 @@ def fit_box_regressor(
         "jitter": [float(v) for v in jitter],
         "alpha": float(alpha),
         "seed": int(seed),
+        "scales": list(scales),
         "held_out_groups": len(test),
         "held_out_rms_before": [round(float(v), 5) for v in before],
         "held_out_rms_after": [round(float(v), 5) for v in after],

@@ -115,20 +115,29 @@ def channel_window_features(
     return out
 
 
+def _scaled_images(
+    images: torch.Tensor, region: tuple[int, int, int, int], q: float
+) -> tuple[torch.Tensor, tuple[int, int, int, int]]:
+    """Crops ``(N, C, H, W)`` uint8 downscaled by ``q`` (area averaging) and their region."""
+    if q == 1.0:
+        return images, region
+    reg = [v * q for v in region]
+    if any(abs(v - round(v)) > 1e-9 for v in reg):
+        raise ConfigError(
+            f"data.positive_scales: {q} x the window region {list(region)} is not whole pixels"
+        )
+    h0, w0 = images.shape[-2:]
+    size = (round(h0 * q), round(w0 * q))
+    imgs = F.interpolate(images.float(), size=size, mode="area").round().to(torch.uint8)
+    return imgs, tuple(round(v) for v in reg)
+
+
 def _scaled(crops: _Crops, q: float) -> _Crops:
     """The crops downscaled by ``q`` (area averaging) with their region."""
     if q == 1.0:
         return crops
-    x, y, w, h = crops.region
-    reg = [v * q for v in (x, y, w, h)]
-    if any(abs(v - round(v)) > 1e-9 for v in reg):
-        raise ConfigError(
-            f"data.positive_scales: {q} x the window region {list(crops.region)} is not whole pixels"
-        )
-    h0, w0 = crops.images.shape[-2:]
-    size = (round(h0 * q), round(w0 * q))
-    imgs = F.interpolate(crops.images.float(), size=size, mode="area").round().to(torch.uint8)
-    return _Crops(imgs, tuple(round(v) for v in reg), [f"{s}#s{q:g}" for s in crops.sources])
+    imgs, reg = _scaled_images(crops.images, crops.region, q)
+    return _Crops(imgs, reg, [f"{s}#s{q:g}" for s in crops.sources])
 
 
 def _mirrored(crops: _Crops) -> _Crops:
@@ -755,5 +764,12 @@ def fit_box_regression(cfg: TrainConfig, det: Detector, *, progress: bool = Fals
     if cfg.data.mirror_positives and mirror.region == crops.region:  # a centred window
         crops = _concat([crops, mirror])
     groups = [_group_key(s) for s in crops.sources]
-    reg = fit_box_regressor(det, crops.images, crops.region, groups, seed=int(cfg.seed))
+    reg = fit_box_regressor(
+        det,
+        crops.images,
+        crops.region,
+        groups,
+        seed=int(cfg.seed),
+        scales=tuple(dict.fromkeys(float(q) for q in cfg.data.positive_scales)),
+    )
     return replace(det, box_regressor=reg)
