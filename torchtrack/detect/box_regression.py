@@ -154,7 +154,7 @@ def _ridge(x: torch.Tensor, y: torch.Tensor, alpha: float) -> tuple[torch.Tensor
     and bias ``(3,)`` on the raw features (float64)."""
     mu, sd = x.mean(0), x.std(0)
     sd = torch.where(sd > 1e-9, sd, torch.ones_like(sd))  # a constant feature gets no weight
-    xs = (x - mu) / sd
+    xs = (x - mu).div_(sd)  # in place: one (n, K) float64 copy, not two
     ym = y.mean(0)
     a = xs.T @ xs + alpha * torch.eye(x.shape[1], dtype=x.dtype)
     coef = torch.linalg.solve(a, xs.T @ (y - ym))  # (K, 3)
