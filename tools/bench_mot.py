@@ -2,11 +2,11 @@
 run, every pipeline scored by ``torchtrack.eval.mot`` (TrackEval, MOT15 conventions).
 
 Run it with the peers venv (opencv-contrib for ``cv2.HOGDescriptor``, boxmot and norfair
-installed ``--no-deps``, plus their real needs ``lap`` and ``rich``), nice'd on a shared
-machine::
+installed ``--no-deps``, plus their real needs ``lap``, ``rich`` and norfair's ``filterpy``),
+nice'd on a shared machine::
 
     /work/peers-venv/bin/pip install --no-deps boxmot==25.0.0 norfair==2.3.0 && \\
-        /work/peers-venv/bin/pip install lap rich
+        /work/peers-venv/bin/pip install lap rich filterpy
     nice -n 10 /work/peers-venv/bin/python tools/bench_mot.py
     nice -n 10 /work/peers-venv/bin/python tools/bench_mot.py --sequences TUD-Stadtmitte --repeats 1
 
