@@ -136,8 +136,8 @@ def write_readme(models_dir: Path) -> Path:
         "`69b32dff516fca49`, whose private half was lost) and again on 2026-12-02 (key id",
         "`66efc4d2e1c06d6c`: the private half of `245a92be6d1edce7` was not on the fresh project",
         "machine either): both files were signed again, the vehicle model's tensors and",
-        "description unchanged. A copy signed with an earlier key reports \"signed by key ..., which",
-        "is not trusted here\": it loads where signatures are optional and is refused where they",
+        'description unchanged. A copy signed with an earlier key reports "signed by key ..., which',
+        'is not trusted here": it loads where signatures are optional and is refused where they',
         "are required.",
         "",
     ]

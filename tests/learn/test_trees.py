@@ -126,6 +126,31 @@ def test_soft_cascade_keeps_every_positive_above_the_cut_and_scores_passers_full
     torch.testing.assert_close(m_all, full, atol=1e-5, rtol=1e-6)
 
 
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_cascade_reads_in_bounded_runs_of_windows(depth, monkeypatch):
+    """Each ``read`` call asks for at most ``_READ_VALUES`` window-features (a step of many
+    trees on many windows is read in runs of windows), with the same passers and margins."""
+    from torchtrack.learn import trees
+
+    x, y = xor_data(600)
+    clf = BoostedTrees(n_estimators=30, variant="real", max_depth=depth).fit(x, y)
+    clf.fit_cascade(x[y == 1], float(clf.decision_function(x[y == 1]).quantile(0.2)))
+    xt, _ = xor_data(1500, seed=4)
+    sizes = []
+
+    def read(rows, f):
+        sizes.append(rows.shape[0] * f.shape[-1])
+        return xt[rows[:, None], f]
+
+    want = clf.cascade(read, xt.shape[0], stages=(2, 8))
+    assert max(sizes) > 40
+    monkeypatch.setattr(trees, "_READ_VALUES", 40)
+    sizes.clear()
+    got = clf.cascade(read, xt.shape[0], stages=(2, 8))
+    assert max(sizes) <= 40
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+
+
 def test_state_round_trip_and_validation():
     x, y = xor_data(300)
     clf = BoostedTrees(n_estimators=6, max_depth=3, variant="gentle").fit(x, y)

@@ -399,6 +399,14 @@ def _combine_corners(v: torch.Tensor, coef: torch.Tensor | None) -> torch.Tensor
     return (v * coef).sum(-1)
 
 
+#: windows per scoring call and frame when ``batch`` is None: channel models with boosted trees
+#: (the lattice path, whose cascade reads at most ``trees._READ_VALUES`` window-features a call
+#: whatever the number of windows: a call over a whole PETS frame's 42,536 windows pays the
+#: cascade's per-step work once instead of three times, ~4% of a scan, the same margins), and
+#: every other model (whose scoring call holds every window's features)
+LATTICE_BATCH = 65_536
+SCORE_BATCH = 16_384
+
 #: lattice values (float64) scored together in one cascade call: scales are grouped up to this
 #: many, so that one call serves most of a frame's scales (the cascade's per-call work is then
 #: paid once per group instead of once per scale) while a batch of large frames stays bounded
@@ -450,18 +458,26 @@ def _scan_lattice(
 
     def score_group(group: list) -> None:
         nc = group[0].channels
+        # int32 offsets where every lattice of the group has fewer than 2^31 values (always, at
+        # any frame size a scan can hold): half the index traffic of the hottest gather, and
+        # 10-30% faster reads on the CPU (the same values)
+        small = all(lat.values.numel() < 2**31 for lat in group)
+        ix = torch.int32 if small else torch.int64
         bases, offs, factors, starts = [], [], [], [0]
         for lat in group:
             li, lj = lat.shape
             m = lat.origins.shape[0]
-            offs.append((pi * lj + pj) * nc + pc)  # (K, P) offsets of every feature's points
+            # (K, P) offsets of every feature's points
+            offs.append(((pi * lj + pj) * nc + pc).to(ix))
             fac = lat.norm * torch.exp(lat.logr * lam)  # (K,)
             factors.append(fac if rect_w is None else fac * rect_w)
             bases.append(
                 (
                     torch.arange(nb, device=dev)[:, None] * (li * lj * nc)
                     + ((lat.origins[:, 0] * lj + lat.origins[:, 1]) * nc)[None, :]
-                ).reshape(-1)
+                )
+                .reshape(-1)
+                .to(ix)
             )  # (B * M,) frame-major, as one call per scale numbers them
             starts.append(starts[-1] + nb * m)
         base = torch.cat(bases)
@@ -571,7 +587,7 @@ def scan(
     min_scale: float = 1.0,
     max_scale: float | None = None,
     nms_iou: float | None = 0.3,
-    batch: int = 16_384,
+    batch: int | None = None,
     cascade: bool = True,
     nms_on: str = "window",
     nms_overlap: str = "union",
@@ -594,7 +610,8 @@ def scan(
             below 1 scans windows smaller than the training window (objects smaller than the
             training crops: the filters shrink with the box, no image is resized).
         nms_iou: IoU for non-maximum suppression (``None``: no suppression).
-        batch: windows per scoring call (bounds memory).
+        batch: windows per scoring call (bounds memory); None: :data:`LATTICE_BATCH` for
+            channel models with boosted trees, :data:`SCORE_BATCH` otherwise.
         cascade: channel detectors with boosted trees: stop evaluating a window when its
             running margin falls below the soft-cascade threshold (rejected windows are not
             returned, also with ``threshold=None``); False scores every window fully.
@@ -679,7 +696,7 @@ def scan_batch(
     min_scale: float = 1.0,
     max_scale: float | None = None,
     nms_iou: float | None = 0.3,
-    batch: int = 16_384,
+    batch: int | None = None,
     cascade: bool = True,
     nms_on: str = "window",
     nms_overlap: str = "union",
@@ -696,7 +713,8 @@ def scan_batch(
 
     Args:
         frames: ``(B, C, H, W)``, 0..255. Other arguments as in :func:`scan`; ``batch`` bounds
-            the windows scored per call over all frames (``B x N_chunk``).
+            the windows scored per call over all frames (``B x N_chunk``; None: B times the
+            default of :func:`scan`).
         keep_windows: as in :func:`scan` (one function for every frame), or a sequence of B,
             one per frame (None: all of that frame's windows): the windows any of them keeps
             are scored on every frame, and each frame then keeps those of its own function, before
@@ -719,6 +737,8 @@ def scan_batch(
         raise ConfigError(f"nms_on must be 'window' or 'object', got {nms_on!r}")
     if not 0.0 < stride <= 1.0:
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
+    if batch is None:
+        batch = (LATTICE_BATCH if _lattice_capable(detector) else SCORE_BATCH) * frames.shape[0]
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
     # NaN kept no window (threshold) or suppressed none (nms_iou), silently

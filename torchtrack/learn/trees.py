@@ -150,6 +150,10 @@ def _best_splits(H: torch.Tensor, variant: str) -> tuple[torch.Tensor, torch.Ten
 
 #: rows per block of :meth:`BoostedTrees._tree_outputs` (bounds its workspace)
 _ROW_CHUNK = 4096
+#: window-features one ``read`` call of :meth:`BoostedTrees.cascade` asks for at most (a step
+#: of many trees on many windows is read in runs of windows): bounds a scan's index and value
+#: tables (~200 MB for box features) whatever the number of windows per cascade call
+_READ_VALUES = 1 << 22
 
 
 class BoostedTrees(ClassifierMixin, BaseEstimator):
@@ -568,7 +572,8 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
                 every window reads the same feature of a tree (the root, and both children of
                 the root of depth-2 trees, read for every window and then selected: no
                 per-window index tables on the scan's hottest path).
-            n: number of windows.
+            n: number of windows (``read`` is asked for runs of them, at most
+                :data:`_READ_VALUES` window-features a call).
             reject: use the rejection thresholds (False: every window gets every tree).
             stages: trees evaluated per step while windows remain: the first step evaluates
                 ``stages[0]`` trees, then ``stages[1]``, ..., the last size repeating; rejection
@@ -596,6 +601,19 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         if reject_at_most is not None:
             rej = rej.clamp(max=float(reject_at_most))
         r_tot, n_int = feat.shape
+
+        def read_rows(rows: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+            # in runs of at most _READ_VALUES window-features (each window's values are its own)
+            step = max(1, _READ_VALUES // max(1, f.shape[-1]))
+            if rows.shape[0] <= step:
+                return read(rows, f)
+            return torch.cat(
+                [
+                    read(rows[i : i + step], f[i : i + step] if f.ndim == 2 else f)
+                    for i in range(0, rows.shape[0], step)
+                ]
+            )
+
         alive = torch.arange(n, device=dev)
         score = torch.zeros(n, dtype=torch.float32, device=dev)
         t0, si = 0, 0
@@ -608,12 +626,12 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
             if self.max_depth >= 2:
                 # the root and both of its children, read for every window in one call (one
                 # feature per tree, shared by every window), then the child on the path
-                go = read(alive, tf[:, :3].t().reshape(-1)) >= tt[:, :3].t().reshape(-1)
+                go = read_rows(alive, tf[:, :3].t().reshape(-1)) >= tt[:, :3].t().reshape(-1)
                 right = go[:, :nt]  # (A, T)
                 below = torch.where(right, go[:, 2 * nt :], go[:, nt : 2 * nt])
                 node = 3 + 2 * right.long() + below.long() if self.max_depth > 2 else None
             else:  # root only: one feature per tree, shared by every window
-                node = 1 + (read(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
+                node = 1 + (read_rows(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
             if node is None:
                 # depth 2: the leaf's place in the flat leaf table in int32 and in place, leaf
                 # 2 right + below of tree t (node 3 + 2 right + below)
@@ -622,7 +640,7 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
             else:
                 for _ in range(2, int(self.max_depth)):
                     f = tf[cols, node]  # (A, T)
-                    v = read(alive, f)
+                    v = read_rows(alive, f)
                     node = node * 2 + 1 + (v >= tt[cols, node]).long()
                 place = node - n_int + cols * (n_int + 1)
             # leaf values (A, T): a flat index_select (faster on CPU than tl[cols, leaf])

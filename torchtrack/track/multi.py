@@ -397,7 +397,6 @@ class MultiTargetTracker:
             cascade_threshold=cfg.scan_cascade or None,
             keep_windows=keeps,
             refine=cfg.scan_box_regression,
-            batch=16_384 * frames.shape[0],  # scan's windows per call, for each frame
         )
         # the scan runs on the frames' device; the filter's bookkeeping lives on the CPU
         return [
