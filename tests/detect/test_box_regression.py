@@ -207,9 +207,11 @@ def test_fit_reads_the_crops_at_every_scale(data_dir):
     assert one.summary["windows"] == 64 * 4 and one.summary["scales"] == [1.0]
     assert two.summary["windows"] == 2 * 64 * 4 and two.summary["scales"] == [1.0, 0.5]
     assert not torch.equal(one.weight, two.weight)
-    for bad in [(), (1.0, 1.0), (0.0,), (1.5,), (0.3,)]:  # 0.3 x 16 px is not whole pixels
-        with pytest.raises(ConfigError, match=r"scales|whole pixels"):
+    for bad in [(), (1.0, 1.0), (0.0,), (1.5,)]:
+        with pytest.raises(ConfigError, match="scales must be distinct"):
             fit_box_regressor(det, crops, (16, 16, 64, 128), per_crop=4, scales=bad)
+    with pytest.raises(ConfigError, match=r"^scales: 0.3 x the window region .* whole pixels"):
+        fit_box_regressor(det, crops, (16, 16, 64, 128), per_crop=4, scales=(1.0, 0.3))
 
 
 def test_scan_refines_only_the_windows_nms_keeps():

@@ -223,7 +223,7 @@ def fit_box_regressor(
     feats, targets = [], []
     for q in scales:
         for i0 in range(0, n, chunk):
-            imgs, reg = _scaled_images(images[i0 : i0 + chunk], region, q)
+            imgs, reg = _scaled_images(images[i0 : i0 + chunk], region, q, "scales")
             b = imgs.shape[0]
             w, t = jitter_windows(reg, b * per_crop, tuple(jitter), gen)
             ints = det.integrals(imgs)

@@ -116,16 +116,18 @@ def channel_window_features(
 
 
 def _scaled_images(
-    images: torch.Tensor, region: tuple[int, int, int, int], q: float
+    images: torch.Tensor,
+    region: tuple[int, int, int, int],
+    q: float,
+    setting: str = "data.positive_scales",
 ) -> tuple[torch.Tensor, tuple[int, int, int, int]]:
-    """Crops ``(N, C, H, W)`` uint8 downscaled by ``q`` (area averaging) and their region."""
+    """Crops ``(N, C, H, W)`` uint8 downscaled by ``q`` (area averaging) and their region;
+    ``setting`` names where ``q`` came from in the error."""
     if q == 1.0:
         return images, region
     reg = [v * q for v in region]
     if any(abs(v - round(v)) > 1e-9 for v in reg):
-        raise ConfigError(
-            f"data.positive_scales: {q} x the window region {list(region)} is not whole pixels"
-        )
+        raise ConfigError(f"{setting}: {q} x the window region {list(region)} is not whole pixels")
     h0, w0 = images.shape[-2:]
     size = (round(h0 * q), round(w0 * q))
     imgs = F.interpolate(images.float(), size=size, mode="area").round().to(torch.uint8)
