@@ -151,6 +151,49 @@ def test_cascade_reads_in_bounded_runs_of_windows(depth, monkeypatch):
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_cascade_steps_that_cannot_reject_share_one_read(depth):
+    """A step whose rejection thresholds lie below the lowest running margin any window can
+    have (the sum of its trees' smallest leaves) is read together with the next step: fewer
+    read calls, the same passers and margins as every step read alone."""
+    x, y = xor_data(600)
+    clf = BoostedTrees(n_estimators=30, variant="real", max_depth=depth).fit(x, y)
+    clf.fit_cascade(x[y == 1], float(clf.decision_function(x[y == 1]).quantile(0.2)))
+    xt, _ = xor_data(1500, seed=5)
+    calls, widths = [], []
+
+    def read(rows, f):
+        calls.append(rows.shape[0])
+        widths.append(f.shape[-1])
+        return xt[rows[:, None], f] if f.ndim == 2 else xt[rows][:, f]
+
+    # no threshold can reject: every step in one read group, margins of reject=False exactly
+    rows, m = clf.cascade(read, xt.shape[0], stages=(1, 4, 8), reject_at_most=-1e6)
+    merged = len(calls)
+    calls.clear()
+    rows_all, m_all = clf.cascade(read, xt.shape[0], stages=(1, 4, 8), reject=False)
+    assert merged == max(1, depth - 1)  # one read group: depth 3 reads its third level after
+    assert len(calls) > merged
+    assert torch.equal(rows, rows_all) and torch.equal(m, m_all)
+    # the first trees cannot reject, later ones can: the passers of the running margins
+    low = torch.cumsum(clf.leaf_.min(1).values.double(), 0)
+    k = 6
+    clf.reject_ = clf.reject_.clone()
+    clf.reject_[:k] = (low[:k] - 1.0).float()
+    calls.clear()
+    widths.clear()
+    rows, m = clf.cascade(read, xt.shape[0], stages=(1, 4, 8))
+    staged = clf.staged_decision_function(xt)
+    want = torch.nonzero((staged >= clf.reject_[None]).all(1)).flatten()
+    assert torch.equal(rows, want)
+    torch.testing.assert_close(m, clf.decision_function(xt)[rows], atol=1e-5, rtol=1e-6)
+    # steps of trees [0, 1), [1, 5), [5, 13), [13, 21), [21, 29), [29, 30): the first two
+    # cannot reject, so the first read covers 13 trees and there are 4 read groups, not 6
+    per_tree = 1 if depth == 1 else 3
+    assert calls[0] == xt.shape[0] and widths[0] == 13 * per_tree
+    assert len(calls) <= 4 * max(1, depth - 1)
+
+
 def test_state_round_trip_and_validation():
     x, y = xor_data(300)
     clf = BoostedTrees(n_estimators=6, max_depth=3, variant="gentle").fit(x, y)

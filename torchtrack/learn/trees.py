@@ -616,13 +616,34 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
 
         alive = torch.arange(n, device=dev)
         score = torch.zeros(n, dtype=torch.float32, device=dev)
-        t0, si = 0, 0
-        while t0 < r_tot and alive.numel():
-            t1 = min(r_tot, t0 + stages[min(si, len(stages) - 1)])
-            si += 1
-            tf, tt, tl = feat[t0:t1], thr[t0:t1], leaf[t0:t1]
-            nt = t1 - t0
-            cols = torch.arange(nt, device=dev)
+        # the steps' tree ranges, and the steps read together: a step after which no window
+        # can be rejected (every threshold of its trees below the lowest running margin any
+        # window can have there, the sum of the trees' smallest leaves) shares its read with
+        # the next one (one read call and one pass of per-call work instead of two; each
+        # step's arithmetic as before, so the same margins and survivors)
+        bounds, t, si = [], 0, 0
+        while t < r_tot:
+            bounds.append((t, min(r_tot, t + stages[min(si, len(stages) - 1)])))
+            t, si = bounds[-1][1], si + 1
+        if reject and bounds:
+            low = torch.cumsum(leaf.min(1).values.to(torch.float64), 0)
+            safe = (rej.to(torch.float64) < low - 1e-3 * (1.0 + low.abs())).tolist()
+        else:
+            safe = [False] * r_tot
+        reads, cur = [], []
+        for b in bounds:
+            cur.append(b)
+            if not all(safe[b[0] : b[1]]):
+                reads.append(cur)
+                cur = []
+        if cur:
+            reads.append(cur)
+        for steps in reads:
+            if not alive.numel():
+                break
+            t0, t_end = steps[0][0], steps[-1][1]
+            tf, tt = feat[t0:t_end], thr[t0:t_end]
+            nt = t_end - t0
             if self.max_depth >= 2:
                 # the root and both of its children, read for every window in one call (one
                 # feature per tree, shared by every window), then the child on the path
@@ -632,24 +653,29 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
                 node = 3 + 2 * right.long() + below.long() if self.max_depth > 2 else None
             else:  # root only: one feature per tree, shared by every window
                 node = 1 + (read_rows(alive, tf[:, 0]) >= tt[:, 0]).long()  # (A, T) in {1, 2}
-            if node is None:
-                # depth 2: the leaf's place in the flat leaf table in int32 and in place, leaf
-                # 2 right + below of tree t (node 3 + 2 right + below)
-                place = right.to(torch.int32).mul_(2).add_(below)
-                place += (cols * (n_int + 1)).to(torch.int32)
-            else:
+            if node is not None:
+                cols = torch.arange(nt, device=dev)
                 for _ in range(2, int(self.max_depth)):
                     f = tf[cols, node]  # (A, T)
                     v = read_rows(alive, f)
                     node = node * 2 + 1 + (v >= tt[cols, node]).long()
-                place = node - n_int + cols * (n_int + 1)
-            # leaf values (A, T): a flat index_select (faster on CPU than tl[cols, leaf])
-            out = tl.reshape(-1).index_select(0, place.view(-1)).view(place.shape)
-            run = score.index_select(0, alive)[:, None] + out.cumsum(1)
-            score.index_copy_(0, alive, run[:, -1])
-            if reject:
-                alive = alive[(run >= rej[t0:t1]).all(1)]
-            t0 = t1
+            for s0, s1 in steps:
+                a, b = s0 - t0, s1 - t0
+                tl = leaf[s0:s1]
+                cols = torch.arange(s1 - s0, device=dev)
+                if node is None:
+                    # depth 2: the leaf's place in the flat leaf table in int32 and in place,
+                    # leaf 2 right + below of tree t (node 3 + 2 right + below)
+                    place = right[:, a:b].to(torch.int32).mul_(2).add_(below[:, a:b])
+                    place += (cols * (n_int + 1)).to(torch.int32)
+                else:
+                    place = node[:, a:b] - n_int + cols * (n_int + 1)
+                # leaf values (A, T): a flat index_select (faster on CPU than tl[cols, leaf])
+                out = tl.reshape(-1).index_select(0, place.reshape(-1)).view(place.shape)
+                run = score.index_select(0, alive)[:, None] + out.cumsum(1)
+                score.index_copy_(0, alive, run[:, -1])
+                if reject and s1 == t_end:  # the steps before it reject nothing
+                    alive = alive[(run >= rej[s0:s1]).all(1)]
         return alive, score[alive]
 
     # -- serialisation
