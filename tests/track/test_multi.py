@@ -566,6 +566,8 @@ def test_reset_forgets_outside_detections():
         ({"detection_proposal": -0.1}, "detection_proposal"),
         ({"detection_proposal": 1.5}, "detection_proposal"),
         ({"birth_velocity": -0.01}, "birth_velocity"),
+        ({"report_shift": 0.6}, "report_shift must be in"),
+        ({"report_shift": float("nan")}, "report_shift must be in"),
         ({"birth_velocity": float("inf")}, "birth_velocity"),
         # values that would hang, overflow or exhaust memory
         ({"scan_scale_step": 1.0000001}, "scan_scale_step must be a finite number >= 1.01"),
@@ -979,7 +981,10 @@ def test_reported_boxes_are_moved_by_the_box_regressor_on_the_tracker_s_own_scan
     runs = {}
     for on in (False, True):
         mt = MultiTargetTracker(
-            "pedestrian", generator=torch.Generator().manual_seed(3), report_box_regression=on
+            "pedestrian",
+            generator=torch.Generator().manual_seed(3),
+            report_box_regression=on,
+            report_shift=0.0,
         )
         runs[on] = [mt.update(f) for f in frames]
     det = mt.detector
@@ -999,4 +1004,34 @@ def test_reported_boxes_are_moved_by_the_box_regressor_on_the_tracker_s_own_scan
         mt = make(report_box_regression=on)
         outs[on] = [mt.update(f, (people(t), torch.ones(3))) for t, f in enumerate(frames)]
     for a, b in zip(outs[False], outs[True], strict=True):
+        assert torch.equal(a.boxes, b.boxes)
+
+
+def test_report_shift_moves_the_reported_boxes_up_by_a_fraction_of_their_height():
+    """``report_shift``: on its own scans every reported box is moved up by that fraction of its
+    height (the same identities and sizes, the filter unchanged); outside detections keep
+    their boxes."""
+    from torchtrack.data import demo_clip_path
+    from torchtrack.io.video import open_source
+
+    frames = [f for _, f in zip(range(6), open_source(demo_clip_path()), strict=False)]
+    runs = {}
+    for shift in (0.0, 0.03):
+        mt = MultiTargetTracker(
+            "pedestrian", generator=torch.Generator().manual_seed(3), report_shift=shift
+        )
+        runs[shift] = [mt.update(f) for f in frames]
+    reported = 0
+    for plain, moved in zip(runs[0.0], runs[0.03], strict=True):
+        assert plain.ids.tolist() == moved.ids.tolist()
+        want = plain.boxes.clone()
+        want[:, 1] -= 0.03 * want[:, 3]
+        torch.testing.assert_close(moved.boxes, want)
+        reported += len(plain)
+    assert reported > 0
+    outs = {}
+    for shift in (0.0, 0.03):
+        mt = make(report_shift=shift)
+        outs[shift] = [mt.update(f, (people(t), torch.ones(3))) for t, f in enumerate(frames)]
+    for a, b in zip(outs[0.0], outs[0.03], strict=True):
         assert torch.equal(a.boxes, b.boxes)

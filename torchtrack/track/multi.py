@@ -63,7 +63,7 @@ import os
 import warnings
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -582,6 +582,10 @@ class MultiTargetTracker:
         out = self._report()
         if cfg.report_box_regression and not self._external:
             out = self._refined_report(frame, out)
+        if cfg.report_shift and not self._external and len(out.ids):
+            boxes = out.boxes.clone()
+            boxes[:, 1] -= cfg.report_shift * boxes[:, 3]
+            out = replace(out, boxes=boxes)
         return out
 
     # -- steps ---------------------------------------------------------------------------------
