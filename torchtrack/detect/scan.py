@@ -501,13 +501,7 @@ def _scan_lattice(
                     continue
                 fg = f[r0:r1] if f.ndim == 2 else f
                 off = offs[g]
-                # every window of the scale (the cascade's first steps): its bases are one slice
-                b = (
-                    base[starts[g] : starts[g + 1]]
-                    if r1 - r0 == starts[g + 1] - starts[g]
-                    else base.index_select(0, rows[r0:r1])
-                )
-                idx = b[:, None, None] + (
+                idx = base.index_select(0, rows[r0:r1])[:, None, None] + (
                     off[fg] if fg.ndim == 2 else off.index_select(0, fg)[None]
                 )
                 # index_select on the flat indices: the same values as values[idx], ~2x faster

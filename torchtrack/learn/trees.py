@@ -625,20 +625,16 @@ class BoostedTrees(ClassifierMixin, BaseEstimator):
         while t < r_tot:
             bounds.append((t, min(r_tot, t + stages[min(si, len(stages) - 1)])))
             t, si = bounds[-1][1], si + 1
-        if reject and bounds:
+        safe = [False] * r_tot
+        if reject:
             low = torch.cumsum(leaf.min(1).values.to(torch.float64), 0)
             safe = (rej.to(torch.float64) < low - 1e-3 * (1.0 + low.abs())).tolist()
-        else:
-            safe = [False] * r_tot
-        reads, cur = [], []
-        for b in bounds:
-            cur.append(b)
-            if not all(safe[b[0] : b[1]]):
-                reads.append(cur)
-                cur = []
-        if cur:
-            reads.append(cur)
-        for steps in reads:
+        reads: list[list[tuple[int, int]]] = [[]]
+        for s0, s1 in bounds:
+            reads[-1].append((s0, s1))
+            if not all(safe[s0:s1]):
+                reads.append([])
+        for steps in filter(None, reads):
             if not alive.numel():
                 break
             t0, t_end = steps[0][0], steps[-1][1]
