@@ -341,6 +341,29 @@ def test_score_sequence_warns_when_no_result_box_touches_the_frame(tmp_path):
         score_sequence(seq, tmp_path / "near.txt")
 
 
+def test_score_sequence_warns_on_results_made_at_another_size(tmp_path, data_dir):
+    # PETS09-S2L1's folder describes 768x576 frames; results made on the 480x360 video and
+    # scored against the folder fit inside its frames but match almost nothing: the warning
+    # names the factor. At the right scale, and for boxes of another convention, it is silent.
+    folder = load_mot_sequence(data_dir / "mot" / "PETS09-S2L1")
+    on_video = _perturbed(folder.gt.scaled(0.625), seed=0)
+    write_mot(tmp_path / "small.txt", on_video)
+    with pytest.warns(UserWarning, match=r"made on a copy of PETS09-S2L1 at another size") as w:
+        m = score_sequence(folder, tmp_path / "small.txt")
+    assert m.hota < 0.05
+    msg = str(w[0].message)
+    factor = float(msg.rsplit("(about ", 1)[1].rstrip(")"))
+    assert factor == pytest.approx(0.625, abs=0.02)
+    right = load_mot_sequence(folder.gt_path.parent.parent, scale=0.625)
+    wide = _perturbed(folder.gt, seed=1)
+    wide.boxes[:, 2:] *= 1.4  # a wider convention, same size of frames: no scale mismatch
+    write_mot(tmp_path / "wide.txt", wide)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert score_sequence(right, tmp_path / "small.txt").hota > 0.5
+        score_sequence(folder, tmp_path / "wide.txt")
+
+
 def test_resolve_results_by_name(tmp_path):
     a, b = _tiny_seq(tmp_path, "A"), _tiny_seq(tmp_path, "B")
     res = tmp_path / "res"

@@ -355,7 +355,68 @@ def score_sequence(seq: MotSequence, results: str | os.PathLike) -> MotMetrics:
                 UserWarning,
                 stacklevel=2,
             )
+    hint = scale_mismatch(seq.gt, rows)
+    if hint is not None:
+        factor, at_s, at_1, n = hint
+        warnings.warn(
+            f"the boxes of {os.fspath(results)!r} look like they were made on a copy of "
+            f"{seq.name} at another size: {at_s} of {n} checked boxes overlap a "
+            f"ground-truth box at IoU 0.5 when the ground truth is scaled by about "
+            f"{factor:.2g}, {at_1} as it is; if so, score with --gt-scale set to the copy's "
+            f"width over the ground truth's (about {seq.scale * factor:.2g})",
+            UserWarning,
+            stacklevel=2,
+        )
     return score_mot(seq.gt, rows, seq.n_frames, name=seq.name)
+
+
+def scale_mismatch(
+    gt: MotRows, results: MotRows, max_frames: int = 200
+) -> tuple[float, int, int, int] | None:
+    """Whether ``results`` look made at another size than ``gt``. The ratio of their median
+    box heights (scored rows of the ground truth) differs from 1 by more than 20%, and with the
+    ground truth scaled about the origin (a resized copy of the frames) by a factor ``s`` within
+    15% of that ratio (and itself more than 20% from 1), at least three times as many result
+    boxes overlap a ground-truth box of their frame at IoU 0.5 as without, and at least a
+    quarter of them. Checked on up to ``max_frames`` frames spread over the results; ``s`` is
+    the factor of the most overlaps.
+
+    Returns:
+        ``(s, matched at s, matched as is, boxes checked)``, or ``None`` when the sizes agree
+        or the evidence is too thin (fewer than 20 boxes on either side).
+    """
+    import torch
+
+    from torchtrack.boxes import box_iou_matrix
+
+    g = gt.select(gt.conf.astype(int) != 0)
+    if len(g) < 20 or len(results) < 20:
+        return None
+    s = float(np.median(results.boxes[:, 3]) / max(float(np.median(g.boxes[:, 3])), 1e-9))
+    if not (np.isfinite(s) and s > 0) or abs(np.log(s)) < np.log(1.2):
+        return None
+    frames = np.unique(results.frames)
+    frames = np.unique(
+        frames[np.linspace(0, len(frames) - 1, min(len(frames), max_frames)).astype(int)]
+    )
+    grid = s * np.exp(np.linspace(-0.15, 0.15, 13))
+    grid = grid[np.abs(np.log(grid)) >= np.log(1.2)]
+    counts, n = np.zeros(len(grid) + 1, np.int64), 0
+    for f in frames:
+        r = results.boxes[results.frames == f]
+        n += len(r)
+        gb = g.boxes[g.frames == f]
+        if not len(gb):
+            continue
+        for i, k in enumerate((1.0, *grid)):
+            iou = box_iou_matrix(torch.from_numpy(r), torch.from_numpy(gb * k))
+            counts[i] += int((iou.max(dim=1).values >= 0.5).sum())
+    if len(grid):
+        best = int(counts[1:].argmax())
+        at_s, at_1 = int(counts[1 + best]), int(counts[0])
+        if at_s >= max(3 * at_1, 1) and at_s >= 0.25 * n:
+            return float(grid[best]), at_s, at_1, n
+    return None
 
 
 # ---------------------------------------------------------------------------------------------
