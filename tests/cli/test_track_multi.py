@@ -47,11 +47,12 @@ def test_external_detections_to_csv_and_mot(clip, dets, tmp_path, capsys):
     assert lines[0] == "frame,target,x,y,w,h,confidence,detected"
     rows = [r.split(",") for r in lines[1:]]
     assert {r[1] for r in rows} == {"1", "2"}  # two identities, kept to the end
-    assert {int(r[0]) for r in rows} == set(range(1, 12))  # confirmed on the second frame
+    # confirmed on the second frame, the first frame's detections back-filled (`backfill`)
+    assert {int(r[0]) for r in rows} == set(range(0, 12))
     m = [r.split(",") for r in mot.read_text().splitlines()]
     assert len(m) == len(rows) and all(len(r) == 10 for r in m)
     first = next(r for r in m if r[1] == "1")
-    assert int(first[0]) == 2 and abs(float(first[2]) - 27.0) < 4  # 1-based frame and pixels
+    assert int(first[0]) == 1 and abs(float(first[2]) - 24.0) < 4  # 1-based frame and pixels
     assert vid.stat().st_size > 0
     said = capsys.readouterr().out
     assert "2 target(s)" in said and "ground plane" not in said  # outside detections: no line
@@ -87,7 +88,8 @@ def test_raw_scores_and_calibrated_scores(clip, dets, tmp_path):
     raw.write_text(dets.read_text().replace(",0.97,", ",55.0,"))
     out = tmp_path / "r.txt"
     assert main(["track", str(clip), "--detections", str(raw), "--mot", str(out), "-q"]) == 0
-    assert len(out.read_text().splitlines()) == 22  # raw scores: relative to the best
+    assert len(out.read_text().splitlines()) == 24  # raw scores: relative to the best (all 12
+    # frames of both: the first one back-filled)
     assert main(
         ["track", str(clip), "--detections", str(raw), "--det-min-score", "60",
          "--mot", str(out), "-q"]

@@ -483,7 +483,8 @@ def test_track_sequence_uses_cached_scans_on_the_scan_frames_only(unreadable):
         def items(self):
             return ((t, None if t == unreadable else blank()) for t in range(n))
 
-    online = {"scan_every": 2, "fill_gaps": 0, "smooth_sigma": 0.0}  # the frame-by-frame reports
+    # the frame-by-frame reports
+    online = {"scan_every": 2, "fill_gaps": 0, "smooth_sigma": 0.0, "backfill": 0}
     got = track_sequence(make(**online), Frames(), rows)
     mt, want, k = make(**online), [], 0
     for t in range(n):
@@ -503,9 +504,8 @@ def test_track_sequence_uses_cached_scans_on_the_scan_frames_only(unreadable):
     for t in range(n):
         if t == unreadable:
             continue
-        emitted += sm.push(
-            t, mt.update(blank(), (people(t), torch.ones(3)) if k % 2 == 0 else None)
-        )
+        out = mt.update(blank(), (people(t), torch.ones(3)) if k % 2 == 0 else None)
+        emitted += sm.push(t, out, detections=mt.last_detections)
         k += 1
     for t, out in emitted + sm.flush():
         again += [(t, int(i), *b.tolist()) for i, b in zip(out.ids, out.boxes, strict=True)]
@@ -1035,3 +1035,25 @@ def test_report_shift_moves_the_reported_boxes_up_by_a_fraction_of_their_height(
         outs[shift] = [mt.update(f, (people(t), torch.ones(3))) for t, f in enumerate(frames)]
     for a, b in zip(outs[0.0], outs[0.03], strict=True):
         assert torch.equal(a.boxes, b.boxes)
+
+
+def test_last_detections_are_what_the_association_saw_in_the_reported_convention():
+    # an own scan: the weak window dropped by detection_threshold, the rest moved up by
+    # report_shift of their height, as the reported boxes are; outside detections keep theirs
+    mt = make(report_shift=0.05, detection_threshold=0.5)
+    boxes = torch.cat([people(0), torch.tensor([[250.0, 150.0, 20.0, 60.0]])])
+    p = torch.tensor([1.0, 1.0, 1.0, 0.1])
+    mt.update(blank(), scan=(boxes, p))
+    b, q = mt.last_detections
+    want = people(0).clone()
+    want[:, 1] -= 0.05 * 60.0
+    torch.testing.assert_close(b, want)
+    torch.testing.assert_close(q, torch.ones(3, dtype=torch.float64))
+    ext = make(report_shift=0.05, scan_every=2)
+    ext.update(blank(), (people(0), torch.ones(3)))
+    torch.testing.assert_close(ext.last_detections[0], people(0))
+    nothing = make(scan_every=2)
+    nothing.update(blank())  # frame 0 is scanned (nobody found), frame 1 not
+    assert nothing.last_detections is not None and len(nothing.last_detections[0]) == 0
+    nothing.update(blank())
+    assert nothing.last_detections is None

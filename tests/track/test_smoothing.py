@@ -232,3 +232,103 @@ def test_a_panning_camera_is_taken_out_before_smoothing():
                 got[with_offset][t] = float(s.boxes[0, 0] + 10)
     err = {k: max(abs(v[t] - truth[t]) for t in v) for k, v in got.items()}
     assert err[True] < 1e-9 and err[False] > 10
+
+
+def _one(ident: int, box, conf: float = 0.9) -> MultiState:
+    return MultiState(
+        torch.tensor([ident]),
+        torch.tensor([box], dtype=torch.float64),
+        torch.tensor([conf], dtype=torch.float64),
+        torch.tensor([True]),
+    )
+
+
+def _dets(*boxes, p: float = 0.97):
+    b = torch.tensor(boxes, dtype=torch.float64).reshape(-1, 4)
+    return b, torch.full((len(b),), p, dtype=torch.float64)
+
+
+def test_backfill_extends_a_new_identity_back_through_its_detections():
+    """A person walking right at 3 px a frame is detected from frame 2 but first reported at
+    frame 8 (confirmed late): backfill gives its identity the boxes of frames 2-7 from those
+    detections; a second person's detections (reported all along as id 1) and a detection far
+    away stay out; without backfill the track starts at frame 8."""
+
+    def walker(f):
+        return [100.0 + 3 * f, 50.0, 20.0, 60.0]
+
+    def other(f):
+        return [300.0 - 2 * f, 52.0, 20.0, 60.0]
+
+    got = {}
+    for bf in (0, 10):
+        sm = TrackSmoother(0.0, 0, backfill=bf) if bf else TrackSmoother(0.0, 1)
+        out = []
+        for f in range(20):
+            ids, boxes = [1], [other(f)]
+            if f >= 8:
+                ids.append(2)
+                boxes.append(walker(f))
+            st = MultiState(
+                torch.tensor(ids),
+                torch.tensor(boxes, dtype=torch.float64),
+                torch.full((len(ids),), 0.9, dtype=torch.float64),
+                torch.ones(len(ids), dtype=torch.bool),
+            )
+            d = [other(f), [10.0, 200.0, 20.0, 60.0]] + ([walker(f)] if f >= 2 else [])
+            out += sm.push(f, st, detections=_dets(*d))
+        out += sm.flush()
+        got[bf] = {t: dict(zip(s.ids.tolist(), s.boxes.tolist(), strict=True)) for t, s in out}
+    assert [t for t in got[0] if 2 in got[0][t]] == list(range(8, 20))
+    assert [t for t in got[10] if 2 in got[10][t]] == list(range(2, 20))
+    for t in range(2, 8):
+        np.testing.assert_allclose(got[10][t][2], walker(t))
+        assert sorted(got[10][t]) == [1, 2]  # nobody took the far detection
+    assert all(sorted(got[10][t]) == [1] for t in (0, 1))
+
+
+def test_backfill_stops_at_a_gap_and_does_not_take_another_identitys_detection():
+    """The chain back in time skips at most two scanned frames without a detection that fits,
+    does not reach frames already written, and leaves a detection an older identity's box
+    covers to that identity."""
+    box = [100.0, 50.0, 20.0, 60.0]
+    sm = TrackSmoother(0.0, 0, backfill=12)
+    out = []
+    for f in range(16):
+        st = _one(2, box) if f >= 12 else MultiState(
+            torch.zeros(0, dtype=torch.int64),
+            torch.zeros((0, 4), dtype=torch.float64),
+            torch.zeros(0, dtype=torch.float64),
+            torch.zeros(0, dtype=torch.bool),
+        )
+        # detections on frames 9-11 and 2-5; none on 6-8 (three scans in a row: the chain stops)
+        d = _dets(box) if (9 <= f <= 11 or 2 <= f <= 5) else _dets()
+        out += sm.push(f, st, detections=d)
+    out += sm.flush()
+    have = [t for t, s in out if s is not None and 2 in s.ids.tolist()]
+    assert have == list(range(9, 16))
+    # an older identity's box over the detection: not taken
+    sm = TrackSmoother(0.0, 0, backfill=5)
+    out = []
+    for f in range(8):
+        st = _one(1, box) if f < 6 else MultiState(
+            torch.tensor([1, 2]),
+            torch.tensor([box, [160.0, 50.0, 20.0, 60.0]], dtype=torch.float64),
+            torch.tensor([0.9, 0.9], dtype=torch.float64),
+            torch.tensor([True, True]),
+        )
+        out += sm.push(f, st, detections=_dets(box, [160.0, 50.0, 20.0, 60.0] if f >= 6 else box))
+    out += sm.flush()
+    assert [t for t, s in out if 2 in s.ids.tolist()] == [6, 7]
+
+
+def test_backfill_refuses_bad_values():
+    with pytest.raises(ConfigError, match="backfill"):
+        TrackSmoother(0.0, 0, backfill=-1)
+    with pytest.raises(ConfigError, match="backfill_iou"):
+        TrackSmoother(0.0, 0, backfill=3, backfill_iou=0.0)
+    with pytest.raises(ConfigError, match="backfill"):
+        apply_overrides(MultiTrackerConfig(), {"backfill": -2})
+    with pytest.raises(ConfigError, match="backfill_iou"):
+        apply_overrides(MultiTrackerConfig(), {"backfill_iou": 1.5})
+    assert TrackSmoother(0.0, 0, backfill=7).lag == 7  # the output waits for the chain

@@ -637,8 +637,9 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     def report(i: int, frame, res) -> None:
         parts = mt.particle_boxes() if (vid is not None and args.particles) else None
         held.append((frame if vid is not None else None, parts))
-        for j, r in smoother.push(i, res, offset=mt.camera_offset):  # inactive: (i, res)
-            emit(j, r)
+        dets_i = mt.last_detections if res is not None else None
+        for j, r in smoother.push(i, res, offset=mt.camera_offset, detections=dets_i):
+            emit(j, r)  # an inactive smoother gives back (i, res)
 
     def _track_frames(frames) -> None:
         nonlocal n_frames, t_track

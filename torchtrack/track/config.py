@@ -350,6 +350,16 @@ class MultiTrackerConfig:
             one sequence out and the frame-rate copies (docs/multi_target.md, "Smoothing the
             reported tracks"). :meth:`MultiTargetTracker.update` itself always reports the
             frame at hand.
+        backfill: a new identity's reported track is extended back in time over at most this
+            many frames not yet written, through the detections of those frames that chain to
+            its first box (each overlapping the box carried back at its velocity at IoU >=
+            ``backfill_iou`` and no other identity's box at 0.5 or more; the chain stops after
+            two scanned frames without one): the frames before a target was confirmed, and
+            before its detections reached the birth threshold. 0: off. The output comes at
+            least ``backfill`` frames late: 26, the smoothing's own delay, adds none.
+        backfill_iou: the overlap a detection needs with the box carried back to join the
+            chain. Defaults 26 and 0.3 by leave one sequence out (docs/multi_target.md,
+            "Back-filling a new target's first frames").
     """
 
     model: str = "pedestrian"
@@ -407,10 +417,14 @@ class MultiTrackerConfig:
     resample: str = "systematic"
     fill_gaps: int = 10
     smooth_sigma: float = 4.0
+    backfill: int = 26
+    backfill_iou: float = 0.3
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
-        check_at_most(self, MAX_FILL_GAPS, "fill_gaps", least=0)
+        check_at_most(self, MAX_FILL_GAPS, "fill_gaps", "backfill", least=0)
+        if not (0.0 < self.backfill_iou <= 1.0):
+            raise ConfigError(f"backfill_iou must be in (0, 1], got {self.backfill_iou}")
         if not (math.isfinite(self.smooth_sigma) and 0 <= self.smooth_sigma <= MAX_SMOOTH_SIGMA):
             raise ConfigError(
                 f"smooth_sigma must be in [0, {MAX_SMOOTH_SIGMA}] frames, got {self.smooth_sigma}"

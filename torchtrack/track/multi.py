@@ -236,6 +236,11 @@ class MultiTargetTracker:
         # pixels (a point of the scene is at its first-frame place + this); the smoother of
         # the reported tracks works in the scene's coordinates with it
         self.camera_offset: tuple[float, float] = (0.0, 0.0)
+        #: the last frame's detections as the association saw them (after the thresholds and
+        #: the ground plane), ``(boxes (M, 4) float64, probabilities (M,))`` in the frame's
+        #: pixels and the reported boxes' convention (``report_shift``); None on a frame
+        #: without a scan. The smoother's ``backfill`` reads them.
+        self.last_detections: tuple[torch.Tensor, torch.Tensor] | None = None
         self.ground.reset()
         self._lines: collections.deque = collections.deque(maxlen=GROUND_LAG + 1)
         # the detector's noise, squared (estimated from the video: detection_sigma_rate)
@@ -273,7 +278,8 @@ class MultiTargetTracker:
         track`` and :func:`track_sequence` pass through it, ``lag`` frames late."""
         from torchtrack.track.smoothing import TrackSmoother
 
-        return TrackSmoother(self.config.smooth_sigma, self.config.fill_gaps)
+        cfg = self.config
+        return TrackSmoother(cfg.smooth_sigma, cfg.fill_gaps, cfg.backfill, cfg.backfill_iou)
 
     # -- geometry ------------------------------------------------------------------------------
     def _windows(self, states: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
@@ -476,6 +482,9 @@ class MultiTargetTracker:
         out = self._update(frame, detections, scan)
         if self.upsample == 1:
             return out
+        if self.last_detections is not None:
+            b, p = self.last_detections
+            self.last_detections = (b / self.upsample, p)
         return MultiState(out.ids, out.boxes / self.upsample, out.confidence, out.detected)
 
     def _update(self, frame, detections, scan) -> MultiState:
@@ -523,6 +532,12 @@ class MultiTargetTracker:
             det_boxes, det_p = det_boxes[keep], det_p[keep]
             if not self._external:
                 self._adapt_birth(det_p)
+            shown = det_boxes.detach().to("cpu", torch.float64).clone()
+            if cfg.report_shift and not self._external:
+                shown[:, 1] -= cfg.report_shift * shown[:, 3]
+            self.last_detections = (shown, det_p.detach().to("cpu", torch.float64))
+        else:
+            self.last_detections = None
         bin_map = None
         need = (scan and det_boxes.shape[0] > 0) or (
             self.n_targets > 0 and cfg.appearance_lambda > 0
@@ -1498,7 +1513,10 @@ def track_sequence(
             if as_scans:
                 d, scan = None, d
             out = tracker.update(frame if device is None else frame.to(device), d, scan=scan)
-            for j, o in smoother.push(i, out, offset=tracker.camera_offset):
+            pushed = smoother.push(
+                i, out, offset=tracker.camera_offset, detections=tracker.last_detections
+            )
+            for j, o in pushed:
                 collect(j, o)
     for j, o in smoother.flush():
         collect(j, o)

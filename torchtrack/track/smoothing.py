@@ -73,15 +73,25 @@ class TrackSmoother:
         ConfigError: ``sigma`` negative or not finite, ``fill_gaps`` negative.
     """
 
-    def __init__(self, sigma: float = 0.0, fill_gaps: int = 0) -> None:
+    def __init__(
+        self, sigma: float = 0.0, fill_gaps: int = 0, backfill: int = 0, backfill_iou: float = 0.5
+    ) -> None:
         if not (math.isfinite(sigma) and sigma >= 0):
             raise ConfigError(f"track smoothing sigma must be a finite number >= 0, got {sigma}")
-        if isinstance(fill_gaps, bool) or int(fill_gaps) != fill_gaps or fill_gaps < 0:
-            raise ConfigError(f"fill_gaps must be a whole number >= 0, got {fill_gaps!r}")
+        for name, v in (("fill_gaps", fill_gaps), ("backfill", backfill)):
+            if isinstance(v, bool) or int(v) != v or v < 0:
+                raise ConfigError(f"{name} must be a whole number >= 0, got {v!r}")
+        if not (0.0 < backfill_iou <= 1.0):
+            raise ConfigError(f"backfill_iou must be in (0, 1], got {backfill_iou!r}")
         self.sigma, self.fill_gaps = float(sigma), int(fill_gaps)
+        self.backfill, self.backfill_iou = int(backfill), float(backfill_iou)
         self.weights = gaussian_weights(self.sigma)
         self.radius = (self.weights.numel() - 1) // 2
-        self.lag = self.radius + self.fill_gaps
+        self.lag = max(self.radius + self.fill_gaps, self.backfill)
+        # backfill: the detections of the frames not yet emitted, frame -> (M, 6) rows as in
+        # _obs (confidence = the detection's probability, detected = 1), and the identities seen
+        self._dets: dict[int, torch.Tensor] = {}
+        self._seen: set[int] = set()
         # frame t reads the frames t - reach .. t + lag: the kernel's and a gap's span
         self._reach = self.radius + self.fill_gaps + 1
         self._pending: deque[tuple[int, bool, tuple[float, float]]] = deque()  # frame, tracked,
@@ -97,33 +107,40 @@ class TrackSmoother:
         one frame): :meth:`push` then returns each frame as it comes."""
         return self.lag > 0
 
-    def push(self, i: int, state, offset: tuple[float, float] = (0.0, 0.0)) -> list:
+    def push(
+        self,
+        i: int,
+        state,
+        offset: tuple[float, float] = (0.0, 0.0),
+        detections: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> list:
         """Add frame ``i``'s reports; ``offset``: the camera's translation since the first
         frame (:attr:`MultiTargetTracker.camera_offset`), so that the boxes are smoothed and
         interpolated where the scene holds them, not where a panning or shaking camera shows
         them (a pan that turns, or a hand-held camera's jolts, would be smoothed into the
-        targets' boxes). Returns the frames now final."""
+        targets' boxes). ``detections``: the frame's detections ``(boxes (M, 4), probabilities
+        (M,))`` in the reported boxes' pixels and convention
+        (:attr:`MultiTargetTracker.last_detections`), read by ``backfill``. Returns the frames
+        now final."""
         if i <= self._last:
             raise ValueError(f"frames must be pushed in increasing order: {i} after {self._last}")
         self._last = i
         if not self.active:  # nothing to fill or smooth: each frame is final as it comes
             return [(i, state)]
+        ox, oy = (float(v) for v in offset)
+        if self.backfill and detections is not None:  # a scanned frame, maybe without any
+            b, p = detections
+            self._dets[i] = _rows(b, p, torch.ones(len(p)), ox, oy)
+        self._pending.append((i, state is not None, (ox, oy)))
         if state is not None and len(state):
-            b = state.boxes.detach().to("cpu", torch.float64)
-            ox, oy = (float(v) for v in offset)
-            v = torch.stack(
-                (
-                    b[:, 0] + b[:, 2] / 2 - ox,
-                    b[:, 1] + b[:, 3] / 2 - oy,
-                    b[:, 2].clamp_min(1e-9).log(),
-                    b[:, 3].clamp_min(1e-9).log(),
-                    state.confidence.detach().to("cpu", torch.float64),
-                    state.detected.detach().to("cpu", torch.float64),
-                ),
-                1,
-            )
-            self._obs.append((i, state.ids.detach().to("cpu", torch.int64), v))
-        self._pending.append((i, state is not None, tuple(float(v) for v in offset)))
+            ids = state.ids.detach().to("cpu", torch.int64)
+            v = _rows(state.boxes, state.confidence, state.detected, ox, oy)
+            self._obs.append((i, ids, v))
+            if self.backfill:
+                for k, n in enumerate(ids.tolist()):
+                    if n not in self._seen:
+                        self._seen.add(n)
+                        self._backfill(i, n, v[k])
         out = []
         while self._pending and self._pending[0][0] + self.lag <= i:
             out.append(self._emit(*self._pending.popleft()))
@@ -134,6 +151,7 @@ class TrackSmoother:
         out = [self._emit(*p) for p in self._pending]
         self._pending.clear()
         self._obs.clear()
+        self._dets.clear()
         return out
 
     # -- internals
@@ -142,6 +160,54 @@ class TrackSmoother:
         first = self._pending[0][0] if self._pending else self._last + 1
         while self._obs and self._obs[0][0] < first - self._reach:
             self._obs.popleft()
+        for f in [f for f in self._dets if f < first]:
+            del self._dets[f]
+
+    def _backfill(self, i: int, ident: int, v0: torch.Tensor) -> None:
+        """Extend identity ``ident``, first reported on frame ``i`` with row ``v0``, back in
+        time over the frames not yet emitted (at most ``backfill``): on each earlier frame
+        the detection that overlaps the box carried back (at the chain's own velocity) at
+        IoU >= ``backfill_iou`` the most, and no other identity's box there at 0.5 or more,
+        joins it. The chain stops after ``BACKFILL_SKIP`` scanned frames in a row without
+        one; the frames it skips are left to ``fill_gaps``."""
+        first = self._pending[0][0]
+        cur, vel, miss = v0[:4].clone(), torch.zeros(4, dtype=torch.float64), 0
+        vel_at = i
+        for f in range(i - 1, max(i - self.backfill, first) - 1, -1):
+            d = self._dets.get(f)
+            if d is None:
+                continue
+            pred = cur - vel * (vel_at - f)
+            entry = next((k for k, o in enumerate(self._obs) if o[0] == f), None)
+            cand = d
+            if entry is not None:  # detections another identity already explains
+                _, ids, rows = self._obs[entry]
+                other = rows[ids != ident]
+                if len(other):
+                    taken = (_iou(cand, other) >= 0.5).any(1)
+                    cand = cand[~taken]
+            if len(cand):
+                iou = _iou(pred[None], cand)[0]
+                j = int(iou.argmax())
+            if not len(cand) or float(iou[j]) < self.backfill_iou:
+                miss += 1
+                if miss > BACKFILL_SKIP:
+                    return
+                continue
+            row = cand[j]
+            vel = torch.zeros(4, dtype=torch.float64)
+            vel[:2] = (cur[:2] - row[:2]) / (vel_at - f)
+            cur, vel_at, miss = row[:4].clone(), f, 0
+            if entry is None:  # a frame where nobody was reported
+                k = sum(1 for o in self._obs if o[0] < f)
+                self._obs.insert(k, (f, torch.tensor([ident]), row[None]))
+            else:
+                g, ids, rows = self._obs[entry]
+                self._obs[entry] = (
+                    g,
+                    torch.cat([ids, torch.tensor([ident])]),
+                    torch.cat([rows, row[None]]),
+                )
 
     def _emit(self, t: int, tracked: bool, offset: tuple[float, float]):
         from torchtrack.track.multi import MultiState
@@ -203,6 +269,38 @@ class TrackSmoother:
         cx, cy = out[:, 0] + offset[0], out[:, 1] + offset[1]  # back where the frame shows it
         boxes = torch.stack((cx - wdt / 2, cy - hgt / 2, wdt, hgt), 1)
         return t, MultiState(uniq[keep], boxes, x[:, reach, 4], x[:, reach, 5] > 0.5)
+
+
+#: backfill: scanned frames in a row without a detection after which a chain back in time stops
+BACKFILL_SKIP = 2
+
+
+def _rows(boxes, confidence, detected, ox: float, oy: float) -> torch.Tensor:
+    """``(K, 6)`` float64 rows: centre x, y in the scene (the camera's offset taken out), log
+    width, log height, confidence, detected."""
+    b = boxes.detach().to("cpu", torch.float64)
+    return torch.stack(
+        (
+            b[:, 0] + b[:, 2] / 2 - ox,
+            b[:, 1] + b[:, 3] / 2 - oy,
+            b[:, 2].clamp_min(1e-9).log(),
+            b[:, 3].clamp_min(1e-9).log(),
+            torch.as_tensor(confidence).detach().to("cpu", torch.float64),
+            torch.as_tensor(detected).detach().to("cpu", torch.float64),
+        ),
+        1,
+    )
+
+
+def _iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """IoU ``(A, B)`` of rows (centre x, y, log w, log h, ...) ``a`` and ``b``."""
+    from torchtrack.boxes import box_iou_matrix
+
+    def xywh(r):
+        wh = r[:, 2:4].exp()
+        return torch.cat([r[:, :2] - wh / 2, wh], 1)
+
+    return box_iou_matrix(xywh(a), xywh(b))
 
 
 def _empty_state():
