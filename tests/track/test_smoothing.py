@@ -295,11 +295,15 @@ def test_backfill_stops_at_a_gap_and_does_not_take_another_identitys_detection()
     sm = TrackSmoother(0.0, 0, backfill=12)
     out = []
     for f in range(16):
-        st = _one(2, box) if f >= 12 else MultiState(
-            torch.zeros(0, dtype=torch.int64),
-            torch.zeros((0, 4), dtype=torch.float64),
-            torch.zeros(0, dtype=torch.float64),
-            torch.zeros(0, dtype=torch.bool),
+        st = (
+            _one(2, box)
+            if f >= 12
+            else MultiState(
+                torch.zeros(0, dtype=torch.int64),
+                torch.zeros((0, 4), dtype=torch.float64),
+                torch.zeros(0, dtype=torch.float64),
+                torch.zeros(0, dtype=torch.bool),
+            )
         )
         # detections on frames 9-11 and 2-5; none on 6-8 (three scans in a row: the chain stops)
         d = _dets(box) if (9 <= f <= 11 or 2 <= f <= 5) else _dets()
@@ -311,11 +315,15 @@ def test_backfill_stops_at_a_gap_and_does_not_take_another_identitys_detection()
     sm = TrackSmoother(0.0, 0, backfill=5)
     out = []
     for f in range(8):
-        st = _one(1, box) if f < 6 else MultiState(
-            torch.tensor([1, 2]),
-            torch.tensor([box, [160.0, 50.0, 20.0, 60.0]], dtype=torch.float64),
-            torch.tensor([0.9, 0.9], dtype=torch.float64),
-            torch.tensor([True, True]),
+        st = (
+            _one(1, box)
+            if f < 6
+            else MultiState(
+                torch.tensor([1, 2]),
+                torch.tensor([box, [160.0, 50.0, 20.0, 60.0]], dtype=torch.float64),
+                torch.tensor([0.9, 0.9], dtype=torch.float64),
+                torch.tensor([True, True]),
+            )
         )
         out += sm.push(f, st, detections=_dets(box, [160.0, 50.0, 20.0, 60.0] if f >= 6 else box))
     out += sm.flush()
