@@ -340,3 +340,37 @@ def test_backfill_refuses_bad_values():
     with pytest.raises(ConfigError, match="backfill_iou"):
         apply_overrides(MultiTrackerConfig(), {"backfill_iou": 1.5})
     assert TrackSmoother(0.0, 0, backfill=7).lag == 7  # the output waits for the chain
+
+
+def test_backfill_covers_a_gap_an_identity_comes_back_from_with_its_detections():
+    """Identity 1 reported on frames 0-5 and again from frame 20 (a 14-frame gap, longer than
+    fill_gaps): the detections on its way through frames 8-19 join it, and the chain stops at
+    frame 7, where the detections stop (frames 6-7 stay a gap: more than fill_gaps frames
+    would need filling); with backfill off the gap stays."""
+
+    def box(f):
+        return [100.0 + 2 * f, 50.0, 20.0, 60.0]
+
+    for bf, want in (
+        (0, list(range(0, 6)) + list(range(20, 30))),
+        (26, [*range(0, 6), *range(8, 30)]),
+    ):
+        sm = TrackSmoother(0.0, 1, backfill=bf)
+        out = []
+        for f in range(30):
+            st = _one(1, box(f)) if (f < 6 or f >= 20) else None
+            st = (
+                st
+                if st is not None
+                else MultiState(
+                    torch.zeros(0, dtype=torch.int64),
+                    torch.zeros((0, 4), dtype=torch.float64),
+                    torch.zeros(0, dtype=torch.float64),
+                    torch.zeros(0, dtype=torch.bool),
+                )
+            )
+            d = _dets(box(f)) if f >= 8 else _dets()
+            out += sm.push(f, st, detections=d)
+        out += sm.flush()
+        got = [t for t, s in out if 1 in s.ids.tolist()]
+        assert got == want, bf

@@ -89,9 +89,8 @@ class TrackSmoother:
         self.radius = (self.weights.numel() - 1) // 2
         self.lag = max(self.radius + self.fill_gaps, self.backfill)
         # backfill: the detections of the frames not yet emitted, frame -> (M, 6) rows as in
-        # _obs (confidence = the detection's probability, detected = 1), and the identities seen
+        # _obs (confidence = the detection's probability, detected = 1)
         self._dets: dict[int, torch.Tensor] = {}
-        self._seen: set[int] = set()
         # frame t reads the frames t - reach .. t + lag: the kernel's and a gap's span
         self._reach = self.radius + self.fill_gaps + 1
         self._pending: deque[tuple[int, bool, tuple[float, float]]] = deque()  # frame, tracked,
@@ -137,9 +136,10 @@ class TrackSmoother:
             v = _rows(state.boxes, state.confidence, state.detected, ox, oy)
             self._obs.append((i, ids, v))
             if self.backfill:
+                prev = next((o[1] for o in reversed(self._obs) if o[0] == i - 1), None)
+                before = set(prev.tolist()) if prev is not None else set()
                 for k, n in enumerate(ids.tolist()):
-                    if n not in self._seen:
-                        self._seen.add(n)
+                    if n not in before:  # a new identity, or one back after a gap
                         self._backfill(i, n, v[k])
         out = []
         while self._pending and self._pending[0][0] + self.lag <= i:
@@ -164,12 +164,13 @@ class TrackSmoother:
             del self._dets[f]
 
     def _backfill(self, i: int, ident: int, v0: torch.Tensor) -> None:
-        """Extend identity ``ident``, first reported on frame ``i`` with row ``v0``, back in
-        time over the frames not yet emitted (at most ``backfill``): on each earlier frame
-        the detection that overlaps the box carried back (at the chain's own velocity) at
-        IoU >= ``backfill_iou`` the most, and no other identity's box there at 0.5 or more,
-        joins it. The chain stops after ``BACKFILL_SKIP`` scanned frames in a row without
-        one; the frames it skips are left to ``fill_gaps``."""
+        """Extend identity ``ident``, reported on frame ``i`` with row ``v0`` but not on frame
+        ``i - 1`` (a new identity, or one back after a gap), back in time over the frames not
+        yet emitted (at most ``backfill``): on each earlier frame the detection that overlaps
+        the box carried back (at the chain's own velocity) at IoU >= ``backfill_iou`` the
+        most, and no other identity's box there at 0.5 or more, joins it. The chain stops at
+        the identity's own earlier reports, and after ``BACKFILL_SKIP`` scanned frames in a row
+        without a detection; the frames it skips are left to ``fill_gaps``."""
         first = self._pending[0][0]
         cur, vel, miss = v0[:4].clone(), torch.zeros(4, dtype=torch.float64), 0
         vel_at = i
@@ -182,6 +183,8 @@ class TrackSmoother:
             cand = d
             if entry is not None:  # detections another identity already explains
                 _, ids, rows = self._obs[entry]
+                if bool((ids == ident).any()):  # the identity's own earlier run
+                    return
                 other = rows[ids != ident]
                 if len(other):
                     taken = (_iou(cand, other) >= 0.5).any(1)
