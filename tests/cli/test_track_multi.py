@@ -271,7 +271,7 @@ def test_gaps_filled_and_boxes_smoothed(clip, tmp_path):
         cap.release()
         return rows, n
 
-    plain, n_plain = run(["--tracker", "multi:fill_gaps=0,smooth_sigma=0"], "plain")
+    plain, n_plain = run(["--tracker", "multi:fill_gaps=0,smooth_sigma=0,backfill=0"], "plain")
     filled, n_filled = run([], "filled")  # the defaults: gaps of <= 10 filled, sigma 4
     assert n_plain == n_filled == 12
     one = plain[:, 1] == plain[0, 1]
