@@ -158,13 +158,15 @@ def test_inactive_and_unreadable_frames():
 
 
 def test_memory_stays_bounded():
-    sm = TrackSmoother(4.0, 10)
+    sm = TrackSmoother(4.0, 10, backfill=26)
     box = torch.tensor([[10.0, 20.0, 8.0, 24.0]], dtype=torch.float64)
+    dets = (box.clone(), torch.tensor([0.99], dtype=torch.float64))
     for f in range(2000):
         st = MultiState(torch.tensor([f // 50]), box, torch.tensor([0.9]), torch.tensor([True]))
-        sm.push(f, st)
+        sm.push(f, st, detections=dets)
         held = sum(o[1].numel() for o in sm._obs)  # one target a frame here
         assert held <= 2 * sm.lag + 2 and len(sm._pending) <= sm.lag + 1
+        assert len(sm._dets) <= sm.lag + 1  # detections of the unwritten frames only
 
 
 def test_inside_a_run_it_is_the_gaussian_mean_and_a_walk_keeps_its_place():
