@@ -16,14 +16,23 @@ video, the output can wait a few frames and use what came after:
   Gaussian with repeated end values would pull a walking target's box back towards where it
   was, the fitted line keeps it on its way.
 
+* **Late starts** (``backfill``). A target is reported only once its detections reached the
+  birth threshold and it was confirmed; the frames before, not written yet, often hold its
+  detections. When an identity is reported on a frame but not on the one before (a new
+  target, or one back after a gap), its track is extended back in time over those frames
+  through the detections that chain to it (:meth:`TrackSmoother._backfill`), and they are
+  then filled and smoothed with the rest.
+
 A moving camera is taken out first: :meth:`TrackSmoother.push` takes the camera's translation
 since the first frame (the multi-target tracker's ``camera_offset``), and the boxes are
 interpolated and smoothed in the scene's coordinates, then put back where the frame shows them
 (a pan that turns, or a hand-held camera's jolts, would otherwise be smoothed into every box).
 
-Both are exact in a stream: frame ``t`` is emitted once frame ``t + lag`` was pushed, ``lag =
-R + fill_gaps``: whether a frame within the kernel's reach belongs to a gap that will be filled
-is known by then. So the stream gives the same boxes as smoothing the whole track afterwards
+Gaps and jitter are exact in a stream: frame ``t`` is emitted once frame ``t + lag`` was
+pushed, ``lag = R + fill_gaps`` (or ``backfill`` when larger): whether a frame within the
+kernel's reach belongs to a gap that will be filled is known by then. (Back-filled rows land
+on unwritten frames only, so a chain that reaches a run's written end joins it without
+re-smoothing the frames already written.) So the stream gives the same boxes as smoothing the whole track afterwards
 (tested against an offline reference), ``lag`` frames late; :meth:`TrackSmoother.flush` emits the rest at the
 end. Memory is bounded by the lag: observations older than the kernel's and the gaps' reach
 are dropped.
@@ -61,6 +70,9 @@ class TrackSmoother:
     Args:
         sigma: Gaussian sd in frames on the boxes' centre and log-size (0: no smoothing).
         fill_gaps: fill gaps of at most this many frames (0: none).
+        backfill: extend a run of reports back over at most this many unwritten frames
+            through the detections given to :meth:`push` (0: none); ``lag`` is at least this.
+        backfill_iou: the overlap a detection needs with the box carried back to join.
 
     ``push(i, state)`` for every frame index in increasing order (``state`` None for a frame
     that was not tracked, e.g. unreadable) returns the frames now final, as ``(index, state or
@@ -70,7 +82,8 @@ class TrackSmoother:
     frames)`` table.
 
     Raises:
-        ConfigError: ``sigma`` negative or not finite, ``fill_gaps`` negative.
+        ConfigError: ``sigma`` negative or not finite, ``fill_gaps`` or ``backfill`` negative
+            or not whole, ``backfill_iou`` outside ``(0, 1]``.
     """
 
     def __init__(
