@@ -350,16 +350,17 @@ class MultiTrackerConfig:
             one sequence out and the frame-rate copies (docs/multi_target.md, "Smoothing the
             reported tracks"). :meth:`MultiTargetTracker.update` itself always reports the
             frame at hand.
-        backfill: a new identity's reported track is extended back in time over at most this
-            many frames not yet written, through the detections of those frames that chain to
-            its first box (each overlapping the box carried back at its velocity at IoU >=
+        backfill: the reported track of a new identity, or of one back after a gap, is
+            extended back in time over at most this many frames not yet written, through the
+            detections of those frames that chain to its first box of the run (each overlapping the box carried back at its velocity at IoU >=
             ``backfill_iou`` and no other identity's box at 0.5 or more; the chain stops after
-            two scanned frames without one): the frames before a target was confirmed, and
-            before its detections reached the birth threshold. 0: off. The output comes at
+            two scanned frames without one, and at the identity's own earlier reports): the
+            frames before a target was confirmed, and before its detections reached the birth
+            threshold. 0: off. The output comes at
             least ``backfill`` frames late: 26, the smoothing's own delay, adds none.
         backfill_iou: the overlap a detection needs with the box carried back to join the
             chain. Defaults 26 and 0.3 by leave one sequence out (docs/multi_target.md,
-            "Back-filling a new target's first frames").
+            "Back-filling a target's first frames").
     """
 
     model: str = "pedestrian"

@@ -198,10 +198,7 @@ class TrackSmoother:
                 _, ids, rows = self._obs[entry]
                 if bool((ids == ident).any()):  # the identity's own earlier run
                     return
-                other = rows[ids != ident]
-                if len(other):
-                    taken = (_iou(cand, other) >= 0.5).any(1)
-                    cand = cand[~taken]
+                cand = cand[~(_iou(cand, rows) >= 0.5).any(1)]
             if len(cand):
                 iou = _iou(pred[None], cand)[0]
                 j = int(iou.argmax())
