@@ -10,6 +10,7 @@ import torch
 from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.io.video import read_image
 from torchtrack.observe.histogram import (
+    FrameBins,
     HSVBins,
     bhattacharyya,
     box_histograms,
@@ -85,6 +86,29 @@ def test_bhattacharyya_against_loop():
     assert float(bhattacharyya(q, q)) == pytest.approx(1.0)
     a = torch.tensor([0.5, 0.5, 0.0, 0.0])
     assert float(bhattacharyya(a, a.flip(0))) == 0.0
+
+
+@pytest.mark.parametrize("bins", [HSVBins(), HSVBins(n_h=18, n_s=16, n_v=8, s_min=0.3)])
+def test_frame_bins_bin_only_the_samples_the_same_as_the_whole_map(frame, bins):
+    """What the multi-target tracker reads: FrameBins gives the histograms and pixel bins of
+    hsv_bin_map, bit for bit, in colour, in gray, and with boxes over the frame's edges."""
+    g = torch.Generator().manual_seed(0)
+    h, w = frame.shape[-2:]
+    boxes = torch.rand((2, 9, 4), generator=g) * torch.tensor([w, h, 80.0, 160.0])
+    boxes[..., :2] -= 40  # some boxes over the top and left edges
+    frames = torch.stack((frame, frame.flip(-1)))  # (2, 3, H, W): two frames
+    for f in (frames, frames[:, :1].contiguous()):
+        whole, lazy = hsv_bin_map(f, bins), FrameBins(f, bins)
+        assert lazy.shape == tuple(whole.shape)
+        flat = torch.randint(0, h * w, (2, 5000), generator=g)
+        assert torch.equal(lazy.take(flat), whole.reshape(2, -1).gather(1, flat).long())
+        for grid in (4, 8, 16):
+            assert torch.equal(
+                box_histograms(lazy, boxes, bins.n_bins, grid),
+                box_histograms(whole, boxes, bins.n_bins, grid),
+            )
+    with pytest.raises(ShapeError, match="uint8"):
+        FrameBins(frames.float(), bins)
 
 
 def test_errors(frame):

@@ -26,6 +26,7 @@ import torch
 from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
+    "FrameBins",
     "HSVBins",
     "bhattacharyya",
     "box_histograms",
@@ -74,40 +75,81 @@ def hsv_bin_map(frames: torch.Tensor, bins: HSVBins) -> torch.Tensor:
         ``(B, H, W)`` bin indices in ``[0, bins.n_bins)`` on the frames' device: uint8 when
         there are at most 256 bins (a quarter of the memory traffic of int64), else int64.
     """
+    _check_bin_frames(frames)
+    arr = frames.detach().cpu().numpy()
+    out = np.empty((arr.shape[0], *arr.shape[2:]), dtype=_bin_dtype(bins))
+    for i in range(arr.shape[0]):  # loop over frames
+        out[i] = _pixel_bins(np.ascontiguousarray(arr[i].transpose(1, 2, 0)), bins)
+    return torch.from_numpy(out).to(frames.device)
+
+
+def _check_bin_frames(frames: torch.Tensor) -> None:
     if frames.ndim != 4 or frames.shape[1] not in (1, 3) or frames.dtype != torch.uint8:
         raise ShapeError(
             f"frames must be (B, 3, H, W) or (B, 1, H, W) uint8, got {tuple(frames.shape)} "
             f"{frames.dtype}"
         )
-    arr = frames.detach().cpu().numpy()
-    out = np.empty(
-        (arr.shape[0], *arr.shape[2:]), dtype=np.uint8 if bins.n_bins < 256 else np.int64
-    )
+
+
+def _bin_dtype(bins: HSVBins) -> np.dtype:
+    return np.dtype(np.uint8 if bins.n_bins < 256 else np.int64)
+
+
+def _pixel_bins(img: np.ndarray, bins: HSVBins) -> np.ndarray:
+    """Bins ``(H, W)`` of one ``(H, W, 1 | 3)`` uint8 image (RGB or gray)."""
+    dt = _bin_dtype(bins)
     # Per-channel lookup tables of 256 entries, applied in uint8 (several times faster than the
     # same arithmetic on int64 arrays): hue bin, saturation bin, value bin, and the offset of
     # the value-only bins.
     lev = np.arange(256)
-    lut_h = np.minimum(np.minimum(lev, 179) * bins.n_h // 180, bins.n_h - 1) * bins.n_s
-    lut_s = lev * bins.n_s // 256
-    lut_v = bins.n_h * bins.n_s + lev * bins.n_v // 256
-    dt = out.dtype
-    lut_h, lut_s, lut_v = lut_h.astype(dt), lut_s.astype(dt), lut_v.astype(dt)
-    for i in range(arr.shape[0]):  # loop over frames
-        if arr.shape[1] == 1:
-            out[i] = lut_v[arr[i, 0]]
-            continue
-        hsv = cv2.cvtColor(np.ascontiguousarray(arr[i].transpose(1, 2, 0)), cv2.COLOR_RGB2HSV)
-        h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
-        coloured = (s > bins.s_min * 255.0) & (v > bins.v_min * 255.0)
-        out[i] = np.where(coloured, lut_h[h] + lut_s[s], lut_v[v])
-    return torch.from_numpy(out).to(frames.device)
+    lut_v = (bins.n_h * bins.n_s + lev * bins.n_v // 256).astype(dt)
+    if img.shape[-1] == 1:
+        return lut_v[img[..., 0]]
+    lut_h = (np.minimum(np.minimum(lev, 179) * bins.n_h // 180, bins.n_h - 1) * bins.n_s).astype(dt)
+    lut_s = (lev * bins.n_s // 256).astype(dt)
+    hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV)
+    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    coloured = (s > bins.s_min * 255.0) & (v > bins.v_min * 255.0)
+    return np.where(coloured, lut_h[h] + lut_s[s], lut_v[v])
+
+
+class FrameBins:
+    """The bins of a frame batch's pixels, computed only at the pixels asked for: what
+    :func:`box_histograms` reads of :func:`hsv_bin_map`, the same bins (OpenCV's HSV is a
+    per-pixel conversion), for the few boxes of a multi-target frame at a fraction of the cost
+    of binning every pixel (a 480x360 frame: ~2 ms against ~0.1 ms for ten boxes).
+
+    Args:
+        frames: as :func:`hsv_bin_map`'s.
+        bins: the binning.
+    """
+
+    ndim = 3
+
+    def __init__(self, frames: torch.Tensor, bins: HSVBins) -> None:
+        _check_bin_frames(frames)
+        self._arr = frames.detach().cpu().numpy()
+        self.bins = bins
+        self.shape = (int(frames.shape[0]), int(frames.shape[2]), int(frames.shape[3]))
+        self.device = torch.device("cpu")
+
+    def take(self, flat: torch.Tensor) -> torch.Tensor:
+        """Bins ``(B, K)`` int64 of the pixels at flat indices ``flat (B, K)`` (``y * W + x``)."""
+        b, c = self._arr.shape[:2]
+        out = np.empty(tuple(flat.shape), dtype=np.int64)
+        idx = flat.cpu().numpy()
+        for i in range(b):
+            pix = self._arr[i].reshape(c, -1)[:, idx[i]]  # (C, K)
+            out[i] = _pixel_bins(np.ascontiguousarray(pix.T[None]), self.bins)[0]
+        return torch.from_numpy(out)
 
 
 def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid: int = 16):
     """Normalised histograms of boxes from a ``grid x grid`` lattice of samples.
 
     Args:
-        bin_map: ``(B, H, W)`` integer bin indices (:func:`hsv_bin_map`).
+        bin_map: ``(B, H, W)`` integer bin indices (:func:`hsv_bin_map`), or a
+            :class:`FrameBins` of the frames (the same histograms, binned at the samples only).
         boxes: ``(B, N, 4)`` x, y, w, h in pixels.
         n_bins: number of bins.
         grid: samples per box side (sample (i, j) at the centre of cell (i, j)).
@@ -140,7 +182,10 @@ def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid
     yi = yi.long().clamp_(0, fh - 1)
     flat_idx = yi.unsqueeze(-1) * fw + xi.unsqueeze(-2)  # (B, N, G, G)
     ok = (oky.unsqueeze(-1) & okx.unsqueeze(-2)).reshape(b, n * grid * grid)
-    vals = bin_map.reshape(b, -1).gather(1, flat_idx.reshape(b, -1)).long()  # (B, N*G*G)
+    if isinstance(bin_map, FrameBins):  # binned where the samples fall
+        vals = bin_map.take(flat_idx.reshape(b, -1)).to(dev)
+    else:
+        vals = bin_map.reshape(b, -1).gather(1, flat_idx.reshape(b, -1)).long()  # (B, N*G*G)
     rows = torch.arange(n, device=dev).repeat_interleave(grid * grid).unsqueeze(0)
     target = (rows * n_bins + vals).reshape(-1) + (
         torch.arange(b, device=dev) * (n * n_bins)

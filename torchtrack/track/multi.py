@@ -543,9 +543,10 @@ class MultiTargetTracker:
             self.n_targets > 0 and cfg.appearance_lambda > 0
         )
         if self._bins is not None and need:
-            from torchtrack.observe.histogram import hsv_bin_map
+            from torchtrack.observe.histogram import FrameBins
 
-            bin_map = hsv_bin_map(frame[None], self._bins).cpu()
+            # binned only where the histograms' samples fall (a few boxes a frame)
+            bin_map = FrameBins(frame[None], self._bins)
 
         if cfg.camera_motion:
             self._follow_camera(_channel_sum(frame) if gray is None else gray)
