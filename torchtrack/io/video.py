@@ -355,6 +355,10 @@ class FrameSource:
                         f"video file {p} cannot be opened (unknown or broken format"
                         + (f": {detail})" if detail else ")")
                     )
+            elif p.exists():  # a device, a pipe or a socket: nothing to read frames from
+                raise VideoError(
+                    f"video source {p} is neither a video file nor a folder of frames"
+                )
             else:
                 raise VideoError(f"video source {p} does not exist")
 
