@@ -122,7 +122,7 @@ def _broadcastable(s: tuple[int, ...], t: tuple[int, ...]) -> bool:
     """Whether shapes ``s`` and ``t`` broadcast (torch's rule, on the sizes alone: a tenth of
     the time of ``torch.broadcast_shapes``, which the trackers paid thousands of times a
     second)."""
-    return all(x == y or x == 1 or y == 1 for x, y in zip(reversed(s), reversed(t)))
+    return all(x == y or x == 1 or y == 1 for x, y in zip(reversed(s), reversed(t), strict=False))
 
 
 def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

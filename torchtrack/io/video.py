@@ -356,9 +356,7 @@ class FrameSource:
                         + (f": {detail})" if detail else ")")
                     )
             elif p.exists():  # a device, a pipe or a socket: nothing to read frames from
-                raise VideoError(
-                    f"video source {p} is neither a video file nor a folder of frames"
-                )
+                raise VideoError(f"video source {p} is neither a video file nor a folder of frames")
             else:
                 raise VideoError(f"video source {p} does not exist")
 
