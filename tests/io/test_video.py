@@ -127,7 +127,7 @@ def test_a_motchallenge_sequence_folder_points_to_its_img1_folder(tmp_path):
 def test_sources_that_cannot_be_opened(tmp_path):
     with pytest.raises(VideoError, match="does not exist"):
         FrameSource(tmp_path / "missing.mp4")
-    # a path that exists but is neither a file nor a folder (a device) does exist
+    # a path that exists but is neither a file nor a folder (a device) is not called missing
     with pytest.raises(VideoError, match="neither a video file nor a folder of frames"):
         FrameSource("/dev/null")
     (tmp_path / "empty").mkdir()

@@ -64,7 +64,7 @@ import warnings
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -79,6 +79,9 @@ from torchtrack.track.base import check_tracker_generator
 from torchtrack.track.config import MultiTrackerConfig, apply_overrides, resolve_tracker_config
 from torchtrack.track.detector_pf import load_dynamics, resolve_detector
 from torchtrack.track.ground import GroundLine, GroundPlane
+
+if TYPE_CHECKING:
+    from torchtrack.observe.histogram import FrameBins
 
 __all__ = ["MultiState", "MultiTargetTracker", "score_probabilities", "track_sequence"]
 
@@ -777,12 +780,12 @@ class MultiTargetTracker:
         self._crop = (self.frame_index, self.observation.last_crop)
         return p.reshape(t, n).to("cpu", torch.float64)
 
-    def _histograms(self, bin_map: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    def _histograms(self, bin_map: FrameBins, boxes: torch.Tensor) -> torch.Tensor:
         from torchtrack.observe.histogram import box_histograms
 
         return box_histograms(bin_map, boxes, self._bins.n_bins, grid=8)
 
-    def _particle_appearance(self, bin_map: torch.Tensor) -> torch.Tensor:
+    def _particle_appearance(self, bin_map: FrameBins) -> torch.Tensor:
         from torchtrack.observe.histogram import bhattacharyya
 
         t, n = self.states.shape[:2]
@@ -1004,7 +1007,7 @@ class MultiTargetTracker:
         matched: torch.Tensor,
         det_p: torch.Tensor,
         det_boxes: torch.Tensor,
-        bin_map: torch.Tensor | None,
+        bin_map: FrameBins | None,
     ) -> None:
         cfg = self.config
         hit = matched >= 0
@@ -1056,7 +1059,7 @@ class MultiTargetTracker:
         det_boxes: torch.Tensor,
         det_p: torch.Tensor,
         free: list[int],
-        bin_map: torch.Tensor | None,
+        bin_map: FrameBins | None,
     ) -> None:
         cfg = self.config
         cand = [j for j in free if float(det_p[j]) >= self._birth_threshold()]
