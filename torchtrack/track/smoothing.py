@@ -278,9 +278,9 @@ class TrackSmoother:
             out = torch.where(
                 line[:, None], (s2[:, None] * t0 - s1[:, None] * t1) / safe, t0 / s0[:, None]
             )
-        wdt, hgt = out[:, 2].exp(), out[:, 3].exp()
-        cx, cy = out[:, 0] + offset[0], out[:, 1] + offset[1]  # back where the frame shows it
-        boxes = torch.stack((cx - wdt / 2, cy - hgt / 2, wdt, hgt), 1)
+        # back where the frame shows it
+        centre = torch.stack((out[:, 0] + offset[0], out[:, 1] + offset[1]), 1)
+        boxes = _boxes(torch.cat([centre, out[:, 2:4]], 1))
         return t, MultiState(uniq[keep], boxes, x[:, reach, 4], x[:, reach, 5] > 0.5)
 
 
@@ -291,13 +291,15 @@ BACKFILL_SKIP = 2
 def _rows(boxes, confidence, detected, ox: float, oy: float) -> torch.Tensor:
     """``(K, 6)`` float64 rows: centre x, y in the scene (the camera's offset taken out), log
     width, log height, confidence, detected."""
-    b = boxes.detach().to("cpu", torch.float64)
+    from torchtrack.boxes import xywh_to_cxcywh
+
+    c = xywh_to_cxcywh(boxes.detach().to("cpu", torch.float64))
     return torch.stack(
         (
-            b[:, 0] + b[:, 2] / 2 - ox,
-            b[:, 1] + b[:, 3] / 2 - oy,
-            b[:, 2].clamp_min(1e-9).log(),
-            b[:, 3].clamp_min(1e-9).log(),
+            c[:, 0] - ox,
+            c[:, 1] - oy,
+            c[:, 2].clamp_min(1e-9).log(),
+            c[:, 3].clamp_min(1e-9).log(),
             torch.as_tensor(confidence).detach().to("cpu", torch.float64),
             torch.as_tensor(detected).detach().to("cpu", torch.float64),
         ),
@@ -305,15 +307,19 @@ def _rows(boxes, confidence, detected, ox: float, oy: float) -> torch.Tensor:
     )
 
 
+def _boxes(rows: torch.Tensor) -> torch.Tensor:
+    """x, y, w, h boxes ``(K, 4)`` of rows (centre x, y, log w, log h, ...): :func:`_rows`'s
+    inverse, less the camera's offset."""
+    from torchtrack.boxes import cxcywh_to_xywh
+
+    return cxcywh_to_xywh(torch.cat([rows[:, :2], rows[:, 2:4].exp()], 1))
+
+
 def _iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """IoU ``(A, B)`` of rows (centre x, y, log w, log h, ...) ``a`` and ``b``."""
     from torchtrack.boxes import box_iou_matrix
 
-    def xywh(r):
-        wh = r[:, 2:4].exp()
-        return torch.cat([r[:, :2] - wh / 2, wh], 1)
-
-    return box_iou_matrix(xywh(a), xywh(b))
+    return box_iou_matrix(_boxes(a), _boxes(b))
 
 
 def _empty_state():
