@@ -130,6 +130,12 @@ def test_object_region_to_window_fractions(tmp_path):
         ("random_negatives = '100'", "'random_negatives' must be an integer"),
         ("exclude = '/etc/passwd'", "'exclude' must be a list"),
         ("crop_size = 'x'", "'crop_size' must be a list"),
+        # a missing number was a ValueError / IndexError traceback, an extra one was ignored
+        ("crop_size = [40, 100]\nregion = [0, 0, 100]", r"data\.region must be \[x, y, w, h\]"),
+        ("crop_size = [40, 100]\nregion = [0, 0, 100, 40, 1]", r"data\.region must be"),
+        ("crop_size = [40]\nregion = [0, 0, 100, 40]", r"data\.crop_size must be \[H, W\]"),
+        ("crop_size = [40, 100, 3]\nregion = [0, 0, 100, 40]", r"data\.crop_size must be"),
+        ("crop_size = [0, 100]\nregion = [0, 0, 100, 40]", r"data\.crop_size must be"),
         ("negative_max_scale = -1", "negative_max_scale must be a finite number >= "),
         ("negative_max_scale = nan", "negative_max_scale must be a finite number >= "),
         ('positives = ["p", "p"]', "data.positives names '.*/p' twice"),

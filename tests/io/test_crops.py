@@ -74,6 +74,10 @@ def test_region_and_exclude(folder):
         load_crops(folder, (10, 5), region=(0, 0, 10, 20))
     with pytest.raises(ConfigError, match="inside crop_size"):
         load_crops(folder, (10, 5), region=(5, 0, 10, 20), crop_size=(20, 10))
+    with pytest.raises(ConfigError, match=r"region must be \(x, y, w, h\), got \[0, 0, 10\]"):
+        load_crops(folder, (10, 5), region=(0, 0, 10), crop_size=(20, 10))
+    with pytest.raises(ConfigError, match=r"crop_size must be \(H, W\), got \[20\]"):
+        load_crops(folder, (10, 5), region=(0, 0, 10, 20), crop_size=(20,))
 
 
 def test_mirror_and_subset(folder):

@@ -316,6 +316,17 @@ class TrainConfig:
             )
         if (d.region is None) != (d.crop_size is None):
             raise ConfigError("data.region and data.crop_size go together (give both or neither)")
+        if d.crop_size is not None and not (
+            len(d.crop_size) == 2 and all(_posint(v) for v in d.crop_size)
+        ):  # a third number was ignored, a missing one an IndexError traceback
+            raise ConfigError(
+                f"data.crop_size must be [H, W] positive integers, got {d.crop_size!r}"
+            )
+        if d.region is not None and not (
+            len(d.region) == 4
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in d.region)
+        ):
+            raise ConfigError(f"data.region must be [x, y, w, h] integers, got {d.region!r}")
         if d.object is not None:
             self.object_box()
         if (

@@ -199,6 +199,10 @@ def _check_geometry(window, region, crop_size) -> None:
     if region is not None:
         if crop_size is None:
             raise ConfigError("region (x, y, w, h) needs crop_size (H, W), the size it refers to")
+        if len(region) != 4:
+            raise ConfigError(f"region must be (x, y, w, h), got {list(region)!r}")
+        if len(crop_size) != 2:
+            raise ConfigError(f"crop_size must be (H, W), got {list(crop_size)!r}")
         x, y, w, h = region
         if w < 1 or h < 1 or x < 0 or y < 0 or x + w > crop_size[1] or y + h > crop_size[0]:
             raise ConfigError(
