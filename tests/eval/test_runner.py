@@ -86,6 +86,19 @@ def test_evaluate_writes_everything_and_survives_a_failing_tracker(tmp_path, tes
     assert not list(out.rglob(".*.tmp")) and not list(out.rglob(".results*"))
 
 
+def test_a_failed_run_is_reported_with_its_frame(tmp_path, test_trackers, capsys):
+    # the line named the sequence and the error only: "frame size changed ... during tracking"
+    # said neither which frame nor which file
+    make_sequence(tmp_path / "seqs" / "a")
+    (seq,) = find_sequences(tmp_path / "seqs")
+    evaluate([seq], ["test-raising"], tmp_path / "out", progress=False)
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "failed on" in ln)
+    assert line == (
+        f"test-raising failed on a at frame 3 ({seq.frames[3]}): "
+        "RuntimeError: boom at the third update"
+    )
+
+
 def test_bad_tracker_lists_fail_before_running(seq, tmp_path, test_trackers):
     with pytest.raises(ConfigError, match="unknown tracker 'nope'"):
         evaluate([seq], ["test-static", "nope"], tmp_path / "o", progress=False)

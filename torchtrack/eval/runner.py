@@ -356,14 +356,15 @@ def evaluate(
     records: list[dict] = []
     bar = tqdm(total=total, unit="frame", desc="eval", disable=not progress, leave=False)
 
-    def done(rec: dict) -> None:
+    def done(rec: dict, seq: Sequence) -> None:
         sub = "sequences" if rec["mode"] == "ope" else "sequences_reinit"
         path = out / sub / safe_name(rec["sequence"]) / f"{safe_name(rec['tracker'])}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(path, json.dumps(rec, indent=1) + "\n")
         records.append(rec)
         if rec["error"]:
-            bar.write(f"{rec['tracker']} failed on {rec['sequence']}: {rec['error']}")
+            at = _at_frame(rec["error_frame"], seq)
+            bar.write(f"{rec['tracker']} failed on {rec['sequence']}{at}: {rec['error']}")
 
     try:
         if where.in_process:
@@ -373,7 +374,7 @@ def evaluate(
                 res = run_sequence(
                     spec, s, reinit=m, seed=seed, color=color, on_frame=bar.update, device=device
                 )
-                done(_task_record(res, s, m, invisible, wall_seconds=time.perf_counter() - t0))
+                done(_task_record(res, s, m, invisible, wall_seconds=time.perf_counter() - t0), s)
         else:
             # Longest sequences first: with several workers the last task to start is a short
             # one, so no worker idles long at the end.
@@ -384,7 +385,7 @@ def evaluate(
                 spec, s, m = order[i]
                 if isinstance(value, TaskFailure):
                     value = _failed_record(spec, s, m, value.error, value.traceback)
-                done(value)
+                done(value, s)
                 bar.update(len(s))
 
             run_tasks(_task, items, where, finished)
@@ -400,6 +401,16 @@ def evaluate(
         summary["plots"] = write_plots(summary, out)
         write_text_atomic(out / "results.json", json.dumps(summary, indent=1) + "\n")
     return summary
+
+
+def _at_frame(i: int | None, seq: Sequence) -> str:
+    """`` at frame i (its file)`` for a run that failed on frame ``i`` (0-based), ``""`` when no
+    frame is known (the run failed before its first frame, or in a worker that died)."""
+    if i is None or i < 0:
+        return ""
+    if seq.frames is not None and i < len(seq.frames):
+        return f" at frame {i} ({seq.frames[i]})"
+    return f" at frame {i}"
 
 
 def _task_record(
