@@ -54,6 +54,12 @@ def test_unknown_keys_named(tmp_path):
         ("[learn]\nsvm_c = nan\n", "learn.svm_c must be a finite number > 0"),
         ("[learn]\ncascade_threshold = 1e308\n", "cascade_threshold must be a running margin"),
         ("[learn]\nn_features = 4.5\n", "'n_features' must be an integer"),
+        # checked by the selection only after every crop's features were computed
+        (
+            "[learn]\nselection_bins = 0\n",
+            r"learn\.selection_bins must be an integer in \[2, 256\]",
+        ),
+        ("[learn]\nselection_bins = 100000\n", r"learn\.selection_bins must be an integer in"),
         # counts bounded before any work (these ran for hours, out of memory, or failed only
         # when the model was written); an empty size list was silently the default sizes
         ("[mining]\nrounds = 2000000000\n", r"mining.rounds must be in \[0, 100\]"),

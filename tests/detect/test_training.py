@@ -205,3 +205,25 @@ def test_a_haar_bank_no_model_file_holds_is_refused_before_any_data_is_read(
     monkeypatch.setattr(training, "load_training_data", read_nothing)
     with pytest.raises(ConfigError, match=rf"\[features\]: {match}: no model file may hold"):
         train_detector(cfg)
+
+
+def test_more_selected_features_than_the_bank_holds_is_refused_before_any_data_is_read(
+    tmp_path, monkeypatch
+):
+    """n_features above the bank's size was refused by the feature selection, after every
+    crop had been read and its features computed ('n_features must be in [1, F] (columns of
+    X)'); it is now a config error naming the key, before the crops are read."""
+    import torchtrack.detect.training as training
+    from torchtrack.errors import ConfigError
+
+    (tmp_path / "pos").mkdir()
+    (tmp_path / "neg").mkdir()
+    cfg = small_config(tmp_path)
+    cfg.learn.n_features = 10**6
+
+    def read_nothing(*a, **k):
+        raise AssertionError("the crops were read before n_features was checked")
+
+    monkeypatch.setattr(training, "load_training_data", read_nothing)
+    with pytest.raises(ConfigError, match=r"learn\.n_features \(--features\) is 1000000, more th"):
+        train_detector(cfg)

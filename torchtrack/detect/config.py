@@ -472,6 +472,11 @@ class TrainConfig:
             )
         if not _posint(lr.n_features):
             raise ConfigError(f"learn.n_features must be a positive integer, got {lr.n_features!r}")
+        if not (_posint(lr.selection_bins) and 2 <= lr.selection_bins <= 256):
+            # the selection's own check ran only after every crop's features were computed
+            raise ConfigError(
+                f"learn.selection_bins must be an integer in [2, 256], got {lr.selection_bins!r}"
+            )
         for k in ("min_train_per_class", "min_calibration_per_class"):
             v = getattr(lr, k)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):

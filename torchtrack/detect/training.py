@@ -403,6 +403,11 @@ def train_detector(
         min_std=f.min_std,
     )
     _check_bank_fits_a_model_file(bank, window)
+    if cfg.learn.n_features > len(bank):  # was refused after every crop's features were computed
+        raise ConfigError(
+            f"learn.n_features (--features) is {cfg.learn.n_features}, more than the "
+            f"{len(bank)} features of the {window[0]}x{window[1]} window's Haar bank"
+        )
     t_start = time.perf_counter()
     data = load_training_data(cfg, generator=gen, progress=progress)
     log(
