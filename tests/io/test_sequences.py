@@ -258,8 +258,14 @@ def test_bad_csvs(tmp_path):
     with pytest.raises(SequenceError, match="lacks the columns"):
         load_frames_csv(frames, p)
     p.write_text("frame,x,y,w,h\n0,1,1,2,2\n0,1,1,2,2\n")
-    with pytest.raises(SequenceError, match="more than once"):
+    with pytest.raises(SequenceError, match="more than once: frame 0 on lines 2 and 3"):
         read_box_csv(p)
+    # a frame index that is not a whole number: 1.5 was read as frame 1, inf was an
+    # OverflowError traceback
+    for frame in ("1.5", "inf", "-inf", "1e400"):
+        p.write_text(f"frame,x,y,w,h\n0,1,1,2,2\n{frame},1,1,2,2\n")
+        with pytest.raises(SequenceError, match=rf"gt\.csv line 3: frame '{frame}' is not a whole"):
+            read_box_csv(p)
     p.write_text("frame,x,y,w,h\n0,1,1,2,2\n7,1,1,2,2\n")
     with pytest.raises(SequenceError, match="row for frame 7 but the sequence has 3 frames"):
         load_frames_csv(frames, p)

@@ -268,6 +268,7 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
     fcol = header.index("frame") if "frame" in header else None
     vcol = header.index("visible") if "visible" in header else None
     frames: list[int] = []
+    lines: dict[int, int] = {}  # frame -> the line that gave it
     vals: list[list[float]] = []
     for no, r in enumerate(rows[1:], start=2):
         if not any(c.strip() for c in r):
@@ -278,17 +279,28 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
             v = [float(r[i]) for i in idx]
             if vcol is not None and float(r[vcol]) == 0:
                 v = [math.nan] * 4
-            if fcol is not None:
-                frames.append(int(float(r[fcol])))
+            fv = float(r[fcol]) if fcol is not None else 0.0
         except (ValueError, IndexError):
             raise SequenceError(f"{p} line {no} is not numeric or too short: {r}") from None
+        if fcol is not None:
+            # 1.5 was read as frame 1, inf was an OverflowError traceback
+            if not fv.is_integer():
+                raise SequenceError(
+                    f"{p} line {no}: frame {r[fcol].strip()!r} is not a whole frame index"
+                )
+            f = int(fv)
+            if f in lines:
+                raise SequenceError(
+                    f"box CSV {p} lists a frame more than once: frame {f} on lines "
+                    f"{lines[f]} and {no}"
+                )
+            lines[f] = no
+            frames.append(f)
         vals.append(v)
     t = torch.tensor(vals, dtype=torch.float64).reshape(-1, 4)
     if fmt == "xyxy":
         t = torch.stack((t[:, 0], t[:, 1], t[:, 2] - t[:, 0], t[:, 3] - t[:, 1]), dim=1)
     if fcol is not None:
-        if len(set(frames)) != len(frames):
-            raise SequenceError(f"box CSV {p} lists a frame more than once")
         if frames and min(frames) < 0:
             raise SequenceError(f"box CSV {p} has a negative frame index {min(frames)}")
         length = n_frames if n_frames is not None else (max(frames) + 1 if frames else 0)
