@@ -261,7 +261,7 @@ def test_colour_model_on_a_grayscale_image(trained, frame):
     assert bool(torch.isfinite(p1).all())
 
 
-def test_warns_when_the_false_positive_rate_is_not_reached(folders, tmp_path):
+def _people_as_negatives(folders, tmp_path):
     """Negative 'images' that show people (INRIA positive crops): mining cannot clean them."""
     neg = tmp_path / "neg"
     neg.mkdir()
@@ -269,13 +269,61 @@ def test_warns_when_the_false_positive_rate_is_not_reached(folders, tmp_path):
         shutil.copy(p, neg / p.name)
     for p in sorted((folders / "neg").iterdir())[:1]:
         shutil.copy(p, neg / p.name)
+    return neg
+
+
+def test_warns_when_the_false_positive_rate_is_not_reached(folders, tmp_path):
     cfg = small_config(folders)
-    cfg.data.negative_images = [str(neg)]
+    cfg.data.negative_images = [str(_people_as_negatives(folders, tmp_path))]
     cfg.data.negative_min_scale = 0.5
     cfg.mining.target_fpr = 0.0
     cfg.learn.n_trees = 8
-    with pytest.warns(TrainingWarning, match=r"false-positive rate .* above mining.target_fpr = 0"):
-        train_detector(cfg)
+    lines: list[str] = []
+    with pytest.warns(
+        TrainingWarning, match=r"false-positive rate .* above mining.target_fpr = 0"
+    ) as rec:
+        train_detector(cfg, log=lines.append)
+    # warned, not logged as well: `torchtrack train` prints both, so it read twice
+    assert len([w for w in rec if w.category is TrainingWarning]) == 1
+    assert not [ln for ln in lines if "above mining.target_fpr" in ln]
+
+
+def test_cli_prints_the_false_positive_rate_warning_once(folders, tmp_path, capsys):
+    from torchtrack.cli import main
+
+    neg = _people_as_negatives(folders, tmp_path)
+    (tmp_path / "c.toml").write_text(
+        f"""name = "person-test"
+window = [128, 64]
+[data]
+positives = ["{folders / "pos"}"]
+negative_images = ["{neg}"]
+crop_size = [160, 96]
+region = [16, 16, 64, 128]
+random_negatives = 300
+negative_min_scale = 0.5
+[features]
+kind = "channels"
+cells = false
+boxes = 300
+haar = 100
+[learn]
+n_trees = 8
+[mining]
+rounds = 1
+per_round = 200
+scale_step = 1.3
+stride = 0.125
+target_fpr = 0.0
+"""
+    )
+    out = tmp_path / "m.safetensors"
+    with pytest.warns(TrainingWarning, match="above mining.target_fpr = 0") as rec:
+        assert main(["train", "--config", str(tmp_path / "c.toml"), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "mining:" in err  # the log lines are printed ...
+    assert "above mining.target_fpr" not in err  # ... the warning only by the warnings module
+    assert len([w for w in rec if w.category is TrainingWarning]) == 1
 
 
 def test_bad_inputs(folders, tmp_path):

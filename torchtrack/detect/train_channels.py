@@ -363,7 +363,8 @@ def train_channel_detector(
     Args:
         cfg: a validated config with ``features.kind = "channels"``.
         progress: progress bars.
-        log: called with one line per step.
+        log: called with one line per step (a false-positive rate mining did not reach is
+            the ``TrainingWarning`` below, not a line too: the CLI prints both).
         force: train even on too little data (the minimums of
             :func:`~torchtrack.detect.training.check_data_sizes`; the reasons are logged and
             recorded in the summary as ``forced``).
@@ -601,8 +602,10 @@ def train_channel_detector(
             f"(windows with margin >= 0), above mining.target_fpr = {mi.target_fpr:g}; add "
             "negative images or mining rounds, or raise target_fpr"
         )
+        # warned only, not logged as well: ``torchtrack train`` prints both channels, so the
+        # user read it twice; a warning reaches a caller who passes no ``log`` (Python shows
+        # it), can be filtered or recorded, and shows under --quiet
         warnings.warn(msg, TrainingWarning, stacklevel=2)
-        log("warning: " + msg)
     # keep the used features only
     used = torch.unique(clf.feature_)
     remap = torch.full((len(pool),), -1, dtype=torch.long)
