@@ -85,6 +85,44 @@ def test_bad_values(tmp_path, extra, match):
         load_train_config(write(tmp_path, BASE + extra))
 
 
+CHANNELS = "[features]\nkind = 'channels'\n"
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        # the feature banks' own checks said 'cell must be ...', 'stride must be ...' (the Haar
+        # ones only once the training ran), not the key written here
+        (CHANNELS + "cell = 0", r"features\.cell must be an integer in \[1, 64\], got 0"),
+        (
+            CHANNELS + "cell = 3",
+            r"window \[40, 100\] must be positive multiples of features\.cell 3",
+        ),
+        (CHANNELS + "orientations = 0", r"features\.orientations must be an integer in \[1, 18\]"),
+        (CHANNELS + "norm_radius = 99", r"features\.norm_radius must be an integer in \[0, 32\]"),
+        (CHANNELS + "norm_const = 0", r"features\.norm_const must be a positive number"),
+        (CHANNELS + "gradient_lambda = 5", r"features\.gradient_lambda must be a number in"),
+        (CHANNELS + "channels = []", r"features\.channels must be a non-empty list"),
+        (CHANNELS + "channels = ['X']", r"unknown channel name 'X' in features\.channels"),
+        (CHANNELS + "channels = ['L', 'L']", r"channel names in features\.channels must be"),
+        (
+            CHANNELS + "cells = false\nboxes = 0\nhaar = 0",
+            r"features\.cells = false with features\.boxes = 0 and features\.haar = 0",
+        ),
+        ("[features]\nstride = 0", r"features\.stride must be an integer in \[1, 100\]"),
+        ("[features]\nmin_std = 0", r"features\.min_std must be a number in \[0\.001, 255\]"),
+        ("[features]\nmin_std = -1", r"features\.min_std must be a number"),
+        ("[features]\nsizes = [6]", r"features\.sizes: every filter size must be a multiple"),
+        ("[features]\nsizes = [400]", r"features\.sizes: .* in \[4, 40\]"),
+        ("[features]\nsizes = [8, 8]", r"features\.sizes must be distinct"),
+        ("[features]\nn_scales = 7", r"features\.n_scales must be an integer in \[1, 4\]"),
+    ],
+)
+def test_feature_errors_name_their_key(tmp_path, extra, match):
+    with pytest.raises(ConfigError, match=match):
+        load_train_config(write(tmp_path, BASE + extra))
+
+
 def test_bounds_admit_their_limits(tmp_path):
     extra = "[features]\nn_scales = 4\n[learn]\nn_estimators = 100000\n"
     cfg = load_train_config(write(tmp_path, BASE + extra))

@@ -355,10 +355,20 @@ class TrainConfig:
                 "bank then takes features.n_scales sizes)"
             )
         if f.kind == "channels":
-            f.channel_set()  # unknown channel names and bad values raise here
-            from torchtrack.features.channels import _check_geometry
+            from torchtrack.features.channels import _check_geometry, check_channel_values
 
-            _check_geometry(tuple(w), f.cell)
+            # the channel set's own checks, with the keys as written here ("orientations must
+            # ..." did not say where)
+            check_channel_values(
+                f.channels,
+                f.orientations,
+                f.norm_radius,
+                f.norm_const,
+                f.gradient_lambda,
+                prefix="features.",
+            )
+            f.channel_set()
+            _check_geometry(tuple(w), f.cell, "features.cell")
             from torchtrack.features.channels import _MAX_FEATURES
 
             for name in ("boxes", "haar"):  # random features: 2e9 ran out of memory
@@ -370,6 +380,11 @@ class TrainConfig:
                     )
             if not isinstance(f.cells, bool):
                 raise ConfigError(f"features.cells must be true or false, got {f.cells!r}")
+            if not (f.cells or f.boxes or f.haar):  # the bank's check ran in the training
+                raise ConfigError(
+                    "features.cells = false with features.boxes = 0 and features.haar = 0 leaves "
+                    "the channel bank empty"
+                )
             for q in d.positive_scales:
                 if abs(f.cell * q - round(f.cell * q)) > 1e-9:
                     raise ConfigError(
@@ -513,7 +528,53 @@ class TrainConfig:
                 f"features.n_scales must be an integer in [1, {LIMITS.bank_sizes}] (the most "
                 f"filter sizes a bank holds), got {f.n_scales!r}"
             )
+        if f.kind == "haar":
+            self._check_haar_keys()
         return self
+
+    def _check_haar_keys(self) -> None:
+        """``features.sizes / n_scales / stride / min_std`` of a Haar bank, named: the bank's
+        own checks (:class:`~torchtrack.features.haar.HaarBank`, ``'stride must be a positive
+        integer'``) ran only in the training and said ``stride`` or ``min_std``; the bounds are
+        the model file's (:func:`~torchtrack.detect.model_checks._check_haar_bank`)."""
+        from torchtrack.detect.model_checks import LIMITS
+        from torchtrack.features.haar import max_scales
+
+        f = self.features
+        h, w = (int(v) for v in self.window)
+        if f.sizes is not None:
+            if not isinstance(f.sizes, list) or len(f.sizes) > LIMITS.bank_sizes:
+                raise ConfigError(
+                    f"features.sizes must be a list of 1 to {LIMITS.bank_sizes} filter sizes, "
+                    f"got {f.sizes!r}"
+                )
+            for t in f.sizes:
+                if not (_posint(t) and t % 4 == 0 and 4 <= t <= min(h, w)):
+                    raise ConfigError(
+                        f"features.sizes: every filter size must be a multiple of 4 in [4, "
+                        f"{min(h, w)}] (the line filters split the square in quarters, and it "
+                        f"must fit the {h}x{w} (HxW) window), got {t!r} in {f.sizes!r}"
+                    )
+            if len(set(f.sizes)) != len(f.sizes):
+                raise ConfigError(f"features.sizes must be distinct, got {f.sizes!r}")
+        else:
+            most = max_scales((h, w))
+            if not f.n_scales <= most:
+                raise ConfigError(
+                    f"features.n_scales must be an integer in [1, {most}] for a {h}x{w} window "
+                    "(filter sides halve from the largest power of two that fits down to 4 "
+                    f"pixels), got {f.n_scales!r}"
+                )
+        if not (_posint(f.stride) and f.stride <= max(h, w)):
+            raise ConfigError(
+                f"features.stride must be an integer in [1, {max(h, w)}] (window pixels, at "
+                f"most the window's longer side), got {f.stride!r}"
+            )
+        if not (_isnum(f.min_std) and 1e-3 <= f.min_std <= 255):
+            raise ConfigError(
+                f"features.min_std must be a number in [0.001, 255] (intensity units), got "
+                f"{f.min_std!r}"
+            )
 
     def classifier(self) -> str:
         """``learn.classifier`` with ``"auto"`` resolved (Haar: adaboost, channels: trees)."""

@@ -87,6 +87,53 @@ def _is_num(v: Any) -> bool:
 # ------------------------------------------------------------------------------- channels
 
 
+def check_channel_values(
+    names: Any,
+    orientations: Any,
+    norm_radius: Any,
+    norm_const: Any,
+    gradient_lambda: Any,
+    *,
+    prefix: str = "",
+) -> tuple[str, ...]:
+    """The checks of :class:`ChannelSet`; returns ``names`` as a tuple.
+
+    Args:
+        prefix: put before each value's name in the messages (a training config passes
+            ``"features."``, so that the message names the key the user wrote).
+
+    Raises:
+        ConfigError: the first bad value, named.
+    """
+    key = f"{prefix}channels"
+    if isinstance(names, str) or not isinstance(names, (list, tuple)) or not names:
+        raise ConfigError(
+            f"{key} must be a non-empty list of names from {list(CHANNEL_NAMES)}, got {names!r}"
+        )
+    where = f" in {key}" if prefix else ""
+    for n in names:
+        if n not in CHANNEL_NAMES:
+            raise ConfigError(
+                f"unknown channel name {n!r}{where}; valid channel names: "
+                f"{', '.join(CHANNEL_NAMES)}"
+            )
+    if len(set(names)) != len(names):
+        raise ConfigError(f"channel names{where} must be distinct, got {list(names)}")
+    if not _is_int(orientations) or not 1 <= orientations <= 18:
+        raise ConfigError(
+            f"{prefix}orientations must be an integer in [1, 18], got {orientations!r}"
+        )
+    if not _is_int(norm_radius) or not 0 <= norm_radius <= 32:
+        raise ConfigError(f"{prefix}norm_radius must be an integer in [0, 32], got {norm_radius!r}")
+    if not _is_num(norm_const) or norm_const <= 0:
+        raise ConfigError(f"{prefix}norm_const must be a positive number, got {norm_const!r}")
+    if not _is_num(gradient_lambda) or not 0 <= gradient_lambda <= 2:
+        raise ConfigError(
+            f"{prefix}gradient_lambda must be a number in [0, 2], got {gradient_lambda!r}"
+        )
+    return tuple(names)
+
+
 @dataclass(frozen=True)
 class ChannelSet:
     """Which channels to compute, in order.
@@ -115,34 +162,10 @@ class ChannelSet:
     gradient_lambda: float = 0.1
 
     def __post_init__(self) -> None:
-        names = self.names
-        if isinstance(names, str) or not isinstance(names, (list, tuple)) or not names:
-            raise ConfigError(
-                f"channels must be a non-empty list of names from {list(CHANNEL_NAMES)}, "
-                f"got {names!r}"
-            )
-        for n in names:
-            if n not in CHANNEL_NAMES:
-                raise ConfigError(
-                    f"unknown channel name {n!r}; valid channel names: {', '.join(CHANNEL_NAMES)}"
-                )
-        if len(set(names)) != len(names):
-            raise ConfigError(f"channel names must be distinct, got {list(names)}")
-        object.__setattr__(self, "names", tuple(names))
-        if not _is_int(self.orientations) or not 1 <= self.orientations <= 18:
-            raise ConfigError(
-                f"orientations must be an integer in [1, 18], got {self.orientations!r}"
-            )
-        if not _is_int(self.norm_radius) or not 0 <= self.norm_radius <= 32:
-            raise ConfigError(
-                f"norm_radius must be an integer in [0, 32], got {self.norm_radius!r}"
-            )
-        if not _is_num(self.norm_const) or self.norm_const <= 0:
-            raise ConfigError(f"norm_const must be a positive number, got {self.norm_const!r}")
-        if not _is_num(self.gradient_lambda) or not 0 <= self.gradient_lambda <= 2:
-            raise ConfigError(
-                f"gradient_lambda must be a number in [0, 2], got {self.gradient_lambda!r}"
-            )
+        names = check_channel_values(
+            self.names, self.orientations, self.norm_radius, self.norm_const, self.gradient_lambda
+        )
+        object.__setattr__(self, "names", names)
 
     @property
     def colour(self) -> bool:
@@ -755,15 +778,17 @@ class ChannelBank:
         return channel_features_at(ints, boxes, self, index, check=check)
 
 
-def _check_geometry(window: Any, cell: Any) -> None:
+def _check_geometry(window: Any, cell: Any, cell_key: str = "cell") -> None:
+    """``cell_key``: the cell's name in the messages (a training config's ``features.cell``)."""
     if not isinstance(window, (list, tuple)) or len(window) != 2:
         raise ConfigError(f"window must be (H, W), got {window!r}")
     if not _is_int(cell) or not 1 <= cell <= 64:
-        raise ConfigError(f"cell must be an integer in [1, 64], got {cell!r}")
+        raise ConfigError(f"{cell_key} must be an integer in [1, 64], got {cell!r}")
+    size = "the cell size" if cell_key == "cell" else cell_key
     for v in window:
         if not _is_int(v) or v < cell or v % cell or v > 4096:
             raise ConfigError(
-                f"window {list(window)} must be positive multiples of the cell size {cell} "
+                f"window {list(window)} must be positive multiples of {size} {cell} "
                 "(at most 4096 pixels)"
             )
 
