@@ -198,3 +198,25 @@ def test_bad_data_values(tmp_path, line, match):
         text = BASE.replace("[data]\n", f"[data]\n{line}\n")
     with pytest.raises(ConfigError, match=match):
         load_train_config(write(tmp_path, text))
+
+
+def test_target_fpr_set_for_a_haar_detector_warns(tmp_path):
+    """mining.target_fpr applies to channel detectors only; a Haar config that set it trained
+    without a word. A warning, not an error: the shipped channel configs set it and switch to
+    the paper's Haar setting with features.kind = "haar"."""
+    import warnings
+
+    haar = "[features]\nkind = 'haar'\n"
+    with pytest.warns(UserWarning, match=r"mining\.target_fpr = 0\.001 applies to channel-feature"):
+        load_train_config(write(tmp_path, BASE + haar + "[mining]\ntarget_fpr = 1e-3\n"))
+    with pytest.warns(UserWarning, match=r"mining\.target_fpr = 0\.01 applies"):
+        load_train_config(write(tmp_path, BASE), {"mining.target_fpr": 0.01})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the default value every config carries: no word
+        load_train_config(write(tmp_path, BASE + haar))
+        load_train_config(CONFIGS / "vehicle.toml")  # channels: it applies
+        load_train_config(
+            write(
+                tmp_path, BASE + "[features]\nkind = 'channels'\n" + "[mining]\ntarget_fpr = 1e-3\n"
+            )
+        )
