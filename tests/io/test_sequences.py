@@ -288,6 +288,23 @@ def test_bad_csvs(tmp_path):
         read_box_csv(p)
 
 
+def test_bobot_reversed_corners_name_the_file_and_line(tmp_path):
+    """A corner row with x2 < x1 (or y2 < y1) had a negative width, read as "target absent"
+    without a word; BoBoT's own absent marker (NaN rows) and zero-size rows stay absent."""
+    p = tmp_path / "gt.txt"
+    p.write_text("10,20,50,120\nNaN,NaN,NaN,NaN\n50,20,10,120\n")
+    with pytest.raises(
+        SequenceError, match=r"gt\.txt line 3: corners .* = 50,20,10,120 are reversed \(x2 < x1\)"
+    ):
+        parse_box_file(p, "xyxy")
+    p.write_text("10,20,50,120\n10,120,50,20\n")
+    with pytest.raises(SequenceError, match=r"line 2: .* reversed \(y2 < y1\)"):
+        parse_box_file(p, "xyxy")
+    p.write_text("10,20,50,120\nNaN,NaN,NaN,NaN\n10,20,10,120\n")
+    b = parse_box_file(p, "xyxy")
+    assert b[0].tolist() == [10, 20, 40, 100] and torch.isnan(b[1:]).all()
+
+
 def test_parse_box_file_formats(tmp_path):
     p = tmp_path / "b.txt"
     p.write_text("1 2 3 4\n")

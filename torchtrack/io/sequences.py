@@ -11,7 +11,7 @@ Supported layouts (:func:`load_sequence` detects them, :func:`find_sequences` wa
   sequence each, named ``<seq>-<k>``. Sequences may start at a later frame (David: 0300): line k
   belongs to the k-th frame in sorted order. UAV123-style ``NaN,NaN,NaN,NaN`` rows mean absent.
 * **BoBoT**: ``<seq>/frames/*.jpg`` + ``gt.txt`` (``x1,y1,x2,y2``, 0-based corners, NaN rows =
-  absent).
+  absent; a row with reversed corners, ``x2 < x1`` or ``y2 < y1``, is an error naming the line).
 * **VOT**: ``<seq>/groundtruth.txt`` with 8-value polygons (or 4-value ``x,y,w,h``
   rectangles, 0-based) and frames in ``<seq>/color/`` or ``<seq>/`` itself; a polygon becomes
   the axis-aligned box of its min/max corners.
@@ -162,6 +162,25 @@ def _parse_rows(path: Path, allowed: tuple[int, ...]) -> list[list[float]]:
     return rows
 
 
+def _check_corner_order(path: Path, rows: list[list[float]]) -> None:
+    """A corner row whose second corner lies left of or above its first (``x2 < x1`` or
+    ``y2 < y1``) is an error: its negative width read as "target absent" without a word, and
+    the frame dropped out of the scores. BoBoT marks an absent target with ``NaN`` rows (kept);
+    a zero-size row stays absent under the common rule.
+
+    Raises:
+        SequenceError: the file, the line and its corners.
+    """
+    for no, (x1, y1, x2, y2) in enumerate(rows, start=1):  # no blank lines before the last
+        if all(math.isfinite(v) for v in (x1, y1, x2, y2)) and (x2 < x1 or y2 < y1):
+            axis = "x2 < x1" if x2 < x1 else "y2 < y1"
+            raise SequenceError(
+                f"{path} line {no}: corners x1,y1,x2,y2 = {x1:g},{y1:g},{x2:g},{y2:g} are "
+                f"reversed ({axis}); the second corner must be the bottom-right one (an absent "
+                "target is a NaN,NaN,NaN,NaN row)"
+            )
+
+
 def _absent_to_nan(boxes: torch.Tensor) -> torch.Tensor:
     """Rows with a NaN/inf value or a non-positive size become all-NaN (target absent)."""
     bad = ~torch.isfinite(boxes).all(dim=1) | (boxes[:, 2] <= 0) | (boxes[:, 3] <= 0)
@@ -184,14 +203,15 @@ def parse_box_file(path: str | os.PathLike, box_format: str = "xywh", one_based:
         ``(T, 4)`` float64; NaN rows where the target is absent.
 
     Raises:
-        SequenceError: unreadable file, non-numeric line or wrong number of values (with the
-            line number).
+        SequenceError: unreadable file, non-numeric line or wrong number of values, or
+            ``"xyxy"`` corners reversed (``x2 < x1`` or ``y2 < y1``), with the line number.
     """
     p = Path(path)
     if box_format in ("xywh", "xyxy"):
         rows = _parse_rows(p, (4,))
         t = torch.tensor(rows, dtype=torch.float64)
         if box_format == "xyxy":
+            _check_corner_order(p, rows)
             t = torch.stack((t[:, 0], t[:, 1], t[:, 2] - t[:, 0], t[:, 3] - t[:, 1]), dim=1)
     elif box_format == "polygon":
         rows = _parse_rows(p, (1, 4, 8))
