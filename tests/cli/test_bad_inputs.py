@@ -1356,7 +1356,8 @@ CASES += [
     ),
     E(
         "train-random-negatives-alone",
-        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 8 "
+        # a 16x16 window: a 16x8 one holds no default Haar bank (n_scales 3), refused first
+        "train --pos {c}/crops/pos --neg {c}/crops/neg --window 16 16 "
         "--random-negatives 100 -o {o}/m.safetensors",
         "--neg-images",
     ),
@@ -1662,10 +1663,10 @@ CASES += [
         r"cotrain: init_passes must be in \[1, 100\], got 1000000000",
     ),
     E(
-        "train-haar-stride-beyond-window",  # trained to the end, then 'not writing ...'
+        "train-haar-stride-beyond-window",  # once trained to the end, then 'not writing ...'
         "train --config {c}/haar_stride.toml -q -o {o}/m.safetensors",
-        r"\[features\]: bank stride must be an integer in \[1, 16\], got 17: no model file may "
-        "hold this bank",
+        r"features\.stride must be an integer in \[1, 16\] \(window pixels, at most the "
+        r"window's longer side\), got 17",
     ),
     # seqinfo.ini (the ninth sweep)
     E(
