@@ -281,6 +281,13 @@ def test_bad_csvs(tmp_path):
         p.write_text(body)
         with pytest.raises(SequenceError, match=rf"gt\.csv line {no} is not numeric"):
             read_box_csv(p)
+    # x1,y1,x2,y2 columns with the corners reversed: a negative width, read as absent silently
+    for row, axis in (("5,1,2,4", "x2 < x1"), ("1,5,2,4", "y2 < y1")):
+        p.write_text(f"frame,x1,y1,x2,y2\n0,1,1,3,3\n1,{row}\n")
+        with pytest.raises(SequenceError, match=rf"gt\.csv line 3: corners .* reversed \({axis}\)"):
+            read_box_csv(p)
+    p.write_text("x1,y1,x2,y2,visible\n1,1,3,3,1\n5,1,2,4,0\n")  # hidden rows are not read
+    assert read_box_csv(p)[0].tolist() == [1, 1, 2, 2] and read_box_csv(p)[1].isnan().all()
     p.write_text("x,y,w,h,label\n1,1,2,2,car_1\n")  # columns it does not read may hold any text
     assert read_box_csv(p).tolist() == [[1, 1, 2, 2]]
     p.write_text("")

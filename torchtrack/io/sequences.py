@@ -171,14 +171,20 @@ def _check_corner_order(path: Path, rows: list[list[float]]) -> None:
     Raises:
         SequenceError: the file, the line and its corners.
     """
-    for no, (x1, y1, x2, y2) in enumerate(rows, start=1):  # no blank lines before the last
-        if all(math.isfinite(v) for v in (x1, y1, x2, y2)) and (x2 < x1 or y2 < y1):
-            axis = "x2 < x1" if x2 < x1 else "y2 < y1"
-            raise SequenceError(
-                f"{path} line {no}: corners x1,y1,x2,y2 = {x1:g},{y1:g},{x2:g},{y2:g} are "
-                f"reversed ({axis}); the second corner must be the bottom-right one (an absent "
-                "target is a NaN,NaN,NaN,NaN row)"
-            )
+    for no, row in enumerate(rows, start=1):  # no blank lines before the last
+        _check_corners(path, no, row)
+
+
+def _check_corners(path: Path, no: int, row: list[float]) -> None:
+    """:func:`_check_corner_order` of one row ``x1, y1, x2, y2`` at line ``no`` of ``path``."""
+    x1, y1, x2, y2 = row
+    if all(math.isfinite(v) for v in row) and (x2 < x1 or y2 < y1):
+        axis = "x2 < x1" if x2 < x1 else "y2 < y1"
+        raise SequenceError(
+            f"{path} line {no}: corners x1,y1,x2,y2 = {x1:g},{y1:g},{x2:g},{y2:g} are "
+            f"reversed ({axis}); the second corner must be the bottom-right one (an absent "
+            "target is a NaN,NaN,NaN,NaN row)"
+        )
 
 
 def _absent_to_nan(boxes: torch.Tensor) -> torch.Tensor:
@@ -260,7 +266,7 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
 
     Raises:
         SequenceError: missing columns, non-numeric values (with the line number), duplicate
-            frames.
+            frames, ``x1,y1,x2,y2`` corners reversed (``x2 < x1`` or ``y2 < y1``).
     """
     p = Path(path)
     try:
@@ -302,6 +308,8 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
             fv = float(r[fcol]) if fcol is not None else 0.0
         except (ValueError, IndexError):
             raise SequenceError(f"{p} line {no} is not numeric or too short: {r}") from None
+        if fmt == "xyxy":  # a reversed row read as absent, without a word
+            _check_corners(p, no, v)
         if fcol is not None:
             # 1.5 was read as frame 1, inf was an OverflowError traceback
             if not fv.is_integer():
