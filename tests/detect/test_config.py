@@ -201,8 +201,8 @@ def test_bad_data_values(tmp_path, line, match):
 
 
 def test_target_fpr_set_for_a_haar_detector_warns(tmp_path):
-    """mining.target_fpr applies to channel detectors only; a Haar config that set it trained
-    without a word. A warning, not an error: the shipped channel configs set it and switch to
+    """mining.target_fpr (and margin, min_scale) apply to channel detectors only; a Haar config
+    that set them trained without a word. A warning, not an error: the shipped channel configs set it and switch to
     the paper's Haar setting with features.kind = "haar"."""
     import warnings
 
@@ -211,6 +211,13 @@ def test_target_fpr_set_for_a_haar_detector_warns(tmp_path):
         load_train_config(write(tmp_path, BASE + haar + "[mining]\ntarget_fpr = 1e-3\n"))
     with pytest.warns(UserWarning, match=r"mining\.target_fpr = 0\.01 applies"):
         load_train_config(write(tmp_path, BASE), {"mining.target_fpr": 0.01})
+    # the other channel-only mining keys, named together
+    with pytest.warns(
+        UserWarning, match=r"mining\.min_scale = 0\.5, mining\.margin = -2\.0 apply to"
+    ):
+        load_train_config(
+            write(tmp_path, BASE + haar + "[mining]\nmargin = -2.0\nmin_scale = 0.5\n")
+        )
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the default value every config carries: no word
         load_train_config(write(tmp_path, BASE + haar))

@@ -671,6 +671,10 @@ def _resolve(p: str, base: Path) -> str:
     return str(q if q.is_absolute() else (base / q))
 
 
+#: the ``[mining]`` keys only channel-feature detectors read (:class:`MiningConfig`)
+_CHANNEL_MINING_KEYS = ("min_scale", "margin", "target_fpr")
+
+
 def load_train_config(
     path: str | os.PathLike, overrides: dict[str, Any] | None = None
 ) -> TrainConfig:
@@ -684,8 +688,8 @@ def load_train_config(
         ConfigError: unreadable TOML, an unknown key (named), or an invalid value.
 
     Warns:
-        UserWarning: ``mining.target_fpr`` set (in the file or ``overrides``) for a Haar
-            detector, which does not use it.
+        UserWarning: ``mining.target_fpr``, ``margin`` or ``min_scale`` set (in the file or
+            ``overrides``) for a Haar detector, which does not use them.
     """
     p = Path(path)
     try:
@@ -710,18 +714,19 @@ def load_train_config(
         apply_override(cfg, key, value)
     cfg.validate()
     mining = raw.get("mining", {})
-    if cfg.features.kind == "haar" and (
-        "target_fpr" in mining or "mining.target_fpr" in (overrides or {})
-    ):
-        # a warning, not an error: the shipped channel configs set target_fpr and say the
-        # paper's Haar setting is one key away (features.kind = "haar"); only a value the file
-        # or an override sets is named, the default is carried by every config
+    given = [k for k in _CHANNEL_MINING_KEYS if k in mining or f"mining.{k}" in (overrides or {})]
+    if cfg.features.kind == "haar" and given:
+        # a warning, not an error: the shipped channel configs set these and say the paper's
+        # Haar setting is one key away (features.kind = "haar"); only the keys the file or an
+        # override sets are named, the defaults are carried by every config
         import warnings
 
+        keys = ", ".join(f"mining.{k} = {getattr(cfg.mining, k)!r}" for k in given)
+        many = len(given) > 1
         warnings.warn(
-            f"{str(p)!r}: mining.target_fpr = {cfg.mining.target_fpr:g} applies to "
-            "channel-feature detectors only (features.kind = 'channels'); this Haar detector "
-            "(features.kind = 'haar') mines its mining.rounds without it",
+            f"{str(p)!r}: {keys} appl{'y' if many else 'ies'} to channel-feature detectors only "
+            "(features.kind = 'channels'); this Haar detector (features.kind = 'haar') mines its "
+            f"mining.rounds without {'them' if many else 'it'}",
             stacklevel=2,
         )
     return cfg
