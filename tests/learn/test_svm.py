@@ -77,3 +77,18 @@ def test_contract_and_bad_input():
     assert est.fit(X, y) is est
     with pytest.raises(errors.ShapeError, match="10 columns"):
         est.decision_function(X[:, :4])
+
+
+def test_bad_sample_weights_are_typed_errors():
+    # a wrong length, negative, all-zero or one-class weights reached scikit-learn's ValueError
+    X, y = _data(n=60)
+    est = SVMClassifier(kernel="linear")
+    with pytest.raises(errors.ShapeError, match=r"sample_weight must have shape \(60,\)"):
+        est.fit(X, y, sample_weight=np.ones(59))
+    with pytest.raises(errors.DataError, match="non-negative with a positive sum"):
+        est.fit(X, y, sample_weight=-np.ones(60))
+    with pytest.raises(errors.DataError, match="non-negative with a positive sum"):
+        est.fit(X, y, sample_weight=np.zeros(60))
+    with pytest.raises(errors.DataError, match="both classes"):
+        est.fit(X, y, sample_weight=(y == 1).astype(float))
+    assert est.fit(X, y, sample_weight=np.ones(60)) is est

@@ -99,8 +99,23 @@ class SVMClassifier(ClassifierMixin, BaseEstimator):
         Z = ((Xt - mean) / scale).numpy()
         sw = None
         if sample_weight is not None:
-            sw = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
-            sw = sw.cpu().numpy()
+            # checked here as BoostedStumps does: a wrong length, negative or all-zero weights
+            # reached scikit-learn's untyped ValueError
+            swt = as_float_tensor(sample_weight, "sample_weight", ndim=1, dtype=torch.float64)
+            swt = swt.cpu()
+            if swt.shape[0] != n:
+                raise errors.ShapeError(
+                    f"sample_weight must have shape ({n},), got {tuple(swt.shape)}"
+                )
+            if bool((swt < 0).any()) or float(swt.sum()) <= 0:
+                raise errors.DataError("sample_weight must be non-negative with a positive sum")
+            weighted = y01.cpu()[swt > 0]
+            if weighted.min() == weighted.max():
+                raise errors.DataError(
+                    "sample_weight must give a positive weight to samples of both classes, "
+                    f"got positive weights for class {classes[int(weighted[0])]!r} only"
+                )
+            sw = swt.numpy()
         svc = SVC(
             kernel=self.kernel,
             C=self.C,
