@@ -84,6 +84,8 @@ def test_bad_sample_weights_are_refused_by_both_calibrators(cls):
         cls().fit(s, y, sample_weight=np.ones(99))
     with pytest.raises(errors.DataError, match="sample_weight must be non-negative"):
         cls().fit(s, y, sample_weight=-np.ones(100))
+    with pytest.raises(errors.DataError, match="with a positive sum"):
+        cls().fit(s, y, sample_weight=np.zeros(100))
     cls().fit(s, y, sample_weight=np.ones(100))
 
 

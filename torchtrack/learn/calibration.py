@@ -59,7 +59,8 @@ def _sample_weight(sample_weight: Any, s: torch.Tensor) -> torch.Tensor | None:
 
     Raises:
         ShapeError: not one weight per score.
-        DataError: a weight not finite or negative.
+        DataError: a weight not finite or negative, or all weights zero (the isotonic fit
+            raised scikit-learn's ValueError, the Platt fit ignored the scores with a warning).
     """
     if sample_weight is None:
         return None
@@ -69,8 +70,8 @@ def _sample_weight(sample_weight: Any, s: torch.Tensor) -> torch.Tensor | None:
         raise errors.ShapeError(
             f"sample_weight must have shape {tuple(s.shape)}, got {tuple(sw.shape)}"
         )
-    if bool((sw < 0).any()):
-        raise errors.DataError("sample_weight must be non-negative")
+    if bool((sw < 0).any()) or float(sw.sum()) <= 0:
+        raise errors.DataError("sample_weight must be non-negative with a positive sum")
     return sw
 
 
