@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.errors import BoxError, ConfigError, ShapeError
+from torchtrack.errors import BoxError, ConfigError, DataError, ShapeError
 from torchtrack.features.haar import (
     KINDS,
     HaarBank,
@@ -219,6 +219,33 @@ def test_bad_boxes_and_shapes():
         haar_features(frame, torch.ones(1, 1, 4) * 4, bank, torch.tensor([len(bank)]))
     with pytest.raises(ShapeError, match="window-sized"):
         haar_features_dense(torch.zeros(1, 1, 9, 8), bank)
+
+
+@pytest.mark.parametrize("chunk", [0, -1, 2.5, True])
+def test_dense_refuses_a_bad_chunk(chunk):
+    # 0 and -1 failed inside torch ('cannot reshape tensor of 0 elements')
+    with pytest.raises(ConfigError, match="chunk must be an integer >= 1"):
+        haar_features_dense(torch.zeros(2, 1, 8, 8), haar_bank((8, 8), sizes=(4,)), chunk=chunk)
+
+
+def test_dense_refuses_an_integer_out():
+    # an int64 out truncated every feature to an integer, silently
+    bank = haar_bank((8, 8), sizes=(4,))
+    crops = torch.randint(0, 256, (2, 1, 8, 8), dtype=torch.uint8)
+    with pytest.raises(ShapeError, match="floating-point"):
+        haar_features_dense(crops, bank, out=torch.zeros(2, len(bank), dtype=torch.int64))
+    out = torch.zeros(2, len(bank), dtype=torch.float64)
+    assert haar_features_dense(crops, bank, out=out) is out
+
+
+@pytest.mark.parametrize("value", [float("nan"), 300.0, -1.0])
+def test_dense_checks_pixel_values_like_the_box_path(value):
+    # NaN crops gave NaN features and 16-bit levels were read as 8-bit ones, silently
+    bank = haar_bank((8, 8), sizes=(4,))
+    crops = torch.zeros(2, 1, 8, 8)
+    crops[1, 0, 3, 3] = value
+    with pytest.raises(DataError, match="crops hold"):
+        haar_features_dense(crops, bank)
 
 
 def test_box_partly_outside_frame_is_handled():

@@ -45,6 +45,7 @@ Intensities are expected on the 0..255 scale (uint8 or float); RGB is converted 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -319,17 +320,37 @@ def haar_features_dense(
 
     Returns:
         ``(N, F)`` float32 on the crops' device, columns in ``bank.table`` order.
+
+    Raises:
+        ShapeError: crops not ``(N, C, H, W)`` window-sized, or ``out`` not an ``(N, F)``
+            floating-point tensor (an integer one truncated every feature, silently).
+        ConfigError: ``chunk`` not an integer >= 1 (0 or less failed inside torch).
+        DataError: a pixel not finite or outside [0, 255] (as for the box path: NaN crops
+            gave NaN features, silently).
     """
     gray = _check_window_images(crops, bank)
+    if isinstance(chunk, bool) or not isinstance(chunk, numbers.Integral) or chunk < 1:
+        raise ConfigError(f"chunk must be an integer >= 1 (crops per step), got {chunk!r}")
+    chunk = int(chunk)
+    check_pixel_values(crops, "crops")
     n = gray.shape[0]
     f = len(bank)
     if out is None:
         out = torch.empty((n, f), dtype=torch.float32, device=gray.device)
-    elif tuple(out.shape) != (n, f):
-        raise ShapeError(f"out must have shape ({n}, {f}), got {tuple(out.shape)}")
+    elif (
+        not isinstance(out, torch.Tensor)
+        or tuple(out.shape) != (n, f)
+        or not out.is_floating_point()
+    ):
+        got = (
+            f"{tuple(out.shape)} {out.dtype}"
+            if isinstance(out, torch.Tensor)
+            else type(out).__name__
+        )
+        raise ShapeError(f"out must be a ({n}, {f}) floating-point tensor (float32), got {got}")
     h, w = bank.window
     s = bank.stride
-    for start in range(0, n, max(1, chunk)):
+    for start in range(0, n, chunk):
         g = gray[start : start + chunk]
         ii = integral_image(g)[:, 0]
         ii2 = integral_image(g, squared=True)[:, 0]
