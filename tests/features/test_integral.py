@@ -121,3 +121,19 @@ def test_feature_banks_refuse_pixels_that_are_not_8_bit_levels():
             fn(sixteen)
         with pytest.raises(DataError, match=r"values in \[-1, 255\]"):
             fn(torch.cat([ok, -ok / 255]))
+
+
+@pytest.mark.skipif(not hasattr(torch, "uint16"), reason="torch without uint16")
+def test_uint16_frames_are_checked_not_a_torch_error():
+    """torch has no aminmax for uint16 (16-bit PNGs): the pixel check failed with its
+    NotImplementedError ('aminmax_cpu' not implemented for 'UInt16') in every feature bank.
+    16-bit levels are the DataError that says to divide by 257; 8-bit levels in uint16 pass."""
+    from torchtrack.features.channels import channel_integrals
+    from torchtrack.features.haar import integrals as haar_integrals
+    from torchtrack.features.integral import check_pixel_values
+
+    eight = torch.full((1, 3, 8, 8), 255, dtype=torch.uint8)
+    for fn in (check_pixel_values, channel_integrals, haar_integrals):
+        fn(eight.to(torch.uint16))
+        with pytest.raises(DataError, match=r"values in \[65535, 65535\].*divide by 257"):
+            fn(eight.to(torch.uint16) * 257)

@@ -20,6 +20,9 @@ from torchtrack.errors import DataError, ShapeError
 
 __all__ = ["IntegralImage", "check_pixel_values", "integral_image", "rgb_to_gray"]
 
+#: unsigned integer dtypes torch offers no ``aminmax`` for (uint16 frames from 16-bit PNGs)
+_NO_MINMAX = tuple(getattr(torch, n) for n in ("uint16", "uint32", "uint64") if hasattr(torch, n))
+
 # ITU-R BT.601 luma, the weights cv2.cvtColor(..., COLOR_RGB2GRAY) uses.
 _LUMA = (0.299, 0.587, 0.114)
 
@@ -44,6 +47,8 @@ def check_pixel_values(images: torch.Tensor, name: str = "frames") -> None:
     """
     if images.dtype == torch.uint8 or images.numel() == 0:
         return
+    if images.dtype in _NO_MINMAX:  # torch has no min/max for them ('aminmax_cpu' error)
+        images = images.to(torch.float64)
     lo, hi = (float(v) for v in torch.aminmax(images))
     if not (lo >= 0 and hi <= 255):  # also false for NaN
         if not (math.isfinite(lo) and math.isfinite(hi)):
