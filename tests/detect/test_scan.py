@@ -306,3 +306,23 @@ def test_window_and_frame_sizes_that_are_not_two_sizes_are_refused():
             with pytest.raises(ShapeError, match=rf"{what} must be \(H, W\)"):
                 fn(frame, window)
     assert sliding_windows((48, 64), (16, 8)).shape[0] > 0
+
+
+def test_an_hwc_frame_is_named_as_such_not_as_too_small():
+    # (H, W, C) frames passed the size check only where C happened to be large: (100, 200, 3)
+    # was reported as a 200x3 frame smaller than the window
+    det = load_model("vehicle")
+    frame = torch.zeros(100, 200, 3, dtype=torch.uint8)
+    with pytest.raises(ShapeError, match=r"C = 1 \(gray\) or 3 \(RGB\).*permute\(2, 0, 1\)"):
+        det.scan(frame)
+    with pytest.raises(ShapeError, match=r"C=100"):
+        det.scan(frame[None])
+
+
+def test_an_empty_batch_of_frames_gives_an_empty_list():
+    # B = 0 asked for 0 windows per call: ConfigError 'batch must be >= 1, got 0', an argument
+    # the caller never gave
+    det = load_model("vehicle")
+    assert det.scan(torch.zeros(0, 1, 100, 200, dtype=torch.uint8)) == []
+    with pytest.raises(ConfigError, match="nms_iou"):  # the arguments are still checked
+        det.scan(torch.zeros(0, 1, 100, 200, dtype=torch.uint8), nms_iou=2.0)

@@ -733,12 +733,19 @@ def scan_batch(
     if not isinstance(frames, torch.Tensor) or frames.ndim != 4:
         got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
         raise ShapeError(f"scan_batch takes frames (B, C, H, W), got {got}")
+    if frames.shape[1] not in (1, 3):  # before the size check: an (H, W, C) frame came as 'small'
+        raise ShapeError(
+            f"scan_batch takes frames (B, C, H, W) with C = 1 (gray) or 3 (RGB), got "
+            f"{tuple(frames.shape)} (C={frames.shape[1]}); (H, W, C) images: permute(2, 0, 1)"
+        )
     if nms_on not in ("window", "object"):
         raise ConfigError(f"nms_on must be 'window' or 'object', got {nms_on!r}")
     if not 0.0 < stride <= 1.0:
         raise ConfigError(f"stride must be in (0, 1], got {stride}")
     if batch is None:
-        batch = (LATTICE_BATCH if _lattice_capable(detector) else SCORE_BATCH) * frames.shape[0]
+        # an empty batch of frames asked for 0 windows: 'batch must be >= 1, got 0'
+        per_frame = LATTICE_BATCH if _lattice_capable(detector) else SCORE_BATCH
+        batch = per_frame * max(1, frames.shape[0])
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
     # NaN kept no window (threshold) or suppressed none (nms_iou), silently
@@ -775,6 +782,8 @@ def scan_batch(
             )
         )
     nb = frames.shape[0]
+    if nb == 0:  # B pairs for B = 0 frames
+        return []
     # the threshold, the NMS and the voting are loops of small reads per frame: off the CPU
     # they run on the host (one copy of the windows there and one of the results back)
     host = frames.device.type != "cpu"
