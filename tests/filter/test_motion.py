@@ -238,3 +238,14 @@ def test_motion_init_refuses_bad_counts_and_boxes(model):
             model.init(boxes, 3)
         with pytest.raises(BoxError, match=r"boxes\[1\]"):
             model.from_boxes(boxes)
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR()])
+@pytest.mark.parametrize("bad", [2.0, torch.ones(3), torch.ones(2, 1), torch.ones(6)])
+def test_a_noise_scale_of_the_wrong_shape_is_a_shape_error(model, bad):
+    # a float was AttributeError ('float' object has no attribute 'to'), a wrong length
+    # torch's broadcast RuntimeError
+    s = model.init(torch.tensor([[10.0, 10.0, 20.0, 20.0], [30.0, 30.0, 10.0, 10.0]]), 5)
+    with pytest.raises(ShapeError, match=r"noise_scale must be None or a tensor \(B,\) = \(2,\)"):
+        model.predict(s, noise_scale=bad)
+    assert model.predict(s, noise_scale=torch.ones(2)).shape == s.shape

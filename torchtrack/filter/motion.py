@@ -53,6 +53,19 @@ def _check_states(states: torch.Tensor, d: int, model: str) -> None:
         raise ShapeError(f"{model}: states must be (B, N, {d}), got {shape}")
 
 
+def _check_noise_scale(ns, b: int, model: str, per_dim: bool = False) -> None:
+    """ShapeError unless ``ns`` is a ``(B,)`` tensor (or ``(B, 6)`` where ``per_dim``): a
+    float was 'object has no attribute to', a wrong length torch's broadcast error. Shapes
+    only, no read of the values (a per-frame call)."""
+    if isinstance(ns, torch.Tensor) and (
+        tuple(ns.shape) == (b,) or (per_dim and tuple(ns.shape) == (b, 6))
+    ):
+        return
+    want = f"(B,) = ({b},)" + (f" or (B, 6) = ({b}, 6)" if per_dim else "")
+    got = tuple(ns.shape) if isinstance(ns, torch.Tensor) else type(ns).__name__
+    raise ShapeError(f"{model}: noise_scale must be None or a tensor {want}, got {got}")
+
+
 def _clamp_centre(out: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clamp ``out[..., 0:2]`` (box centres) to the frame in place; ``(..., 2)`` bool: which
     coordinates were moved.
@@ -195,6 +208,7 @@ class KleinAR:
         e = randn((b, n, 4), generator, states.dtype, states.device)
         sv = self._velocity_sigma(states)
         if noise_scale is not None:
+            _check_noise_scale(noise_scale, b, "KleinAR")
             sv = sv * noise_scale.to(sv).reshape(-1, 1, 1)
         out = states.clone()  # one output buffer, updated in place (no concatenation)
         if self.damping != 1.0:
@@ -352,13 +366,9 @@ class ChateauAR:
         _check_states(states, 6, "ChateauAR")
         noise = self._noise(states, generator)
         if noise_scale is not None:
+            _check_noise_scale(noise_scale, states.shape[0], "ChateauAR", per_dim=True)
             ns = noise_scale.to(noise)
             if ns.ndim == 2:
-                if ns.shape != (states.shape[0], 6):
-                    raise ShapeError(
-                        f"ChateauAR: noise_scale must be (B,) or (B, 6) = "
-                        f"({states.shape[0]}, 6), got {tuple(ns.shape)}"
-                    )
                 noise = noise * ns[:, None, :]
             else:
                 noise = noise * ns.reshape(-1, 1, 1)
