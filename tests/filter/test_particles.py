@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchtrack.errors import FilterError, ShapeError
+from torchtrack.errors import ConfigError, FilterError, ShapeError
 from torchtrack.filter.particles import (
     ParticleSet,
     best_particle,
@@ -98,6 +98,46 @@ def test_dominant_mode_beats_mean_on_bimodal_posterior():
     # explicit bandwidth path
     mode2 = dominant_mode_mean(x, lw, bandwidth=torch.tensor([1.0, 1.0]))
     assert (mode2[:, 0]).abs().max() < 0.3
+
+
+def test_dominant_mode_mean_refuses_bad_starts_iters_and_bandwidths():
+    x = torch.randn(2, 50, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    lw = torch.zeros(2, 50, dtype=torch.float64)
+    # n_starts=0 was argmax's IndexError, a negative iters ran no iteration
+    for name, bad in (("n_starts", 0), ("n_starts", 2.5), ("n_starts", True), ("iters", -1)):
+        with pytest.raises(ConfigError, match=rf"{name} must be an integer >= \d, got"):
+            dominant_mode_mean(x, lw, **{name: bad})
+    # a negative or NaN bandwidth was silently replaced by 1
+    for bad in (-1.0, 0.0, math.nan, math.inf, "1", True):
+        with pytest.raises(ConfigError, match="bandwidth must be None, a finite number > 0"):
+            dominant_mode_mean(x, lw, bandwidth=bad)
+    for bad in (torch.tensor([1.0, -1.0, 1.0]), torch.full((2, 3), math.nan)):
+        with pytest.raises(ConfigError, match=r"bandwidth must be finite and > 0"):
+            dominant_mode_mean(x, lw, bandwidth=bad)
+    # a (4,) bandwidth for D = 3 was torch's expand RuntimeError
+    for bad in (torch.ones(4), torch.ones(3, 3), torch.ones(3, dtype=torch.bool)):
+        with pytest.raises(ShapeError, match=r"bandwidth must be .* \(D,\) = \(3,\) or"):
+            dominant_mode_mean(x, lw, bandwidth=bad)
+    with pytest.raises(ConfigError, match="bandwidth must hold D = 3 numbers"):
+        dominant_mode_mean(x, lw, bandwidth=[[1.0, 1.0], [1.0]])
+    # every accepted form of one bandwidth gives the same estimate; 1 iteration and 1 start too
+    ref = dominant_mode_mean(x, lw, bandwidth=0.5)
+    same = [torch.tensor(0.5), torch.full((3,), 0.5), [0.5] * 3, torch.full((2, 3), 0.5)]
+    for ok in same:
+        torch.testing.assert_close(dominant_mode_mean(x, lw, bandwidth=ok), ref)
+    assert dominant_mode_mean(x, lw, n_starts=1, iters=0).shape == (2, 3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_dominant_mode_mean_cuda_bandwidth_is_not_read_back_and_a_bad_one_gives_nan():
+    x = torch.randn(2, 50, 3, dtype=torch.float64, device="cuda")
+    lw = torch.zeros(2, 50, dtype=torch.float64, device="cuda")
+    h = torch.tensor([1.0, -1.0, 1.0], device="cuda")
+    assert torch.isnan(dominant_mode_mean(x, lw, bandwidth=h)).all()
+    torch.testing.assert_close(
+        dominant_mode_mean(x, lw, bandwidth=torch.ones(3, device="cuda")),
+        dominant_mode_mean(x.cpu(), lw.cpu(), bandwidth=1.0).cuda(),
+    )
 
 
 def test_particle_set_and_shape_errors():

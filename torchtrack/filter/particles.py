@@ -11,11 +11,12 @@ Conventions used throughout ``torchtrack.filter``:
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
 
-from torchtrack.errors import FilterError, ShapeError
+from torchtrack.errors import ConfigError, FilterError, ShapeError
 
 __all__ = [
     "ParticleSet",
@@ -242,6 +243,52 @@ def best_particle(states: torch.Tensor, log_weights: torch.Tensor) -> torch.Tens
     return states[torch.arange(states.shape[0], device=states.device), idx]
 
 
+def _check_bandwidth(bandwidth: torch.Tensor | float, states: torch.Tensor) -> torch.Tensor:
+    """A user's ``bandwidth`` as a ``(B, D)`` tensor of ``states``' dtype and device.
+
+    A number is checked (finite, > 0), and so are the entries of a CPU tensor (no wait on a
+    device); a tensor elsewhere is checked for its shape only, and its entries that are not
+    > 0 (NaN included) become NaN, so that the estimate is NaN rather than silently made with
+    a bandwidth of 1, as it was."""
+    b, _, d = states.shape
+    if isinstance(bandwidth, (list, tuple)):  # e.g. from a config file: read as a CPU tensor
+        try:
+            bandwidth = torch.tensor(bandwidth, dtype=torch.float64)
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"dominant_mode_mean: bandwidth must hold D = {d} numbers, got {bandwidth!r}"
+            ) from None
+    if isinstance(bandwidth, torch.Tensor):
+        shapes = ((), (d,), (b, d))
+        if bandwidth.dtype == torch.bool or bandwidth.is_complex() or bandwidth.shape not in shapes:
+            raise ShapeError(
+                f"dominant_mode_mean: bandwidth must be a number or a (), (D,) = ({d},) or "
+                f"(B, D) = ({b}, {d}) tensor of real numbers, got {tuple(bandwidth.shape)} "
+                f"{bandwidth.dtype}"
+            )
+        on_cpu = bandwidth.device.type == "cpu"
+        if on_cpu and not bool(((bandwidth > 0) & torch.isfinite(bandwidth)).all()):
+            raise ConfigError(
+                "dominant_mode_mean: bandwidth must be finite and > 0 (kernel standard "
+                f"deviations in state units), got {bandwidth.tolist()}"
+            )
+        h = bandwidth.to(dtype=states.dtype, device=states.device)
+        if not on_cpu:
+            h = torch.where(h > 0, h, torch.full_like(h, math.nan))
+    elif (
+        isinstance(bandwidth, bool)
+        or not isinstance(bandwidth, numbers.Real)
+        or not 0.0 < float(bandwidth) < math.inf
+    ):
+        raise ConfigError(
+            "dominant_mode_mean: bandwidth must be None, a finite number > 0 or a tensor, "
+            f"got {bandwidth!r}"
+        )
+    else:
+        h = torch.full((), float(bandwidth), dtype=states.dtype, device=states.device)
+    return h.expand(b, d)
+
+
 def dominant_mode_mean(
     states: torch.Tensor,
     log_weights: torch.Tensor,
@@ -262,25 +309,37 @@ def dominant_mode_mean(
         bandwidth: kernel standard deviation per state dimension, a float, a ``(D,)`` or a
             ``(B, D)`` tensor in state units. Default: Silverman's rule on the weighted standard
             deviation, ``std_d * ESS ** (-1 / (D + 4))``.
-        n_starts: number of starting particles per row.
-        iters: mean-shift iterations.
+        n_starts: number of starting particles per row, an integer >= 1.
+        iters: mean-shift iterations, an integer >= 0.
 
     Returns:
         ``(B, D)``.
+
+    Raises:
+        ShapeError: bad ``states`` / ``log_weights``, or a ``bandwidth`` tensor that is not
+            ``()``, ``(D,)`` or ``(B, D)`` real numbers.
+        ConfigError: ``n_starts`` or ``iters`` not such an integer; a float ``bandwidth``, or
+            an entry of a CPU ``bandwidth`` tensor, that is not finite and > 0. The entries of
+            a tensor on another device are not read back (no host synchronisation): there a
+            bad entry gives NaN in the result instead.
     """
     check_particles(states, log_weights)
     b, n, d = states.shape
+    # n_starts=0 was argmax's IndexError on an empty dimension, a negative iters ran none
+    for name, value, least in (("n_starts", n_starts, 1), ("iters", iters, 0)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+            raise ConfigError(
+                f"dominant_mode_mean: {name} must be an integer >= {least}, got {value!r}"
+            )
+    h = None if bandwidth is None else _check_bandwidth(bandwidth, states)
     lw = normalize_log_weights(log_weights, step="dominant_mode_mean")[0].to(states.dtype)
-    if bandwidth is None:
+    if h is None:
         var = torch.diagonal(weighted_cov(states, lw), dim1=1, dim2=2)
         factor = ess(lw).to(states.dtype).pow(-1.0 / (d + 4)).unsqueeze(1)
         h = var.clamp_min(0).sqrt() * factor
-    else:
-        h = torch.as_tensor(bandwidth, dtype=states.dtype, device=states.device)
-        h = h.expand(b, d) if h.ndim <= 1 else h
-    # Dimensions with no spread: any positive bandwidth keeps the kernel finite.
-    h = torch.where(h > 0, h, torch.ones_like(h))
-    k = min(n_starts, n)
+        # Dimensions with no spread: any positive bandwidth keeps the kernel finite.
+        h = torch.where(h > 0, h, torch.ones_like(h))
+    k = min(int(n_starts), n)
     start = lw.topk(k, dim=1).indices
     x = torch.gather(states, 1, start.unsqueeze(-1).expand(b, k, d))  # (B, K, D)
     z = states / h.unsqueeze(1)  # (B, N, D) in bandwidth units
@@ -289,7 +348,7 @@ def dominant_mode_mean(
         # (B, K, N): log w_i - |x_k - s_i|^2 / 2 in bandwidth units
         return lw.unsqueeze(1) - 0.5 * torch.cdist(x / h.unsqueeze(1), z).square()
 
-    for _ in range(iters):
+    for _ in range(int(iters)):
         a = torch.softmax(log_kernel(x), dim=2)
         x = torch.bmm(a, states)
     density = torch.logsumexp(log_kernel(x), dim=2)  # (B, K)
