@@ -95,6 +95,20 @@ def test_bachoo_noise_adapts_and_inflates_on_occlusion():
     assert ((q[..., 2] / 30.0)[0].std() - 0.01).abs() < 0.001  # eq. (2) relative scale
     with pytest.raises(ShapeError, match="history is for B=2 targets"):
         m.predict(s[:1], None, history=h2)
+    # a wrong-length occluded was taken and failed in predict as torch's broadcast error, a
+    # list velocity was AttributeError
+    with pytest.raises(
+        ShapeError, match=r"occluded must be None or a tensor \(B,\) = \(2,\), got \(3,\)"
+    ):
+        m.update_history(h, torch.zeros(2, 2), occluded=torch.tensor([True, False, True]))
+    with pytest.raises(ShapeError, match=r"occluded must be None or a tensor .* got list"):
+        m.update_history(h, torch.zeros(2, 2), occluded=[True, False])
+    with pytest.raises(
+        ShapeError, match=r"velocity must be a tensor \(B, 2\) = \(2, 2\), got list"
+    ):
+        m.update_history(h, [[0.0, 0.0], [1.0, 1.0]])
+    with pytest.raises(ShapeError, match=r"velocity must be a tensor .* got \(2,\)"):
+        m.update_history(h, torch.zeros(2))
     with pytest.raises(ConfigError, match=r"history must be an integer in \[1, 100000\]"):
         BachooMotion(history=0)
     with pytest.raises(ConfigError, match="min_sigma must be a finite number >= 0"):

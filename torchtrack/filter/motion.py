@@ -66,6 +66,11 @@ def _check_noise_scale(ns, b: int, model: str, per_dim: bool = False) -> None:
     raise ShapeError(f"{model}: noise_scale must be None or a tensor {want}, got {got}")
 
 
+def _shape_or_type(x) -> object:
+    """A tensor's shape or, for anything else, its type's name (for error messages)."""
+    return tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+
+
 def _clamp_centre(out: torch.Tensor, frame_size: tuple[int, int]) -> torch.Tensor:
     """Clamp ``out[..., 0:2]`` (box centres) to the frame in place; ``(..., 2)`` bool: which
     coordinates were moved.
@@ -510,12 +515,23 @@ class BachooMotion:
         occluded: torch.Tensor | None = None,
     ) -> VelocityHistory:
         """Push the estimated centre velocity ``(B, 2)`` of this frame; set the occlusion flags
-        ``(B,)``. Returns a new history (the input is not modified)."""
-        if velocity.shape != (hist.velocities.shape[0], 2):
-            raise ShapeError(
-                f"velocity must be (B, 2) = ({hist.velocities.shape[0]}, 2), "
-                f"got {tuple(velocity.shape)}"
-            )
+        ``(B,)``. Returns a new history (the input is not modified).
+
+        Raises:
+            ShapeError: ``velocity`` not a ``(B, 2)`` tensor or ``occluded`` not a ``(B,)``
+                tensor, for the history's B (shapes only: this runs every frame).
+        """
+        b = hist.velocities.shape[0]
+        # a list was AttributeError 'list' object has no attribute 'shape'
+        if not isinstance(velocity, torch.Tensor) or velocity.shape != (b, 2):
+            got = _shape_or_type(velocity)
+            raise ShapeError(f"velocity must be a tensor (B, 2) = ({b}, 2), got {got}")
+        # a wrong length was taken, and failed later in predict as torch's broadcast error
+        if occluded is not None and (
+            not isinstance(occluded, torch.Tensor) or occluded.shape != (b,)
+        ):
+            got = _shape_or_type(occluded)
+            raise ShapeError(f"occluded must be None or a tensor (B,) = ({b},), got {got}")
         v = torch.cat([hist.velocities[:, 1:], velocity.unsqueeze(1).to(hist.velocities)], 1)
         count = (hist.count + 1).clamp_max(self.history)
         occ = (
