@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from torchtrack.errors import BoxError, ConfigError, ShapeError
-from torchtrack.filter.motion import BachooMotion, ChateauAR, KleinAR
+from torchtrack.filter.motion import BachooMotion, ChateauAR, KleinAR, default_chateau_A
 
 BOXES = torch.tensor([[10.0, 20.0, 30.0, 60.0], [100.0, 50.0, 8.0, 16.0]], dtype=torch.float64)
 
@@ -66,6 +66,24 @@ def test_chateau_config_errors():
         ChateauAR.from_params({"A": [], "B": [], "Sigma": [], "sigma": 1})
     with pytest.raises(ConfigError, match=r"window must be \(w, h\) > 0"):
         ChateauAR(window=(0.0, 1.0))
+    # window=5 was TypeError "object of type 'int' has no len()"; ragged from_params lists
+    # were torch's ValueError naming no parameter
+    for bad in (5, "ab", (1.0, "2"), (True, 1.0), (1.0, 2.0, 3.0)):
+        with pytest.raises(ConfigError, match=r"window must be \(w, h\) > 0 and finite, two num"):
+            ChateauAR(window=bad)
+    good = {"A": default_chateau_A().tolist(), "B": [[1.0]] * 6, "Sigma": [[1.0]]}
+    with pytest.raises(ConfigError, match=r"window must be .* got 5"):
+        ChateauAR.from_params({**good, "window": 5})
+    for key, bad in (
+        ("A", [[1.0] * 6] * 5 + [[1.0]]),
+        ("B", [[1.0], "x"] * 3),
+        ("Sigma", [1, [2]]),
+    ):
+        with pytest.raises(ConfigError, match=rf"ChateauAR: {key} must be a matrix of numbers"):
+            ChateauAR.from_params({**good, key: bad})
+    with pytest.raises(ConfigError, match="ChateauAR: A must hold real numbers"):
+        ChateauAR(A=torch.ones(6, 6, dtype=torch.bool))
+    assert ChateauAR.from_params({**good, "window": [15, 30]}).window == (15.0, 30.0)
 
 
 def test_bachoo_noise_adapts_and_inflates_on_occlusion():

@@ -242,6 +242,22 @@ class KleinAR:
         return out
 
 
+def _matrix(name: str, value) -> torch.Tensor:
+    """``value`` (a tensor or nested lists, e.g. from TOML) as a float64 tensor; ragged or
+    non-numeric lists were torch's ValueError / TypeError, naming no parameter."""
+    if isinstance(value, torch.Tensor):
+        if value.dtype == torch.bool or value.is_complex():
+            raise ConfigError(f"ChateauAR: {name} must hold real numbers, got {value.dtype}")
+        return value.to(torch.float64)
+    try:
+        return torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ConfigError(
+            f"ChateauAR: {name} must be a matrix of numbers (nested lists of equal length), "
+            f"got {value!r} ({e})"
+        ) from None
+
+
 class ChateauAR:
     """Chateau et al. eq. (4): ``X_{t+1} = A X_t + B v_t``, ``v_t ~ N(0, Sigma)``.
 
@@ -268,12 +284,12 @@ class ChateauAR:
         window: tuple[float, float] = (1.0, 1.0),
         min_scale: float = 1e-3,
     ) -> None:
-        self.A = default_chateau_A() if A is None else torch.as_tensor(A, dtype=torch.float64)
-        self.B = default_chateau_B() if B is None else torch.as_tensor(B, dtype=torch.float64)
+        self.A = default_chateau_A() if A is None else _matrix("A", A)
+        self.B = default_chateau_B() if B is None else _matrix("B", B)
         self.Sigma = (
             torch.diag(torch.tensor([4.0, 4.0, 1e-4], dtype=torch.float64))
             if Sigma is None
-            else torch.as_tensor(Sigma, dtype=torch.float64)
+            else _matrix("Sigma", Sigma)
         )
         if self.A.shape != (6, 6):
             raise ConfigError(f"ChateauAR: A must be 6 x 6, got {tuple(self.A.shape)}")
@@ -297,8 +313,19 @@ class ChateauAR:
         for name, m in (("A", self.A), ("B", self.B)):
             if not bool(torch.isfinite(m).all()):  # NaN / inf particles, silently
                 raise ConfigError(f"ChateauAR: {name} must be finite, got {m.tolist()}")
-        if len(window) != 2 or not all(0 < float(v) < math.inf for v in window):
-            raise ConfigError(f"ChateauAR: window must be (w, h) > 0 and finite, got {window!r}")
+        # window=5 was TypeError "object of type 'int' has no len()", ("a", 1) float's ValueError
+        if (
+            isinstance(window, (str, bytes))
+            or not hasattr(window, "__len__")
+            or len(window) != 2
+            or not all(
+                not isinstance(v, bool) and isinstance(v, numbers.Real) and 0 < float(v) < math.inf
+                for v in window
+            )
+        ):
+            raise ConfigError(
+                f"ChateauAR: window must be (w, h) > 0 and finite, two numbers, got {window!r}"
+            )
         self.window = (float(window[0]), float(window[1]))
         self.min_scale = _positive("min_scale", min_scale)
 
@@ -311,11 +338,11 @@ class ChateauAR:
         missing = {"A", "B", "Sigma"} - set(params)
         if missing:
             raise ConfigError(f"ChateauAR: missing parameter keys {sorted(missing)}")
-        win = window if window is not None else tuple(params.get("window", (1.0, 1.0)))
+        win = window if window is not None else params.get("window", (1.0, 1.0))
         return cls(
-            torch.tensor(params["A"], dtype=torch.float64),
-            torch.tensor(params["B"], dtype=torch.float64),
-            torch.tensor(params["Sigma"], dtype=torch.float64),
+            _matrix("A", params["A"]),
+            _matrix("B", params["B"]),
+            _matrix("Sigma", params["Sigma"]),
             window=win,
             min_scale=params.get("min_scale", 1e-3),
         )
