@@ -109,6 +109,12 @@ def test_registry_names_valid_choices():
         resample(torch.zeros(1, 3), scheme="bogus")
     with pytest.raises(ConfigError, match=r"ess_fraction must be None or in \(0, 1\]"):
         resample(torch.zeros(1, 3), ess_fraction=1.5)
+    for bad in ("0.5", True, math.nan, torch.tensor(0.5)):  # "0.5" and True went through float()
+        with pytest.raises(
+            ConfigError, match=r"ess_fraction must be None or in \(0, 1\] \(a number"
+        ):
+            resample(torch.zeros(1, 3), ess_fraction=bad)
+    assert resample(torch.zeros(1, 3), ess_fraction=np.float32(0.5))[2].tolist() == [False]
     with pytest.raises(ShapeError, match=r"weights must be a \(B, N\) tensor"):
         get_resampler("systematic")(torch.ones(3))
     for scheme in SCHEMES:

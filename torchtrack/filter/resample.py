@@ -20,6 +20,7 @@ temporaries alive at once.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 
 import numpy as np
@@ -397,12 +398,20 @@ def resample(
         rows get ``-log N``.
 
     Raises:
-        ConfigError: unknown scheme or ``ess_fraction`` outside (0, 1].
+        ConfigError: unknown scheme or ``ess_fraction`` not a number in (0, 1] (a string or a
+            bool is refused).
         FilterError: NaN log-weights.
     """
     fn = get_resampler(scheme)
-    if ess_fraction is not None and not (0.0 < float(ess_fraction) <= 1.0):
-        raise ConfigError(f"ess_fraction must be None or in (0, 1], got {ess_fraction!r}")
+    # "0.5" and True passed through float(); NaN fails the comparison and is refused too
+    if ess_fraction is not None and (
+        isinstance(ess_fraction, bool)
+        or not isinstance(ess_fraction, numbers.Real)
+        or not (0.0 < float(ess_fraction) <= 1.0)
+    ):
+        raise ConfigError(
+            f"ess_fraction must be None or in (0, 1] (a number), got {ess_fraction!r}"
+        )
     lw, _ = normalize_log_weights(log_weights, step=step)
     b, n = lw.shape
     ancestors = fn(lw.exp(), generator)
