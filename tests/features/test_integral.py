@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.errors import DataError, ShapeError
+from torchtrack.errors import ConfigError, DataError, ShapeError
 from torchtrack.features.integral import IntegralImage, integral_image, rgb_to_gray
 
 
@@ -88,6 +88,17 @@ def test_rgb_to_gray_matches_cv2():
 def test_bad_input(bad, match):
     with pytest.raises(ShapeError, match=match):
         integral_image(bad)
+
+
+@pytest.mark.parametrize("dtype", ["float32", torch.bool, torch.int32, torch.complex64, None])
+def test_result_dtype_must_be_a_floating_torch_dtype(dtype):
+    # "float32" was torch's RuntimeError 'Invalid device string', torch.bool a table of bools
+    img = torch.ones(1, 1, 2, 3, dtype=torch.uint8)
+    with pytest.raises(ConfigError, match=r"integral_image: dtype must be a floating torch dtype"):
+        integral_image(img, dtype=dtype)
+    with pytest.raises(ConfigError, match=r"dtype must be a floating torch dtype .* got"):
+        IntegralImage(dtype=dtype)(img)
+    assert integral_image(img, dtype=torch.float32).dtype == torch.float32
 
 
 def test_gray_rejects_two_channels():

@@ -16,7 +16,7 @@ import math
 import torch
 from torch import nn
 
-from torchtrack.errors import DataError, ShapeError
+from torchtrack.errors import ConfigError, DataError, ShapeError
 
 __all__ = ["IntegralImage", "check_pixel_values", "integral_image", "rgb_to_gray"]
 
@@ -70,13 +70,15 @@ def integral_image(
         images: ``(B, C, H, W)``, any integer or floating dtype (8-bit frames as uint8 or float
             in 0..255), on any device.
         squared: integrate ``images ** 2`` instead (for window variances).
-        dtype: result dtype; float64 (default) is exact for 8-bit VGA frames and their squares.
+        dtype: result dtype, a floating torch dtype; float64 (default) is exact for 8-bit VGA
+            frames and their squares.
 
     Returns:
         ``(B, C, H + 1, W + 1)`` on the input's device; row 0 and column 0 are zeros.
 
     Raises:
         ShapeError: ``images`` is not a 4-D real tensor.
+        ConfigError: ``dtype`` is not a floating torch dtype.
 
     Example:
         >>> ii = integral_image(torch.ones(1, 1, 2, 3, dtype=torch.uint8))
@@ -84,6 +86,12 @@ def integral_image(
         [[0.0, 0.0, 0.0, 0.0], [0.0, 1.0, 2.0, 3.0], [0.0, 2.0, 4.0, 6.0]]
     """
     _check_images(images)
+    # "float32" was torch's RuntimeError 'Invalid device string', torch.bool a table of bools
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise ConfigError(
+            "integral_image: dtype must be a floating torch dtype (e.g. torch.float64, "
+            f"torch.float32), got {dtype!r}"
+        )
     if images.is_floating_point():
         acc = images.to(torch.float64)
     else:
