@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -249,12 +250,23 @@ def test_scan_thresholds_nms_and_max_scale_out_of_range_are_refused():
     for bad in (math.nan, 2.0, -0.1):
         with pytest.raises(ConfigError, match=r"threshold must be None or a probability"):
             scan(det, frame, threshold=bad)
-    with pytest.raises(ConfigError, match=r"threshold must be None or a margin \(not NaN\)"):
+    with pytest.raises(
+        ConfigError, match=r"threshold must be None or a margin \(a number, not NaN\)"
+    ):
         scan(det, frame, threshold=math.nan, margin=True)
     scan(det, frame, threshold=-5.0, margin=True)
     for bad in (math.nan, 1.5, -0.1):
         with pytest.raises(ConfigError, match=r"nms_iou must be None or in \[0, 1\]"):
             scan(det, frame, nms_iou=bad)
+    # a string was TypeError "'<=' not supported between instances of 'float' and 'str'"
+    for bad in ("0.5", True):
+        with pytest.raises(ConfigError, match=r"threshold must be None or a probability .* got"):
+            det.scan(frame, threshold=bad)
+        with pytest.raises(ConfigError, match=r"threshold must be None or a margin"):
+            scan(det, frame, threshold=bad, margin=True)
+        with pytest.raises(ConfigError, match=r"nms_iou must be None or in \[0, 1\], got"):
+            det.scan(frame, nms_iou=bad)
+    det.scan(frame, threshold=np.float32(0.5), nms_iou=np.float64(0.3))
     for bad in (math.nan, 0.5):
         with pytest.raises(ConfigError, match=r"max_scale must be None or a number >= min_scale"):
             scan_scales((480, 640), (128, 64), min_scale=0.6, max_scale=bad)

@@ -26,6 +26,7 @@ uses both (0.1 and 0.5).
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -299,6 +300,11 @@ def scan_scales(
         return []
     n = math.floor(math.log(top / min_scale) / math.log(scale_step) + 1e-9) + 1
     return [min_scale * scale_step**i for i in range(n)]
+
+
+def _is_number(x: object) -> bool:
+    """A real number other than a bool (a numpy scalar too)."""
+    return not isinstance(x, bool) and isinstance(x, numbers.Real)
 
 
 def _check_pad(pad: float) -> None:
@@ -748,17 +754,18 @@ def scan_batch(
         batch = per_frame * max(1, frames.shape[0])
     if batch < 1:
         raise ConfigError(f"batch must be >= 1, got {batch}")
-    # NaN kept no window (threshold) or suppressed none (nms_iou), silently
+    # NaN kept no window (threshold) or suppressed none (nms_iou), silently; a string or a
+    # bool was a TypeError from a comparison (or read as 0 / 1)
     if threshold is not None and not (
-        threshold == threshold if margin else 0.0 <= threshold <= 1.0
+        _is_number(threshold) and (threshold == threshold if margin else 0.0 <= threshold <= 1.0)
     ):
         raise ConfigError(
             "threshold must be None or "
-            + ("a margin (not NaN)" if margin else "a probability in [0, 1]")
-            + f", got {threshold}"
+            + ("a margin (a number, not NaN)" if margin else "a probability in [0, 1]")
+            + f", got {threshold!r}"
         )
-    if nms_iou is not None and not 0.0 <= nms_iou <= 1.0:
-        raise ConfigError(f"nms_iou must be None or in [0, 1], got {nms_iou}")
+    if nms_iou is not None and not (_is_number(nms_iou) and 0.0 <= nms_iou <= 1.0):
+        raise ConfigError(f"nms_iou must be None or in [0, 1], got {nms_iou!r}")
     _check_pad(pad)
     if cascade_threshold is not None and not math.isfinite(cascade_threshold):
         raise ConfigError(f"cascade_threshold must be a finite margin, got {cascade_threshold}")
