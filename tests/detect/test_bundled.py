@@ -50,6 +50,17 @@ def test_unknown_name_lists_bundled():
         resolve_model("missing/model.safetensors")
 
 
+@pytest.mark.parametrize(("bad", "got"), [(None, "NoneType"), (5, "int"), ("", "''")])
+def test_a_model_that_is_no_path_or_name_is_named(bad, got):
+    # None and 5 were Path's TypeError; "" (Path(".")) was "model '' is a folder"
+    with pytest.raises(
+        ConfigError,
+        match=rf"model must be a model file's path or a bundled model's name, got {got}; "
+        r"bundled models: pedestrian, vehicle",
+    ):
+        load_model(bad)
+
+
 def test_a_file_wins_over_a_name(tmp_path, monkeypatch):
     shutil.copy(resolve_model("vehicle"), tmp_path / "pedestrian")
     monkeypatch.chdir(tmp_path)

@@ -45,10 +45,18 @@ def resolve_model(name_or_path: str | os.PathLike) -> Path:
     """The model file for a bundled name (``"pedestrian"``) or a path.
 
     Raises:
-        ConfigError: neither an existing file nor a bundled name (the message lists the
-            bundled names).
+        ConfigError: neither an existing file nor a bundled name, an empty string, or not a
+            string or path at all (the message lists the bundled names).
         ModelFormatError: a path-like string (with a suffix or a folder) that does not exist.
     """
+    # None or 5 was Path's TypeError; "" is Path("."), which was reported as 'a folder'
+    if not isinstance(name_or_path, (str, os.PathLike)) or name_or_path == "":
+        names = bundled_models()
+        got = repr(name_or_path) if isinstance(name_or_path, str) else type(name_or_path).__name__
+        raise ConfigError(
+            f"model must be a model file's path or a bundled model's name, got {got}; bundled "
+            f"models: {', '.join(names) or 'none installed'}"
+        )
     p = Path(name_or_path)
     if p.is_file():
         return p
@@ -82,7 +90,8 @@ def load_model(name_or_path: str | os.PathLike) -> Detector:
     :func:`torchtrack.detect.load_detector`).
 
     Raises:
-        ConfigError: an unknown name (the message lists the bundled names).
+        ConfigError: an unknown name, an empty string or neither a string nor a path (the
+            message lists the bundled names).
         ModelFormatError: a missing, truncated, edited or future-version model file.
     """
     from torchtrack.detect.model_file import load_detector
