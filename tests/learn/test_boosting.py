@@ -174,6 +174,27 @@ def test_bad_input():
         clf.decision_function(X[:, :3])
 
 
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"n_estimators": 2.5}, r"n_estimators must be a positive integer, got 2\.5"),
+        ({"n_estimators": True}, r"n_estimators must be a positive integer, got True"),
+        ({"n_estimators": "40"}, r"n_estimators must be a positive integer, got '40'"),
+        ({"n_estimators": 0}, r"n_estimators must be a positive integer, got 0"),
+        ({"max_bins": 2.5}, r"max_bins must be None or an integer in \[2, 256\], got 2\.5"),
+        ({"max_bins": 257}, r"max_bins must be None or an integer in \[2, 256\], got 257"),
+        ({"chunk_size": 0}, r"chunk_size must be None or a positive integer, got 0"),
+    ],
+)
+def test_parameters_are_validated_in_fit(params, match):
+    # n_estimators=2.5 fitted 2 rounds without complaint (int() of the parameter)
+    X, y = _data()
+    clf = BoostedStumps(**params)  # __init__ only stores (scikit-learn's contract)
+    with pytest.raises(errors.ConfigError, match=match):
+        clf.fit(X, y)
+    assert len(BoostedStumps(np.int64(2), max_bins=np.int32(16)).fit(X, y).feature_) <= 2
+
+
 def test_perfect_stump_stops_early():
     X = np.array([[0.0], [1.0], [2.0], [3.0]], dtype=np.float32)
     y = np.array([0, 0, 1, 1])

@@ -141,6 +141,28 @@ def test_platt_fit_that_cannot_leave_zero_warns():
     assert abs(cal.a_) * 1e-300 < 1e-9
 
 
+@pytest.mark.parametrize(
+    ("params", "match"),
+    [
+        ({"tol": -1}, r"tol must be a finite number >= 0 \(gradient tolerance\), got -1"),
+        ({"tol": float("nan")}, r"tol must be a finite number >= 0 .*got nan"),
+        ({"tol": "1e-10"}, r"tol must be a finite number >= 0 .*got '1e-10'"),
+        ({"max_iter": 0}, r"max_iter must be a positive integer \(Newton iterations\), got 0"),
+        ({"max_iter": 2.5}, r"max_iter must be a positive integer .*got 2\.5"),
+        ({"max_iter": True}, r"max_iter must be a positive integer .*got True"),
+    ],
+)
+def test_platt_parameters_are_validated_in_fit(params, match):
+    # tol=-1 was accepted and max_iter=0 only warned that A stayed 0
+    s, y = _scores()
+    cal = PlattCalibrator(**params)  # __init__ only stores (scikit-learn's contract)
+    with pytest.raises(errors.ConfigError, match=match):
+        cal.fit(s, y)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert PlattCalibrator(max_iter=np.int64(50), tol=0).fit(s, y).a_ < 0
+
+
 def test_isotonic_scores_whose_range_overflows_are_refused():
     # +-1.8e308: the fit's interpolation gave NaN probabilities ("p contains 99 non-finite")
     y = np.array([0, 1] * 10)

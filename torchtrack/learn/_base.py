@@ -8,6 +8,7 @@ functions, so bad input fails the same way everywhere: a :class:`~torchtrack.err
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 from typing import Any
 
@@ -22,6 +23,8 @@ __all__ = [
     "as_binary_labels",
     "as_float_tensor",
     "check_fitted",
+    "is_integer",
+    "is_number",
     "state_meta",
     "state_tensor",
 ]
@@ -33,6 +36,17 @@ class NotFittedError(errors.NotFittedError, _SklearnNotFittedError):
     Subclass of both :class:`torchtrack.errors.NotFittedError` and scikit-learn's
     ``sklearn.exceptions.NotFittedError``, so ``except`` clauses written for either catch it.
     """
+
+
+def is_integer(x: object) -> bool:
+    """An integer parameter: Python's or numpy's, not a bool (int() took 2.5 as 2 and True
+    as 1)."""
+    return not isinstance(x, bool) and isinstance(x, numbers.Integral)
+
+
+def is_number(x: object) -> bool:
+    """A real-number parameter: Python's or numpy's, not a bool nor a string."""
+    return not isinstance(x, bool) and isinstance(x, numbers.Real)
 
 
 def check_fitted(estimator: Any, attribute: str) -> None:

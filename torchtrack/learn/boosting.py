@@ -31,6 +31,7 @@ from torchtrack.learn._base import (
     as_float_tensor,
     check_fitted,
     check_kind,
+    is_integer,
     state_meta,
     state_tensor,
 )
@@ -414,21 +415,36 @@ class BoostedStumps(ClassifierMixin, BaseEstimator):
         self.chunk_size = chunk_size
 
     # -- fitting
-    def fit(self, X: Any, y: Any, sample_weight: Any = None) -> BoostedStumps:
-        """Fit on ``X (n, T)`` and labels ``y (n,)``; returns ``self``.
-
-        Raises:
-            ConfigError: unknown ``variant``, ``n_estimators < 1`` or bad ``max_bins``.
-            ShapeError / DataError: see :func:`~torchtrack.learn._base.as_float_tensor`.
-        """
+    def _check_params(self) -> None:
+        # int() took 2.5 as 2 rounds (max_bins 2.5 as 2 bins) and True as 1, silently
         if self.variant not in VARIANTS:
             raise errors.ConfigError(
                 f"variant must be one of {', '.join(VARIANTS)}; got {self.variant!r}"
             )
-        if int(self.n_estimators) < 1:
-            raise errors.ConfigError(f"n_estimators must be >= 1, got {self.n_estimators}")
-        if self.max_bins is not None and not 2 <= int(self.max_bins) <= 256:
-            raise errors.ConfigError(f"max_bins must be None or in [2, 256], got {self.max_bins}")
+        if not is_integer(self.n_estimators) or self.n_estimators < 1:
+            raise errors.ConfigError(
+                f"n_estimators must be a positive integer, got {self.n_estimators!r}"
+            )
+        if self.max_bins is not None and (
+            not is_integer(self.max_bins) or not 2 <= self.max_bins <= 256
+        ):
+            raise errors.ConfigError(
+                f"max_bins must be None or an integer in [2, 256], got {self.max_bins!r}"
+            )
+        if self.chunk_size is not None and (not is_integer(self.chunk_size) or self.chunk_size < 1):
+            raise errors.ConfigError(
+                f"chunk_size must be None or a positive integer, got {self.chunk_size!r}"
+            )
+
+    def fit(self, X: Any, y: Any, sample_weight: Any = None) -> BoostedStumps:
+        """Fit on ``X (n, T)`` and labels ``y (n,)``; returns ``self``.
+
+        Raises:
+            ConfigError: unknown ``variant``; ``n_estimators`` not an integer >= 1, ``max_bins``
+                not None or an integer in [2, 256], ``chunk_size`` not None or an integer >= 1.
+            ShapeError / DataError: see :func:`~torchtrack.learn._base.as_float_tensor`.
+        """
+        self._check_params()
         Xt = as_float_tensor(X, "X", ndim=2)
         n, T = Xt.shape
         y01, classes = as_binary_labels(y, n)

@@ -28,6 +28,8 @@ from torchtrack.learn._base import (
     as_float_tensor,
     check_fitted,
     check_kind,
+    is_integer,
+    is_number,
     state_meta,
     state_tensor,
 )
@@ -187,10 +189,20 @@ class PlattCalibrator(BaseEstimator):
         """Fit on classifier margins ``scores (n,)`` and labels ``y (n,)``; returns ``self``.
 
         Raises:
+            ConfigError: ``max_iter`` not an integer >= 1 or ``tol`` not a finite number >= 0.
             DataError: NaN / inf scores (index named), a single class, bad sample weights,
                 a fit that is not finite.
             ShapeError: mismatched lengths.
         """
+        # max_iter=0 ran no Newton step and only warned that A stayed 0; tol=-1 was taken
+        if not is_integer(self.max_iter) or self.max_iter < 1:
+            raise errors.ConfigError(
+                f"max_iter must be a positive integer (Newton iterations), got {self.max_iter!r}"
+            )
+        if not is_number(self.tol) or not 0.0 <= float(self.tol) < math.inf:
+            raise errors.ConfigError(
+                f"tol must be a finite number >= 0 (gradient tolerance), got {self.tol!r}"
+            )
         s = _scores(scores)
         y01, _ = as_binary_labels(y, s.shape[0])
         y01 = y01.to(s.device)
