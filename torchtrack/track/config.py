@@ -358,6 +358,12 @@ class MultiTrackerConfig:
             frames before a target was confirmed, and before its detections reached the birth
             threshold. 0: off. The output comes at
             least ``backfill`` frames late: 26, the smoothing's own delay, adds none.
+        unswap: two identities that come out of a close encounter (box centres within 0.75
+            box heights) each on the other's person are swapped back in the reported tracks:
+            each identity's motion over the ``unswap`` frames before the encounter is compared
+            with both identities' motion over the ``unswap`` frames after it
+            (:class:`~torchtrack.track.identity.SwapRepair`). The output comes ``unswap``
+            frames later still; 0: off.
         backfill_iou: the overlap a detection needs with the box carried back to join the
             chain. Defaults 26 and 0.3 by leave one sequence out (docs/multi_target.md,
             "Back-filling a target's first frames").
@@ -420,10 +426,11 @@ class MultiTrackerConfig:
     smooth_sigma: float = 4.0
     backfill: int = 26
     backfill_iou: float = 0.3
+    unswap: int = 10
 
     def validate(self) -> None:
         _positive_int(self, "n_particles", "scan_every", "confirm_hits", "max_targets")
-        check_at_most(self, MAX_FILL_GAPS, "fill_gaps", "backfill", least=0)
+        check_at_most(self, MAX_FILL_GAPS, "fill_gaps", "backfill", "unswap", least=0)
         if not (0.0 < self.backfill_iou <= 1.0):
             raise ConfigError(f"backfill_iou must be in (0, 1], got {self.backfill_iou}")
         if not (math.isfinite(self.smooth_sigma) and 0 <= self.smooth_sigma <= MAX_SMOOTH_SIGMA):

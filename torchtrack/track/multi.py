@@ -282,7 +282,9 @@ class MultiTargetTracker:
         from torchtrack.track.smoothing import TrackSmoother
 
         cfg = self.config
-        return TrackSmoother(cfg.smooth_sigma, cfg.fill_gaps, cfg.backfill, cfg.backfill_iou)
+        return TrackSmoother(
+            cfg.smooth_sigma, cfg.fill_gaps, cfg.backfill, cfg.backfill_iou, cfg.unswap
+        )
 
     # -- geometry ------------------------------------------------------------------------------
     def _windows(self, states: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

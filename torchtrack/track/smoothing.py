@@ -16,6 +16,10 @@ video, the output can wait a few frames and use what came after:
   Gaussian with repeated end values would pull a walking target's box back towards where it
   was, the fitted line keeps it on its way.
 
+* **Swapped identities** (``unswap``). Two identities that came out of a close encounter on
+  each other's person are swapped back (:class:`~torchtrack.track.identity.SwapRepair`), on
+  the filled and smoothed tracks, ``unswap`` frames later.
+
 * **Late starts** (``backfill``). A target is reported only once its detections reached the
   birth threshold and it was confirmed; the frames before, not written yet, often hold its
   detections. When an identity is reported on a frame but not on the one before (a new
@@ -73,6 +77,9 @@ class TrackSmoother:
         backfill: extend a run of reports back over at most this many unwritten frames
             through the detections given to :meth:`push` (0: none); ``lag`` is at least this.
         backfill_iou: the overlap a detection needs with the box carried back to join.
+        unswap: identities swapped at a close encounter are swapped back in the filled and
+            smoothed tracks (:class:`~torchtrack.track.identity.SwapRepair` with this window,
+            frames), which adds as many frames to ``lag``; 0: none.
 
     ``push(i, state)`` for every frame index in increasing order (``state`` None for a frame
     that was not tracked, e.g. unreadable) returns the frames now final, as ``(index, state or
@@ -87,7 +94,12 @@ class TrackSmoother:
     """
 
     def __init__(
-        self, sigma: float = 0.0, fill_gaps: int = 0, backfill: int = 0, backfill_iou: float = 0.5
+        self,
+        sigma: float = 0.0,
+        fill_gaps: int = 0,
+        backfill: int = 0,
+        backfill_iou: float = 0.5,
+        unswap: int = 0,
     ) -> None:
         if not (math.isfinite(sigma) and sigma >= 0):
             raise ConfigError(f"track smoothing sigma must be a finite number >= 0, got {sigma}")
@@ -100,7 +112,12 @@ class TrackSmoother:
         self.backfill, self.backfill_iou = int(backfill), float(backfill_iou)
         self.weights = gaussian_weights(self.sigma)
         self.radius = (self.weights.numel() - 1) // 2
-        self.lag = max(self.radius + self.fill_gaps, self.backfill)
+        from torchtrack.track.identity import SwapRepair
+
+        # identities swapped at close encounters are swapped back last, unswap frames late
+        self.repair = SwapRepair(unswap)
+        self._lag = max(self.radius + self.fill_gaps, self.backfill)  # the smoothing's own
+        self.lag = self._lag + self.repair.window
         # backfill: the detections of the frames not yet emitted, frame -> (M, 6) rows as in
         # _obs (confidence = the detection's probability, detected = 1)
         self._dets: dict[int, torch.Tensor] = {}
@@ -137,8 +154,29 @@ class TrackSmoother:
         if i <= self._last:
             raise ValueError(f"frames must be pushed in increasing order: {i} after {self._last}")
         self._last = i
-        if not self.active:  # nothing to fill or smooth: each frame is final as it comes
+        if not self.active:  # nothing to repair, fill or smooth: each frame is final as it comes
             return [(i, state)]
+        return self._repaired(self._push(i, state, offset, detections))
+
+    def flush(self) -> list:
+        out = [(*self._emit(*p), p[2]) for p in self._pending]
+        self._pending.clear()
+        self._obs.clear()
+        self._dets.clear()
+        return self._repaired(out) + [(j, st) for j, st, _, _ in self.repair.flush()]
+
+    # -- internals
+    def _repaired(self, frames: list) -> list:
+        """Smoothed frames ``(i, state, offset)`` through :attr:`repair`: ``(i, state)``."""
+        out = []
+        for i, state, offset in frames:
+            out += [(j, st) for j, st, _, _ in self.repair.push(i, state, offset)]
+        return out
+
+    def _push(self, i: int, state, offset, detections) -> list:
+        """Fill, back-fill and smooth: the frames now final, ``(i, state, offset)``."""
+        if self._lag == 0:
+            return [(i, state, offset)]
         ox, oy = (float(v) for v in offset)
         if self.backfill and detections is not None:  # a scanned frame, maybe without any
             b, p = detections
@@ -155,19 +193,12 @@ class TrackSmoother:
                     if n not in before:  # a new identity, or one back after a gap
                         self._backfill(i, n, v[k])
         out = []
-        while self._pending and self._pending[0][0] + self.lag <= i:
-            out.append(self._emit(*self._pending.popleft()))
+        while self._pending and self._pending[0][0] + self._lag <= i:
+            p = self._pending.popleft()
+            out.append((*self._emit(*p), p[2]))
         self._trim()
         return out
 
-    def flush(self) -> list:
-        out = [self._emit(*p) for p in self._pending]
-        self._pending.clear()
-        self._obs.clear()
-        self._dets.clear()
-        return out
-
-    # -- internals
     def _trim(self) -> None:
         """Drop the frames no emission can reach any more."""
         first = self._pending[0][0] if self._pending else self._last + 1
@@ -228,13 +259,13 @@ class TrackSmoother:
         if not tracked:
             return t, None
         r, fill, reach = self.radius, self.fill_gaps, self._reach
-        near = [o for o in self._obs if t - reach <= o[0] <= t + self.lag]
+        near = [o for o in self._obs if t - reach <= o[0] <= t + self._lag]
         if not near:
             return t, _empty_state()
         ids = torch.cat([o[1] for o in near])
         uniq, row = torch.unique(ids, return_inverse=True)
         cols = torch.cat([torch.full((o[1].numel(),), o[0] - t + reach) for o in near])
-        width = reach + self.lag + 1  # frames t - reach .. t + lag; t is column `reach`
+        width = reach + self._lag + 1  # frames t - reach .. t + lag; t is column `reach`
         u = uniq.numel()
         val = torch.zeros((u, width, 6), dtype=torch.float64)
         seen = torch.zeros((u, width), dtype=torch.bool)
