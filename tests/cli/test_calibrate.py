@@ -351,3 +351,13 @@ def test_bundled_model_by_name_needs_an_output(data_dir, tmp_path, capsys):
     assert det.summary["recalibration"]["n_neg"] == 12
     assert det.calibrator.a_ < 0
     assert hashlib.sha256(installed.read_bytes()).hexdigest() == digest
+
+
+def test_help_examples_keep_their_line_breaks(capsys):
+    # A lone backslash at the end of an epilog line joined the INRIA example's two lines into
+    # one with a run of spaces in the middle; every example is written as shown, `\` included.
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = capsys.readouterr().out
+    assert "--neg calib/background \\\n      --crop-size 160 96 --region 16 16 64 128" in text
+    assert "background       --crop-size" not in text

@@ -30,7 +30,7 @@ examples:
       --plot reliability.png
 
   # INRIA-style crops (96x160 with the person in the central 64x128 box)
-  torchtrack calibrate pedestrian.safetensors --pos calib/persons --neg calib/background \
+  torchtrack calibrate pedestrian.safetensors --pos calib/persons --neg calib/background \\
       --crop-size 160 96 --region 16 16 64 128
 
   # isotonic instead of Platt, written to a new model file
