@@ -702,10 +702,25 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         status,
         identities=len(seen),
         ground="; ".join(
-            x for x in (mt.ground_summary(), mt.birth_summary(), mt.camera_summary()) if x
+            x
+            for x in (
+                mt.ground_summary(),
+                mt.birth_summary(),
+                mt.camera_summary(),
+                _swap_summary(smoother),
+            )
+            if x
         )
         or None,
     )
+
+
+def _swap_summary(smoother) -> str | None:
+    """``N identity swap(s) undone ...`` when the smoother's identity repair made any."""
+    n = len(smoother.repair.swaps)
+    if not n:
+        return None
+    return f"{n} identity swap(s) undone after close encounters (unswap)"
 
 
 #: warn when more than this share of the --detections boxes lie wholly outside the frames
