@@ -1,4 +1,4 @@
-"""The ``torchtrack`` command line: ``torchtrack train | calibrate | detect | track | eval``.
+"""The ``torchtrack`` command line: ``torchtrack train | calibrate | detect | track | eval | sign``.
 
 Each subcommand lives in its own module exposing ``register(subparsers)``; the module adds its
 parser and sets ``func`` (called with the parsed namespace, returns an exit code). Heavy imports
