@@ -45,10 +45,11 @@ modes:
   that is not one ground plane). On video where the detector is less sure of everyone (low
   contrast, noise), the birth threshold adapts down to the video's own level, and a new target
   below the usual threshold must be moving (multi:birth_floor=0.9999 keeps it fixed). The
-  reported tracks are written 26 frames late: a target hidden for up to 10 frames gets boxes
-  interpolated across the gap (detected=0), the boxes are smoothed over time, and a new
-  target's track is extended back through the detections of the frames before it was
-  confirmed (multi:fill_gaps=0,smooth_sigma=0,backfill=0 writes each frame's boxes as
+  reported tracks are written 36 frames late: a target hidden for up to 10 frames gets boxes
+  interpolated across the gap (detected=0), the boxes are smoothed over time, a new target's
+  track is extended back through the detections of the frames before it was confirmed, and
+  two identities that came out of a close encounter each on the other's person are swapped
+  back (multi:fill_gaps=0,smooth_sigma=0,backfill=0,unswap=0 writes each frame's boxes as
   tracked).
   Options of the multi-target tracker: --tracker multi:key=value,... or --config
   configs/trackers/multi.toml. With --box x,y,w,h (pixels, top-left corner, 0-based, on the first
