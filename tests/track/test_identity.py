@@ -91,6 +91,16 @@ def test_people_walking_together_and_one_turning_back_are_not_swapped():
     assert _run(turn)[0].swaps == []
 
 
+def test_memory_stays_flat_while_two_people_walk_together():
+    from torchtrack.track.identity import MAX_ENCOUNTER
+
+    rep = SwapRepair(10)
+    for t in range(400):  # side by side, close on every frame: one encounter, never judged
+        rep.push(t, _state([(1, 100.0 + 2 * t), (2, 120.0 + 2 * t)]))
+        assert all(len(q) <= MAX_ENCOUNTER + 2 * 10 + 2 for q in rep._track.values())
+    assert len(rep._held) == 10 and rep.flush() and rep.swaps == []
+
+
 def test_frames_come_out_window_frames_late_and_untracked_frames_pass_through():
     rep = SwapRepair(4)
     got = []

@@ -216,7 +216,9 @@ class SwapRepair:
     def _trim(self, i: int) -> None:
         """Forget what no encounter can read any more: a track's frames before the earliest
         encounter that may still open, less the window before it."""
-        first = min((s[0] for s in self._open.values()), default=i)
+        # an encounter already longer than MAX_ENCOUNTER will not be judged: its start does
+        # not hold the history (two people side by side all along: memory stays flat)
+        first = min((t0 for t0, t1 in self._open.values() if t1 - t0 < MAX_ENCOUNTER), default=i)
         keep_from = min(first, i) - self.window - 1
         for n in list(self._track):
             q = self._track[n]
