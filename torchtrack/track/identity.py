@@ -126,24 +126,23 @@ class SwapRepair:
     def _observe(self, i: int, state, offset) -> None:
         ox, oy = (float(v) for v in offset)
         b = state.boxes.detach().to("cpu", torch.float64)
-        cx = (b[:, 0] + b[:, 2] / 2 - ox).tolist()
-        cy = (b[:, 1] + b[:, 3] / 2 - oy).tolist()
-        hs = b[:, 3].tolist()
-        ids = state.ids.detach().to("cpu", torch.int64).tolist()
-        for n, x, y, h in zip(ids, cx, cy, hs, strict=True):
-            self._track.setdefault(n, deque()).append((i, x, y, h))
-        for k, a in enumerate(ids):  # the pairs close on this frame (a few targets a frame)
-            for m in range(k + 1, len(ids)):
-                d = ((cx[k] - cx[m]) ** 2 + (cy[k] - cy[m]) ** 2) ** 0.5
-                if d < REACH * (hs[k] + hs[m]) / 2:
-                    key = (min(a, ids[m]), max(a, ids[m]))
-                    span = self._open.get(key)
-                    if span is not None and i - span[1] <= GAP:
-                        span[1] = i
-                    else:
-                        if span is not None:  # an earlier encounter not judged yet
-                            self._decide(key, *span)
-                        self._open[key] = [i, i]
+        c = torch.stack((b[:, 0] + b[:, 2] / 2 - ox, b[:, 1] + b[:, 3] / 2 - oy), 1)  # (K, 2)
+        h = b[:, 3]
+        ids = state.ids.detach().to("cpu", torch.int64)
+        for n, (x, y), hh in zip(ids.tolist(), c.tolist(), h.tolist(), strict=True):
+            self._track.setdefault(n, deque()).append((i, x, y, hh))
+        # the pairs close on this frame, in one distance matrix (then a loop over those few)
+        close = torch.cdist(c, c) < REACH * (h[:, None] + h[None, :]) / 2
+        for k, m in torch.triu(close, diagonal=1).nonzero().tolist():
+            a, o = int(ids[k]), int(ids[m])
+            key = (min(a, o), max(a, o))
+            span = self._open.get(key)
+            if span is not None and i - span[1] <= GAP:
+                span[1] = i
+            else:
+                if span is not None:  # an earlier encounter not judged yet
+                    self._decide(key, *span)
+                self._open[key] = [i, i]
 
     def _judge(self, i: int, final: bool) -> None:
         """Decide the encounters whose ``window`` frames after have come (all of them at the
