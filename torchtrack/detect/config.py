@@ -533,48 +533,25 @@ class TrainConfig:
         return self
 
     def _check_haar_keys(self) -> None:
-        """``features.sizes / n_scales / stride / min_std`` of a Haar bank, named: the bank's
-        own checks (:class:`~torchtrack.features.haar.HaarBank`, ``'stride must be a positive
-        integer'``) ran only in the training and said ``stride`` or ``min_std``; the bounds are
-        the model file's (:func:`~torchtrack.detect.model_checks._check_haar_bank`)."""
-        from torchtrack.detect.model_checks import LIMITS
-        from torchtrack.features.haar import max_scales
+        """``features.sizes / n_scales / stride / min_std`` of a Haar bank, before any crop is
+        read: the checks a model file makes of its bank
+        (:func:`~torchtrack.detect.model_checks._check_haar_bank`: bounds and feature count),
+        named as the keys are written here (such a bank trained to the end, then its model was
+        refused when written; the bank's own messages said ``stride`` or ``min_std``)."""
+        from torchtrack.detect.model_checks import _check_haar_bank
+        from torchtrack.errors import ModelFormatError
+        from torchtrack.features.haar import default_sizes
 
         f = self.features
-        h, w = (int(v) for v in self.window)
-        if f.sizes is not None:
-            if not isinstance(f.sizes, list) or len(f.sizes) > LIMITS.bank_sizes:
-                raise ConfigError(
-                    f"features.sizes must be a list of 1 to {LIMITS.bank_sizes} filter sizes, "
-                    f"got {f.sizes!r}"
-                )
-            for t in f.sizes:
-                if not (_posint(t) and t % 4 == 0 and 4 <= t <= min(h, w)):
-                    raise ConfigError(
-                        f"features.sizes: every filter size must be a multiple of 4 in [4, "
-                        f"{min(h, w)}] (the line filters split the square in quarters, and it "
-                        f"must fit the {h}x{w} (HxW) window), got {t!r} in {f.sizes!r}"
-                    )
-            if len(set(f.sizes)) != len(f.sizes):
-                raise ConfigError(f"features.sizes must be distinct, got {f.sizes!r}")
-        else:
-            most = max_scales((h, w))
-            if not f.n_scales <= most:
-                raise ConfigError(
-                    f"features.n_scales must be an integer in [1, {most}] for a {h}x{w} window "
-                    "(filter sides halve from the largest power of two that fits down to 4 "
-                    f"pixels), got {f.n_scales!r}"
-                )
-        if not (_posint(f.stride) and f.stride <= max(h, w)):
-            raise ConfigError(
-                f"features.stride must be an integer in [1, {max(h, w)}] (window pixels, at "
-                f"most the window's longer side), got {f.stride!r}"
-            )
-        if not (_isnum(f.min_std) and 1e-3 <= f.min_std <= 255):
-            raise ConfigError(
-                f"features.min_std must be a number in [0.001, 255] (intensity units), got "
-                f"{f.min_std!r}"
-            )
+        window = (int(self.window[0]), int(self.window[1]))
+        sizes = f.sizes
+        if sizes is None:
+            sizes = list(default_sizes(window, f.n_scales, key="features.n_scales"))
+        desc = {"window": list(window), "sizes": sizes, "stride": f.stride, "min_std": f.min_std}
+        try:
+            _check_haar_bank(desc, window, _HAAR_KEYS)
+        except ModelFormatError as exc:
+            raise ConfigError(f"{exc} (a Haar bank no model file may hold)") from None
 
     def classifier(self) -> str:
         """``learn.classifier`` with ``"auto"`` resolved (Haar: adaboost, channels: trees)."""
@@ -670,6 +647,14 @@ def _resolve(p: str, base: Path) -> str:
     q = Path(s)
     return str(q if q.is_absolute() else (base / q))
 
+
+#: a Haar bank's fields as a training config names them (model_checks._check_haar_bank)
+_HAAR_KEYS = {
+    "sizes": "features.sizes",
+    "size": "features.sizes: filter size",
+    "stride": "features.stride",
+    "min_std": "features.min_std",
+}
 
 #: the ``[mining]`` keys only channel-feature detectors read (:class:`MiningConfig`)
 _CHANNEL_MINING_KEYS = ("min_scale", "margin", "target_fpr")

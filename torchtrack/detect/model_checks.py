@@ -216,8 +216,22 @@ def _check_bank(meta: dict, window: tuple[int, int]) -> tuple[int, float]:
     return _check_haar_bank(meta["bank"], window)
 
 
-def _check_haar_bank(bank: Any, window: tuple[int, int]) -> tuple[int, float]:
-    """A Haar bank description's feature count (computed, not built) and value bound."""
+#: how :func:`_check_haar_bank` names a bank's fields in its messages (a model file's)
+_BANK_NAMES = {
+    "sizes": "bank sizes",
+    "size": "bank filter size",
+    "stride": "bank stride",
+    "min_std": "bank min_std",
+}
+
+
+def _check_haar_bank(
+    bank: Any, window: tuple[int, int], names: dict[str, str] | None = None
+) -> tuple[int, float]:
+    """A Haar bank description's feature count (computed, not built) and value bound.
+    ``names``: the fields' names in the messages (a training config's keys; default a model
+    file's, :data:`_BANK_NAMES`)."""
+    n = {**_BANK_NAMES, **(names or {})}
     b = _mapping(bank, "bank", {"window", "sizes"}, {"stride", "min_std", "kinds"})
     if b["window"] != list(window):
         raise ModelFormatError(f"bank window {b['window']!r} disagrees with window {list(window)}")
@@ -227,16 +241,16 @@ def _check_haar_bank(bank: Any, window: tuple[int, int]) -> tuple[int, float]:
         )
     sizes = b["sizes"]
     if not isinstance(sizes, list) or not 1 <= len(sizes) <= LIMITS.bank_sizes:
-        raise ModelFormatError(f"bank sizes must be a list of 1 to {LIMITS.bank_sizes} sizes")
+        raise ModelFormatError(f"{n['sizes']} must be a list of 1 to {LIMITS.bank_sizes} sizes")
     h, w = window
     for t in sizes:
-        _int_in(t, "bank filter size", 4, min(h, w))
+        _int_in(t, n["size"], 4, min(h, w))
         if t % 4:
-            raise ModelFormatError(f"bank filter size {t} is not a multiple of 4")
+            raise ModelFormatError(f"{n['size']} {t} is not a multiple of 4")
     if len(set(sizes)) != len(sizes):
-        raise ModelFormatError(f"bank sizes must be distinct, got {sizes}")
-    stride = _int_in(b.get("stride", 1), "bank stride", 1, max(h, w))
-    min_std = _num_in(b.get("min_std", 1.0), "bank min_std", 1e-3, 255.0)
+        raise ModelFormatError(f"{n['sizes']} must be distinct, got {sizes}")
+    stride = _int_in(b.get("stride", 1), n["stride"], 1, max(h, w))
+    min_std = _num_in(b.get("min_std", 1.0), n["min_std"], 1e-3, 255.0)
     n = len(KINDS) * sum(((h - t) // stride + 1) * ((w - t) // stride + 1) for t in sizes)
     if n > LIMITS.bank_features:
         raise ModelFormatError(

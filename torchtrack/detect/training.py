@@ -342,23 +342,6 @@ def mine_hard_negatives(
     return CropSet(torch.from_numpy(out)[:, None], srcs)
 
 
-def _check_bank_fits_a_model_file(bank: Any, window: tuple[int, int]) -> None:
-    """The model file's own check of a Haar bank (stride within the window, ``min_std`` in
-    [1e-3, 255], at most ``LIMITS.bank_features`` features), before any crop is read: such a
-    bank trained to the end, then the model was refused when written.
-
-    Raises:
-        ConfigError: ``[features]: <the model file's reason>: no model file may hold it``.
-    """
-    from torchtrack.detect.model_checks import _check_haar_bank
-    from torchtrack.errors import ModelFormatError
-
-    try:
-        _check_haar_bank(bank.to_dict(), window)
-    except ModelFormatError as exc:
-        raise ConfigError(f"[features]: {exc}: no model file may hold this bank") from None
-
-
 def train_detector(
     cfg: TrainConfig,
     *,
@@ -402,7 +385,6 @@ def train_detector(
         stride=f.stride,
         min_std=f.min_std,
     )
-    _check_bank_fits_a_model_file(bank, window)
     if cfg.learn.n_features > len(bank):  # was refused after every crop's features were computed
         raise ConfigError(
             f"learn.n_features (--features) is {cfg.learn.n_features}, more than the "

@@ -62,6 +62,7 @@ __all__ = [
     "HaarBank",
     "HaarFeatures",
     "Integrals",
+    "default_sizes",
     "haar_bank",
     "haar_features",
     "haar_features_at",
@@ -106,7 +107,7 @@ def paper_pedestrian_count(window: tuple[int, int] = (128, 64)) -> int:
     """The paper's counting formula for the pedestrian bank: ``(H - T) * max(W - T, 1)`` positions
     per size (with ``H >= W``), times five. Gives 42,560 for 128 x 64; shown for comparison only."""
     h, w = window
-    sizes = _default_sizes(window, 3)
+    sizes = default_sizes(window, 3)
     return 5 * sum(max(h - t, 1) * max(w - t, 1) for t in sizes)
 
 
@@ -116,7 +117,23 @@ def max_scales(window: tuple[int, int]) -> int:
     return max(int(min(window)).bit_length() - 2, 0)
 
 
-def _default_sizes(window: tuple[int, int], n_scales: int) -> tuple[int, ...]:
+def default_sizes(
+    window: tuple[int, int], n_scales: int, *, key: str = "n_scales"
+) -> tuple[int, ...]:
+    """The paper's filter sides for a ``(H, W)`` window: the largest power of two not above
+    ``min(H, W)`` and its ``n_scales - 1`` halves.
+
+    Raises:
+        ConfigError: ``n_scales`` not an integer in ``[1, max_scales(window)]`` (named ``key``).
+    """
+    most = max_scales(window)
+    if isinstance(n_scales, bool) or not isinstance(n_scales, int) or not 1 <= n_scales <= most:
+        # a huge n_scales built a list of that many sizes, then printed it in the error
+        raise ConfigError(
+            f"{key} must be an integer in [1, {most}] for a {window[0]}x{window[1]} window "
+            f"(filter sides halve from the largest power of two that fits down to 4 pixels), "
+            f"got {n_scales!r}"
+        )
     t0 = 1 << (int(min(window)).bit_length() - 1)
     return tuple(t0 >> i for i in range(n_scales))
 
@@ -280,15 +297,7 @@ def haar_bank(
         17455
     """
     if sizes is None:
-        most = max_scales(window)
-        if isinstance(n_scales, bool) or not isinstance(n_scales, int) or not 1 <= n_scales <= most:
-            # a huge n_scales built a list of that many sizes, then printed it in the error
-            raise ConfigError(
-                f"n_scales must be an integer in [1, {most}] for a {window[0]}x{window[1]} window "
-                f"(filter sides halve from the largest power of two that fits down to 4 pixels), "
-                f"got {n_scales!r}"
-            )
-        sizes = _default_sizes(window, n_scales)
+        sizes = default_sizes(window, n_scales)
     return HaarBank(window=tuple(window), sizes=tuple(sizes), stride=stride, min_std=min_std)
 
 
