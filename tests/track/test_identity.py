@@ -54,7 +54,7 @@ def _run(stream, window=10):
 def _x_of(out, ident):
     return {
         i: float(s.boxes[s.ids == ident][0, 0]) + 9.0
-        for i, s, _, _ in out
+        for i, s in out
         if s is not None and bool((s.ids == ident).any())
     }
 
@@ -67,7 +67,7 @@ def test_identities_that_bounce_off_each_other_are_swapped_back():
     assert all(x1[t + 1] > x1[t] for t in range(37, 59))  # 1 walks on right: P
     assert all(x2[t + 1] < x2[t] for t in range(37, 59))  # 2 walks on left: Q
     assert x1[59] == 100.0 + 3 * 59 and x2[59] == 280.0 - 3 * 59
-    for _, s, _, _ in out:  # never one identity twice on a frame
+    for _, s in out:  # never one identity twice on a frame
         assert s.ids.unique().numel() == s.ids.numel()
 
 
@@ -105,15 +105,12 @@ def test_frames_come_out_window_frames_late_and_untracked_frames_pass_through():
     rep = SwapRepair(4)
     got = []
     for t in range(10):
-        got += [
-            (i, s is None)
-            for i, s, _, _ in rep.push(t, None if t == 2 else _state([(1, 10.0 * t)]))
-        ]
+        got += [(i, s is None) for i, s in rep.push(t, None if t == 2 else _state([(1, 10.0 * t)]))]
         assert all(i <= t - 4 for i, _ in got)
-    got += [(i, s is None) for i, s, _, _ in rep.flush()]
+    got += [(i, s is None) for i, s in rep.flush()]
     assert got == [(t, t == 2) for t in range(10)]
     off = SwapRepair(0)
-    assert not off.active and off.push(3, None) == [(3, None, (0.0, 0.0), None)]
+    assert not off.active and off.push(3, None) == [(3, None)]
 
 
 def test_the_smoother_repairs_its_smoothed_tracks_and_waits_for_it():

@@ -64,10 +64,10 @@ class SwapRepair:
         window: frames of motion compared before and after an encounter, and the delay (0:
             frames pass through as they come).
 
-    ``push(i, state, offset, detections)`` for every frame index in increasing order (``state``
-    a :class:`~torchtrack.track.multi.MultiState` or None) returns the frames now final, as
-    ``(i, state, offset, detections)`` tuples in order, the states' identities repaired;
-    ``flush()`` returns the rest. ``swaps`` lists the repairs made: ``(first frame, identity,
+    ``push(i, state, offset)`` for every frame index in increasing order (``state`` a
+    :class:`~torchtrack.track.multi.MultiState` or None, ``offset`` the camera's translation
+    since the first frame) returns the frames now final, as ``(i, state)`` in order, the
+    states' identities repaired; ``flush()`` returns the rest. ``swaps`` lists the repairs made: ``(first frame, identity,
     identity)``.
 
     Raises:
@@ -79,7 +79,7 @@ class SwapRepair:
             raise ConfigError(f"identity repair window must be a whole number >= 0, got {window!r}")
         self.window = int(window)
         self.swaps: list[tuple[int, int, int]] = []
-        self._held: deque[list] = deque()  # [i, state, offset, detections], the last window
+        self._held: deque[list] = deque()  # [i, state] of the last window frames
         self._map: dict[int, int] = {}  # the tracker's identity -> the one reported
         # identity -> deque of (frame, centre x, centre y, height) in the scene
         self._track: dict[int, deque] = {}
@@ -90,14 +90,14 @@ class SwapRepair:
     def active(self) -> bool:
         return self.window > 0
 
-    def push(self, i: int, state, offset=(0.0, 0.0), detections=None) -> list:
+    def push(self, i: int, state, offset=(0.0, 0.0)) -> list:
         if not self.active:
-            return [(i, state, offset, detections)]
+            return [(i, state)]
         self._last = i
         if state is not None and len(state):
             state = self._mapped(state)
             self._observe(i, state, offset)
-        self._held.append([i, state, offset, detections])
+        self._held.append([i, state])
         self._judge(i, final=False)
         out = []
         while self._held and self._held[0][0] <= i - self.window:

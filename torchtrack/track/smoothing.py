@@ -163,14 +163,14 @@ class TrackSmoother:
         self._pending.clear()
         self._obs.clear()
         self._dets.clear()
-        return self._repaired(out) + [(j, st) for j, st, _, _ in self.repair.flush()]
+        return self._repaired(out) + self.repair.flush()
 
     # -- internals
     def _repaired(self, frames: list) -> list:
         """Smoothed frames ``(i, state, offset)`` through :attr:`repair`: ``(i, state)``."""
         out = []
         for i, state, offset in frames:
-            out += [(j, st) for j, st, _, _ in self.repair.push(i, state, offset)]
+            out += self.repair.push(i, state, offset)
         return out
 
     def _push(self, i: int, state, offset, detections) -> list:
