@@ -293,6 +293,14 @@ def test_bad_csvs(tmp_path):
     p.write_text("")
     with pytest.raises(SequenceError, match="is empty"):
         read_box_csv(p)
+    # a Latin-1 byte, a field past the csv module's limit: UnicodeDecodeError and csv.Error
+    # tracebacks
+    p.write_bytes("x,y,w,h\n1,1,2,2\n# caf\u00e9\n".encode("latin-1"))
+    with pytest.raises(SequenceError, match=r"gt\.csv is not a text file \(not UTF-8\)"):
+        read_box_csv(p)
+    p.write_text('x,y,w,h\n"' + "1" * 200_000 + '",1,2,2\n')
+    with pytest.raises(SequenceError, match=r"gt\.csv is not a CSV of boxes: field larger"):
+        read_box_csv(p)
 
 
 def test_bobot_reversed_corners_name_the_file_and_line(tmp_path):

@@ -274,6 +274,10 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
             rows = [r for r in csv.reader(f)]
     except OSError as exc:
         raise SequenceError(f"box CSV {p} cannot be read: {exc}") from exc
+    except UnicodeDecodeError as exc:  # was a traceback, as was csv.Error below
+        raise SequenceError(f"box CSV {p} is not a text file (not UTF-8): {exc}") from None
+    except csv.Error as exc:  # e.g. a field past the csv module's size limit
+        raise SequenceError(f"box CSV {p} is not a CSV of boxes: {exc}") from None
     while rows and not any(c.strip() for c in rows[-1]):
         rows.pop()
     if not rows:
