@@ -266,6 +266,12 @@ def test_bad_csvs(tmp_path):
         p.write_text(f"frame,x,y,w,h\n0,1,1,2,2\n{frame},1,1,2,2\n")
         with pytest.raises(SequenceError, match=rf"gt\.csv line 3: frame '{frame}' is not a whole"):
             read_box_csv(p)
+    # a frame index beyond any sequence, without a length to check it against: 1e300 was a
+    # TypeError from torch.full, 1e9 a table of 32 GB
+    for frame in ("1e300", "1000000000"):
+        p.write_text(f"frame,x,y,w,h\n0,1,1,2,2\n{frame},1,1,2,2\n")
+        with pytest.raises(SequenceError, match=rf"gt\.csv line 3: frame '{frame}' is beyond any"):
+            read_box_csv(p)
     p.write_text("frame,x,y,w,h\n0,1,1,2,2\n7,1,1,2,2\n")
     with pytest.raises(SequenceError, match="row for frame 7 but the sequence has 3 frames"):
         load_frames_csv(frames, p)

@@ -44,6 +44,7 @@ from pathlib import Path
 import torch
 
 from torchtrack.errors import ConfigError, SequenceError, VideoError
+from torchtrack.io.mot import MAX_SEQ_LENGTH
 from torchtrack.io.video import VIDEO_EXTENSIONS, FrameSource, list_image_files, natural_key
 
 __all__ = [
@@ -321,6 +322,11 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
                     f"{p} line {no}: frame {r[fcol].strip()!r} is not a whole frame index"
                 )
             f = int(fv)
+            if f >= MAX_SEQ_LENGTH:  # 1e300 was a TypeError from torch.full, 1e9 a 32 GB table
+                raise SequenceError(
+                    f"{p} line {no}: frame {r[fcol].strip()!r} is beyond any sequence (frame "
+                    f"indices are below {MAX_SEQ_LENGTH})"
+                )
             if f in lines:
                 raise SequenceError(
                     f"box CSV {p} lists a frame more than once: frame {f} on lines "
