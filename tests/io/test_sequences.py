@@ -205,6 +205,14 @@ def test_non_numeric_blank_and_wrong_width_lines(otb3):
     gt.write_text("1,1,4\n1,1,4,4\n1,1,4,4\n")
     with pytest.raises(SequenceError, match="line 1 has 3 values, expected 4"):
         load_otb(otb3)
+    # an empty value between commas (or before the first) was skipped: five fields read as the
+    # four of a box, every value after the gap one place early
+    for row in ("1,,1,4,4", "1, ,1,4,4", ",1,1,4,4", "1,1,4,4,,9"):
+        gt.write_text(f"1,1,4,4\n{row}\n1,1,4,4\n")
+        with pytest.raises(SequenceError, match=f"line 2 has an empty value .*: '{row}'"):
+            load_otb(otb3)
+    gt.write_text("1,1,4,4,\n1, 1\t4 4\n1,1,4,4\n")  # a trailing comma, mixed separators
+    assert load_otb(otb3)[0].boxes[:2].tolist() == [[0, 0, 4, 4]] * 2
     gt.write_text("\n\n")
     with pytest.raises(SequenceError, match="is empty"):
         load_otb(otb3)

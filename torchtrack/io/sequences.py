@@ -62,6 +62,8 @@ __all__ = [
 ]
 
 _SPLIT = re.compile(r"[,\s]+")
+#: a value left empty: a comma first or two commas with only blanks between (_SPLIT skips it)
+_EMPTY_FIELD = re.compile(r"^,|,\s*,")
 _FRAME_DIRS = ("img", "frames", "images", "color")
 _CSV_NAMES = ("groundtruth.csv", "gt.csv", "boxes.csv")
 _MISMATCH = ("error", "truncate")
@@ -143,6 +145,11 @@ def _parse_rows(path: Path, allowed: tuple[int, ...]) -> list[list[float]]:
         s = line.strip()
         if not s:
             raise SequenceError(f"{path} line {no} is blank (blank lines only allowed at the end)")
+        if _EMPTY_FIELD.search(s):  # '10,,20,30,40' was read as the box 10,20,30,40
+            raise SequenceError(
+                f"{path} line {no} has an empty value (a comma first, or two commas with "
+                f"nothing between): {s[:60]!r}"
+            )
         parts = [p for p in _SPLIT.split(s) if p]
         try:
             if "_" in s:  # Python reads 2_05 as 205; a box file does not
