@@ -341,5 +341,12 @@ def test_parse_box_file_formats(tmp_path):
     assert parse_box_file(p, "xyxy").tolist() == [[1, 2, 2, 2]]
     p.write_text("1,2,3,4,5,6,7,nan\n")
     assert math.isnan(parse_box_file(p, "polygon")[0, 0])
+    p.write_text("0\nnan\n1,2,3,4\n")  # VOT's one-value absent markers
+    assert parse_box_file(p, "polygon")[:2].isnan().all()
+    # any other single value (a cut line, a results file's 1 / 2 marker) was read as absent
+    for value in ("5", "1", "2"):
+        p.write_text(f"1,2,3,4\n{value}\n")
+        with pytest.raises(SequenceError, match=f"b.txt line 2 is the single value {value}: "):
+            parse_box_file(p, "polygon")
     with pytest.raises(ConfigError, match="box_format"):
         parse_box_file(p, "cxcywh")

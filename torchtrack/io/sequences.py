@@ -210,15 +210,16 @@ def parse_box_file(path: str | os.PathLike, box_format: str = "xywh", one_based:
         path: the file; values separated by commas, tabs or spaces.
         box_format: ``"xywh"`` (4 values), ``"xyxy"`` (4 values, corners) or ``"polygon"``
             (8 values x1,y1,...,x4,y4 -> axis-aligned min/max box; 4-value rows are read as xywh
-            and 1-value rows such as VOT's ``0`` mean absent).
+            and 1-value rows ``0`` or ``NaN``, as VOT's, mean absent).
         one_based: subtract 1 from x and y (OTB files are 1-based).
 
     Returns:
         ``(T, 4)`` float64; NaN rows where the target is absent.
 
     Raises:
-        SequenceError: unreadable file, non-numeric line or wrong number of values, or
-            ``"xyxy"`` corners reversed (``x2 < x1`` or ``y2 < y1``), with the line number.
+        SequenceError: unreadable file, non-numeric line or wrong number of values, a
+            ``"polygon"`` one-value line other than 0 / NaN, or ``"xyxy"`` corners reversed
+            (``x2 < x1`` or ``y2 < y1``), with the line number.
     """
     p = Path(path)
     if box_format in ("xywh", "xyxy"):
@@ -230,7 +231,7 @@ def parse_box_file(path: str | os.PathLike, box_format: str = "xywh", one_based:
     elif box_format == "polygon":
         rows = _parse_rows(p, (1, 4, 8))
         out = []
-        for r in rows:
+        for no, r in enumerate(rows, start=1):  # no blank lines before the last
             if len(r) == 8:
                 xs, ys = r[0::2], r[1::2]
                 if any(math.isnan(v) for v in r):
@@ -239,8 +240,13 @@ def parse_box_file(path: str | os.PathLike, box_format: str = "xywh", one_based:
                     out.append([min(xs), min(ys), max(xs) - min(xs), max(ys) - min(ys)])
             elif len(r) == 4:
                 out.append(r)
-            else:  # VOT long-term / occlusion marker ("0" or "nan")
+            elif r[0] == 0 or math.isnan(r[0]):  # VOT long-term / occlusion marker
                 out.append([math.nan] * 4)
+            else:  # '5' (a cut line, a results file's 1 / 2 marker) was read as absent
+                raise SequenceError(
+                    f"{p} line {no} is the single value {r[0]:g}: a one-value line marks the "
+                    "target absent with 0 or NaN (a box is 4 or 8 values)"
+                )
         t = torch.tensor(out, dtype=torch.float64)
     else:
         raise ConfigError(f"box_format must be xywh, xyxy or polygon, got {box_format!r}")
