@@ -196,6 +196,11 @@ def test_eval_mot_bad_inputs(tmp_path, capsys, trackeval):
         ["--mot", str(d), "--results", str(res), "--gt-scale", "1e308"],
         "--gt-scale must be 'auto' or a number in [0.001, 1000], got '1e308'",
     )
+    # float() reads 0_625 as 625, within the range: the GT was scored 1000 times too large
+    fails(
+        ["--mot", str(d), "--results", str(res), "--gt-scale", "0_625"],
+        "--gt-scale must be 'auto' or a number in [0.001, 1000], got '0_625'",
+    )
     fails(
         ["--mot", str(d), "--results", str(res), "--gt", str(res)],
         "--gt gives 1 file(s) for 0 video(s)",

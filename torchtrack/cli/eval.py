@@ -273,6 +273,8 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
     scale = None
     if gt_scale != "auto":
         try:
+            if "_" in gt_scale:  # float() reads 0_625 as 625, a scale in range
+                raise ValueError
             scale = float(gt_scale)
         except ValueError:
             scale = math.nan
