@@ -317,6 +317,11 @@ def test_video_plus_gt(tmp_path):
     assert (seq.name, seq.n_frames, seq.scale, seq.width) == ("clip", 4, 1.0, 32)
     with pytest.raises(SequenceError, match="give its ground-truth file"):
         load_mot_sequence(video)
+    # a folder given as the ground-truth file was reported as not existing
+    with pytest.raises(SequenceError, match=r"ground-truth file .* is a folder, not a file"):
+        load_mot_sequence(video, gt=tmp_path)
+    with pytest.raises(SequenceError, match=r"has no ground truth \(.* is a folder, not a file"):
+        load_mot_sequence(_mot_folder(tmp_path / "seq"), gt=tmp_path)
     beyond = _write(tmp_path / "long.txt", "1,1,1,1,5,5,1\n5,1,2,2,5,5,1\n")
     with pytest.raises(MotFormatError, match=r"long.txt line 2: frame 5 is beyond .* 4 frames"):
         load_mot_sequence(video, gt=beyond)

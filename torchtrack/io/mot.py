@@ -677,8 +677,9 @@ def _load_folder(
     if check_size and info is not None and frames and info.im_width and info.im_height:
         _check_frame_size(frames[0], info, d / "seqinfo.ini")
     gt_path = Path(gt) if gt is not None else d / "gt" / "gt.txt"
-    if not gt_path.is_file():
-        raise SequenceError(f"{d} has no ground truth ({gt_path} does not exist)")
+    if not gt_path.is_file():  # a folder was reported as not existing
+        why = "is a folder, not a file" if gt_path.is_dir() else "does not exist"
+        raise SequenceError(f"{d} has no ground truth ({gt_path} {why})")
     n = info.seq_length if info else len(frames)
     det = d / "det" / "det.txt"
     return MotSequence(
@@ -754,8 +755,9 @@ def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
         cap.release()
     if n <= 0:
         raise VideoError(f"video file {video} announces no frames")
-    if not gt_path.is_file():
-        raise SequenceError(f"ground-truth file {gt_path} does not exist")
+    if not gt_path.is_file():  # a folder was reported as not existing
+        why = "is a folder, not a file" if gt_path.is_dir() else "does not exist"
+        raise SequenceError(f"ground-truth file {gt_path} {why}")
     seq_dir = gt_path.parent.parent if gt_path.parent.name == "gt" else None
     ini = seq_dir / "seqinfo.ini" if seq_dir is not None else None
     info = read_seqinfo(ini) if ini is not None and ini.is_file() else None
