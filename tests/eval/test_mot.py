@@ -372,6 +372,13 @@ def test_resolve_results_by_name(tmp_path):
     (res / "C.txt").write_text("")
     with pytest.raises(ConfigError, match=r"no file for sequence\(s\) B .*found: A.txt, C.txt"):
         resolve_results([a, b], res)
+    # a folder named B.txt was listed as found, beside 'no file for B'
+    (res / "B.txt").mkdir()
+    with pytest.raises(
+        ConfigError, match=r"sequence\(s\) B \(B.txt is a folder\) .*found: A.txt, C.txt\)$"
+    ):
+        resolve_results([a, b], res)
+    (res / "B.txt").rmdir()
     (res / "B.txt").write_text("")
     assert [p.name for p in resolve_results([a, b], res)] == ["A.txt", "B.txt"]
     with pytest.raises(ConfigError, match="one file but 2 sequences"):

@@ -443,9 +443,12 @@ def resolve_results(seqs: list[MotSequence], results: str | os.PathLike) -> list
     out, missing = [], []
     for s in seqs:
         f = r / f"{s.name}.txt"
-        (out if f.is_file() else missing).append(f if f.is_file() else s.name)
+        if f.is_file():
+            out.append(f)
+        else:  # a folder of that name was listed as found, beside 'no file'
+            missing.append(f"{s.name} ({f.name} is a folder)" if f.is_dir() else s.name)
     if missing:
-        have = sorted(p.name for p in r.glob("*.txt"))
+        have = sorted(p.name for p in r.glob("*.txt") if p.is_file())
         raise ConfigError(
             f"results folder {r} has no file for sequence(s) {', '.join(missing)} (expected "
             f"<sequence name>.txt; found: {', '.join(have) if have else 'no .txt file'})"
