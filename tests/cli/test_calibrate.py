@@ -99,6 +99,21 @@ def test_csv_bad_rows_reported_by_line(tmp_path, capsys):
     assert not (tmp_path / "o.json").exists()
 
 
+def test_csv_first_row_half_numbers_is_not_a_header(tmp_path, capsys):
+    """A first data row with a typo ('0.9O,1': one number, one word) was taken as a header
+    and dropped without a word; a header has no number in its first two cells."""
+    s, y = _scores(40)
+    for first, what in (("0.9O,1", "column 2 '1' is a number"), ("1,lab", "column 1 '1'")):
+        _write_csv(tmp_path / "s.csv", s, y, header=False)
+        text = (tmp_path / "s.csv").read_text()
+        (tmp_path / "s.csv").write_text(f"{first}\n{text}")
+        out = tmp_path / "o.json"
+        assert main(["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert f"s.csv' line 1: '{first}' is neither a header (its {what}" in err, err
+        assert not out.exists()
+
+
 def test_csv_single_class_and_identical_scores(tmp_path, capsys):
     (tmp_path / "one.csv").write_text("1.0,1\n2.0,1\n0.5,1\n")
     assert (

@@ -113,17 +113,18 @@ def register(subparsers) -> None:
 def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
     """Read ``score,label`` rows.
 
-    A first line that does not parse as numbers is a header; it may name the columns ``score``
-    and ``label`` in any order (other columns are ignored), otherwise the first two columns are
-    used (a header naming only one of them must name it where those put it: ``score`` first or
-    ``label`` second). Blank lines and lines starting with ``#`` are skipped.
+    A first line whose first two cells are not numbers is a header (one number and one word is
+    an error: a data row with a typo); it may name the columns ``score`` and ``label`` in any
+    order (other columns are ignored), otherwise the first two columns are used (a header
+    naming only one of them must name it where those put it: ``score`` first or ``label``
+    second). Blank lines and lines starting with ``#`` are skipped.
 
     Returns:
         ``(scores (n,) float64, labels (n,) float64)`` torch tensors.
 
     Raises:
-        DataError: the file is missing or empty, or rows are bad (up to 10 listed by line
-            number: wrong column count, non-numbers, NaN / inf).
+        DataError: the file is missing or empty, a first line that is half numbers, or rows
+            are bad (up to 10 listed by line number: wrong column count, non-numbers, NaN / inf).
     """
     import csv
     import math
@@ -151,9 +152,17 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
         raise DataError(f"score file {str(p)!r} has no rows")
     si, li = 0, 1
     first = [c.strip() for c in rows[0][1]]
-    try:
-        [float(c) for c in first[:2]]
-    except ValueError:
+    numeric = [_is_float(c) for c in first[:2]]
+    if any(numeric) and not all(numeric):
+        # one number and one word: a first data row with a typo ('0.9O,1'), dropped as a
+        # header without a word
+        k = numeric.index(True)
+        raise DataError(
+            f"score file {str(p)!r} line {rows[0][0]}: {','.join(first)[:60]!r} is neither a "
+            f"header (its column {k + 1} {first[k]!r} is a number) nor a row of numbers "
+            f"(column {2 - k} {first[1 - k]!r} is not)"
+        )
+    if not all(numeric):
         names = [c.lower() for c in first]
         if "score" in names and "label" in names:
             si, li = names.index("score"), names.index("label")
@@ -194,6 +203,14 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
     if not scores:
         raise DataError(f"score file {str(p)!r} has a header but no data rows")
     return torch.tensor(scores, dtype=torch.float64), torch.tensor(labels, dtype=torch.float64)
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def crop_margins(
