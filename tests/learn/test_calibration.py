@@ -189,6 +189,11 @@ def test_single_class_and_bad_shapes_rejected(cls):
         cls().fit(s, np.ones(49))
     with pytest.raises(errors.NotFittedError, match="not fitted"):
         cls().predict_proba(s)
+    # scores that are not numbers: numpy's ValueError / TypeError escaped from predict_proba
+    cal = cls().fit(s, (s > 0).astype(int))
+    for bad in (["a", "b"], [[1.0], [2.0, 3.0]], {"s": 1.0}):
+        with pytest.raises(errors.DataError, match="scores must be numbers, got"):
+            cal.predict_proba(bad)
 
 
 def test_isotonic_matches_sklearn_and_roundtrips():

@@ -77,6 +77,23 @@ def _sample_weight(sample_weight: Any, s: torch.Tensor) -> torch.Tensor | None:
     return sw
 
 
+def _predict_input(scores: Any) -> tuple[torch.Tensor, bool]:
+    """``scores`` as a tensor (a tensor as is, else float64) and whether it was one; no check
+    of the values (the tracker's hot path).
+
+    Raises:
+        DataError: not convertible to numbers (numpy's ValueError escaped).
+    """
+    if isinstance(scores, torch.Tensor):
+        return scores, True
+    try:
+        return torch.as_tensor(np.asarray(scores, dtype=np.float64)), False
+    except (TypeError, ValueError) as exc:
+        raise errors.DataError(
+            f"scores must be numbers, got {type(scores).__name__}: {exc}"
+        ) from None
+
+
 def _to_like(p: torch.Tensor, like: Any) -> Any:
     return p if isinstance(like, torch.Tensor) else p.cpu().numpy()
 
@@ -249,8 +266,7 @@ class PlattCalibrator(BaseEstimator):
         NaN probabilities (no check here: this runs in the tracker's hot path).
         """
         check_fitted(self, "a_")
-        is_t = isinstance(scores, torch.Tensor)
-        s = scores if is_t else torch.as_tensor(np.asarray(scores, dtype=np.float64))
+        s, is_t = _predict_input(scores)
         if not s.is_floating_point():
             s = s.to(torch.float64)
         p = torch.sigmoid(-(s * self.a_ + self.b_))
@@ -328,8 +344,7 @@ class IsotonicCalibrator(BaseEstimator):
     def predict_proba(self, scores: Any) -> Any:
         """Calibrated ``P(positive)`` for ``scores (...)``, same shape (torch or numpy)."""
         check_fitted(self, "x_thresholds_")
-        is_t = isinstance(scores, torch.Tensor)
-        s = scores if is_t else torch.as_tensor(np.asarray(scores, dtype=np.float64))
+        s, is_t = _predict_input(scores)
         dt = s.dtype if s.is_floating_point() else torch.float64
         xp = self.x_thresholds_.to(s.device)
         fp = self.y_thresholds_.to(s.device)
