@@ -315,6 +315,14 @@ def test_fit_calibrated_holdout_and_cv():
         fit_calibrated(BoostedStumps(3), X, y, holdout=1.2)
     with pytest.raises(errors.ConfigError, match="cv must be >= 2"):
         fit_calibrated(BoostedStumps(3), X, y, cv=1)
+    # cv=2.5 ran 2 folds without a word, cv 'x' / inf escaped as ValueError / OverflowError,
+    # holdout 'x' / None as ValueError / TypeError
+    for cv in (2.5, "x", float("inf"), True):
+        with pytest.raises(errors.ConfigError, match=r"cv must be >= 2 folds \(an integer\)"):
+            fit_calibrated(BoostedStumps(3), X, y, cv=cv)
+    for holdout in ("x", None, float("nan")):
+        with pytest.raises(errors.ConfigError, match="holdout must be in"):
+            fit_calibrated(BoostedStumps(3), X, y, holdout=holdout)
     with pytest.raises(errors.ConfigError, match="calibration method must be one of"):
         fit_calibrated(BoostedStumps(3), X, y, method="beta")
     with warnings.catch_warnings():

@@ -610,8 +610,9 @@ def fit_calibrated(
     per_class = _stratified_perm(y01, generator)
     yv = y if isinstance(y, torch.Tensor) else torch.as_tensor(np.asarray(y))
     if cv is None:
-        if not 0.0 < float(holdout) < 1.0:
-            raise errors.ConfigError(f"holdout must be in (0, 1), got {holdout}")
+        # holdout='x' was a ValueError from float(), None a TypeError
+        if not (is_number(holdout) and 0.0 < float(holdout) < 1.0):
+            raise errors.ConfigError(f"holdout must be in (0, 1), got {holdout!r}")
         train, calib = [], []
         for idx in per_class:
             k = round(float(holdout) * idx.numel())
@@ -627,9 +628,10 @@ def fit_calibrated(
         scores = _margins(clf, _take(X, ca))
         labels = y01[ca]
     else:
+        # int() took cv=2.5 as 2 folds; 'x' was a ValueError, inf an OverflowError
+        if not (is_integer(cv) and cv >= 2):
+            raise errors.ConfigError(f"cv must be >= 2 folds (an integer), got {cv!r}")
         K = int(cv)
-        if K < 2:
-            raise errors.ConfigError(f"cv must be >= 2 folds, got {cv}")
         if min(idx.numel() for idx in per_class) < K:
             raise errors.ConfigError(f"cv={K} folds need at least {K} samples of each class")
         fold = torch.empty(n, dtype=torch.long)
