@@ -65,6 +65,13 @@ def test_empty_and_missing_folders(tmp_path):
         load_crops(tmp_path / "empty", (20, 10))
     with pytest.raises(DataError, match="does not exist"):
         load_crops(tmp_path / "nope", (20, 10))
+    # every file unusable: the error named one file but not why (the warnings that give the
+    # reasons are printed only after a load that succeeds)
+    cv2.imwrite(str(tmp_path / "empty" / "dot.png"), np.zeros((1, 1), np.uint8))
+    with pytest.raises(
+        DataError, match=r"no usable image \(1 unusable file\(s\), e.g. .*dot\.png: 1x1 px, under"
+    ):
+        load_crops(tmp_path / "empty", (20, 10))
 
 
 def test_region_and_exclude(folder):

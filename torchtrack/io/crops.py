@@ -291,7 +291,12 @@ def load_crops(
             f"{len(skipped)} unusable file(s) in {str(folder)!r} (strict mode):\n  {lines}"
         )
     if not imgs:
-        extra = f" ({len(skipped)} unusable file(s), e.g. {skipped[0][0]})" if skipped else ""
+        # with the reason: the caller's warnings listing them come only after a load
+        extra = (
+            f" ({len(skipped)} unusable file(s), e.g. {skipped[0][0]}: {skipped[0][1]})"
+            if skipped
+            else ""
+        )
         raise DataError(f"crop folder {str(folder)!r} has no usable image{extra}")
     stacked = torch.from_numpy(np.stack(imgs))
     images = stacked.permute(0, 3, 1, 2).contiguous() if colour else stacked[:, None]
