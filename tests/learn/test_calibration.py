@@ -20,6 +20,7 @@ from torchtrack.learn import (
     PlattCalibrator,
     SVMClassifier,
     calibration_metrics,
+    calibrator_from_dict,
     calibrator_from_state,
     fit_calibrated,
     reliability_bins,
@@ -221,6 +222,13 @@ def test_calibrator_state_validation():
         calibrator_from_state(t, {"kind": "platt", "a": 1.0, "b": float("nan")})
     with pytest.raises(errors.ModelFormatError, match="unknown calibrator kind 'beta'"):
         calibrator_from_state(t, {"kind": "beta"})
+    # a JSON integer beyond the float range (json reads 1e400 as inf, 10**400 as an int):
+    # float() of it escaped as an OverflowError, from the metadata and from a tensor
+    with pytest.raises(errors.ModelFormatError, match=r"platt\.a: not finite \(an integer beyond"):
+        calibrator_from_dict({"calibrator": {"kind": "platt", "a": -(10**400), "b": 0}})
+    big = {"dtype": "float64", "data": [0.0, 10**400]}
+    with pytest.raises(errors.ModelFormatError, match="tensor 'x': int too large"):
+        calibrator_from_dict({"calibrator": {"kind": "isotonic"}, "tensors": {"x": big}})
     ti, mi = IsotonicCalibrator().fit(s, y).to_state()
     with pytest.raises(errors.ModelFormatError, match=r"isotonic\.x: thresholds not sorted"):
         calibrator_from_state({"x": ti["x"].flip(0), "y": ti["y"]}, mi)

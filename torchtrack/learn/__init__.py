@@ -129,6 +129,6 @@ def calibrator_from_dict(d: Mapping[str, Any]) -> Any:
             )
         try:
             tensors[name] = torch.tensor(entry.get("data"), dtype=_JSON_DTYPES[entry["dtype"]])
-        except (TypeError, ValueError, RuntimeError) as exc:
+        except (TypeError, ValueError, RuntimeError, OverflowError) as exc:  # 10**400: Overflow
             raise errors.ModelFormatError(f"calibration JSON: tensor {name!r}: {exc}") from None
     return calibrator_from_state(tensors, d["calibrator"])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -208,6 +209,12 @@ def state_meta(meta: Mapping[str, Any], key: str, kind: str, types: type | tuple
         raise errors.ModelFormatError(f"{field}: expected {types}, got {type(value).__name__}")
     if isinstance(value, float) and not math.isfinite(value):
         raise errors.ModelFormatError(f"{field}: not finite ({value})")
+    if (
+        isinstance(value, int)
+        and float in (types if isinstance(types, tuple) else (types,))
+        and not -sys.float_info.max <= value <= sys.float_info.max
+    ):  # a JSON integer of 400 digits: float() of it was an OverflowError
+        raise errors.ModelFormatError(f"{field}: not finite (an integer beyond the float range)")
     return value
 
 
