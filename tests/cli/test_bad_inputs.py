@@ -235,6 +235,12 @@ def corpus(tmp_path_factory, forge_model):
         (c / f"{name}.json").write_text(
             json.dumps({**doc, "calibrator": {"kind": "platt", "a": a, "b": 0.3}})
         )
+    # JSON that the json module refuses with a ValueError (not a JSONDecodeError) and a
+    # RecursionError: both escaped as tracebacks
+    (c / "cal_bigint.json").write_text(
+        '{"calibrator": {"kind": "platt", "a": -' + "1" * 5000 + ', "b": 0}}'
+    )
+    (c / "cal_deep.json").write_text("[" * 100_000 + "]" * 100_000)
     # sequences
     _otb(c / "seqs" / "good")
     _otb(c / "badgt" / "short", gt="11,15,14,20\n13,15,14,20\n")
@@ -1411,6 +1417,15 @@ CASES += [
         "track {c}/frames --detections {c}/det.txt --det-calibration {c}/toy.safetensors "
         "--mot {o}/m.txt",
         "is not a calibration JSON",
+    ),
+    *(
+        E(
+            f"track-det-calibration-{what}",
+            f"track {{c}}/frames --detections {{c}}/det.txt --det-calibration {{c}}/cal_{what}.json "
+            "--mot {o}/m.txt",
+            f"cal_{what}.json' is not a calibration JSON .*{why}",
+        )
+        for what, why in (("bigint", "Exceeds the limit"), ("deep", "maximum recursion depth"))
     ),
     # calibrations whose probability falls (or stays flat) as the score rises
     E(

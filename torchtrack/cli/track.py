@@ -538,7 +538,7 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
     import numpy as np
     import torch
 
-    from torchtrack.errors import ConfigError, ModelFormatError
+    from torchtrack.errors import ConfigError
     from torchtrack.io.mot import read_mot
 
     rows = read_mot(args.detections, n_frames=n_frames, kind="det")
@@ -556,7 +556,9 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
             raise ConfigError(
                 f"--det-calibration {args.det_calibration!r} cannot be read: {exc}"
             ) from None
-        except (json.JSONDecodeError, UnicodeDecodeError, ModelFormatError) as exc:
+        # ValueError: JSONDecodeError, UnicodeDecodeError, ModelFormatError, and json's own
+        # ValueError for an integer of over 4300 digits; RecursionError: arrays nested 1e5 deep
+        except (ValueError, RecursionError) as exc:
             raise ConfigError(
                 f"--det-calibration {args.det_calibration!r} is not a calibration JSON "
                 f"written by `torchtrack calibrate --json` ({exc})"
