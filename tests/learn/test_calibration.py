@@ -284,16 +284,21 @@ def test_reliability_bins_against_a_loop():
         reliability_bins(p, y * 2)
 
 
-def test_bin_counts_are_bounded():
+def test_bin_counts_are_bounded(tmp_path):
     """2e9 bins tried a 16 GB allocation (RuntimeError), 1e20 overflowed (OverflowError)."""
     s, y = _scores(50, 3)
     p = 1 / (1 + np.exp(-s))
     assert set(calibration_metrics(p, y, n_bins=1000)) == {"nll", "brier", "ece"}
-    for n in (0, 1001, 2_000_000_000, 10**20):
+    # not integers: 15.0, '15', True, None were TypeErrors from torch.bincount or int(), NaN a
+    # ValueError; reliability_diagram sized np.linspace by n_bins before any check (16 GB)
+    for n in (0, 1001, 2_000_000_000, 10**20, 15.0, "15", True, None, float("nan")):
         with pytest.raises(errors.ConfigError, match=r"n_bins must be an integer in \[1, 1000\]"):
             calibration_metrics(p, y, n_bins=n)
         with pytest.raises(errors.ConfigError, match="n_bins must be"):
             reliability_bins(p, y, n_bins=n)
+        with pytest.raises(errors.ConfigError, match="n_bins must be"):
+            reliability_diagram(p, y, tmp_path / "r.png", n_bins=n)
+    assert not (tmp_path / "r.png").exists()
 
 
 def test_reliability_diagram_writes_png(tmp_path):

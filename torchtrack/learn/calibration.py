@@ -426,13 +426,19 @@ def _probabilities_and_labels(p: Any, y: Any) -> tuple[torch.Tensor, torch.Tenso
     return pt, yt
 
 
+def _check_bins(n_bins: Any) -> None:
+    """:class:`ConfigError` unless ``n_bins`` is an integer in ``[1, MAX_BINS]`` (15.0, '15'
+    and None were TypeErrors from torch.bincount or int(), NaN a ValueError)."""
+    if not (is_integer(n_bins) and 1 <= n_bins <= MAX_BINS):
+        raise errors.ConfigError(f"n_bins must be an integer in [1, {MAX_BINS}], got {n_bins!r}")
+
+
 def _bin_sums(
     pt: torch.Tensor, yt: torch.Tensor, n_bins: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per equal-width bin of ``[0, 1]`` (``p = 1`` in the last): count, sum of ``p``, sum
     of ``y``."""
-    if not 1 <= int(n_bins) <= MAX_BINS:
-        raise errors.ConfigError(f"n_bins must be an integer in [1, {MAX_BINS}], got {n_bins}")
+    _check_bins(n_bins)
     b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
     cnt = torch.bincount(b, minlength=n_bins)
     return (
@@ -496,6 +502,7 @@ def reliability_diagram(
 
     from torchtrack.io.atomic import atomic_path
 
+    _check_bins(n_bins)  # before np.linspace sizes its edges by it
     curves = p if isinstance(p, dict) else {label: p}
     yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64).cpu()
     fig = Figure(figsize=(5.5, 6.5))
