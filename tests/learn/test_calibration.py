@@ -333,6 +333,13 @@ def test_fit_calibrated_holdout_and_cv():
     for cv in (2.5, "x", float("inf"), True):
         with pytest.raises(errors.ConfigError, match=r"cv must be >= 2 folds \(an integer\)"):
             fit_calibrated(BoostedStumps(3), X, y, cv=cv)
+    # X as nested lists: X.shape was an AttributeError; ragged ones are a DataError
+    fit = fit_calibrated(
+        BoostedStumps(3), X.tolist(), y, generator=torch.Generator().manual_seed(0)
+    )
+    assert fit.scores.shape == (len(fit.calib_index),)
+    with pytest.raises(errors.DataError, match="X must be array-like"):
+        fit_calibrated(BoostedStumps(3), [[1.0, 2.0], [3.0]] * 50, y[:100])
     for holdout in ("x", None, float("nan")):
         with pytest.raises(errors.ConfigError, match="holdout must be in"):
             fit_calibrated(BoostedStumps(3), X, y, holdout=holdout)

@@ -611,6 +611,8 @@ def fit_calibrated(
             of a class for the split.
     """
     make_calibrator(method)  # validate the name before any fitting
+    if not hasattr(X, "shape"):  # a nested list: X.shape was an AttributeError
+        X = as_float_tensor(X, "X", ndim=2)
     n = int(X.shape[0])
     y01, _ = as_binary_labels(y, n)
     y01 = y01.cpu()
