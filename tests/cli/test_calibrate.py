@@ -376,3 +376,52 @@ def test_help_examples_keep_their_line_breaks(capsys):
     text = capsys.readouterr().out
     assert "--neg calib/background \\\n      --crop-size 160 96 --region 16 16 64 128" in text
     assert "background       --crop-size" not in text
+
+
+def test_prior_moves_the_fit_to_another_share_of_positives(tmp_path, capsys):
+    """--prior P: the Platt fit's log-odds move by logit(P) - logit(the data's share), the
+    metrics are weighted to P, the JSON records both shares; a bad share writes nothing."""
+    s, y = _scores(400, 4)
+    _write_csv(tmp_path / "s.csv", s, y)
+    plain, moved = tmp_path / "plain.json", tmp_path / "moved.json"
+    assert main(["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(plain)]) == 0
+    capsys.readouterr()
+    args = ["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(moved)]
+    assert main([*args, "--prior", "0.02", "--plot", str(tmp_path / "r.png")]) == 0
+    text = capsys.readouterr().out
+    share = y.mean()
+    shift = np.log(0.02 / 0.98) - np.log(share / (1 - share))
+    assert f"(the calibration data's: {share:.4g}), log-odds moved by {shift:+.4g}" in text
+    a, b = json.loads(plain.read_text()), json.loads(moved.read_text())
+    assert b["prior"] == 0.02 and b["data_prior"] == pytest.approx(share) == a["prior"]
+    ca, cb = calibrator_from_dict(a), calibrator_from_dict(b)
+    assert cb.a_ == ca.a_ and cb.b_ == pytest.approx(ca.b_ - shift, abs=1e-9)
+    # the in-sample ECE of the moved fit, weighted to 2%, is the one of data at that share
+    from torchtrack.learn import calibration_metrics, prior_weights
+
+    w = prior_weights(y, 0.02)
+    ece = calibration_metrics(cb.predict_proba(s), y, 15, w)["ece"]
+    assert b["metrics"]["after (in-sample)"]["ece"] == pytest.approx(ece, abs=1e-12)
+    assert b["metrics"]["after (in-sample)"] != a["metrics"]["after (in-sample)"]
+    for bad in ("0", "1", "1.5", "-0.1", "nan"):
+        out = tmp_path / f"bad{bad}.json"
+        rc = main(
+            ["calibrate", "--scores", str(tmp_path / "s.csv"), "--json", str(out), "--prior", bad]
+        )
+        assert rc == 1 and not out.exists()
+        assert "--prior must be a share of positives in (0, 1)" in capsys.readouterr().err
+
+
+def test_prior_with_a_model(tiny_model, tmp_path, capsys):
+    from torchtrack.detect import load_detector
+
+    args = ["calibrate", str(tiny_model), "--pos", str(tmp_path / "pos"), "--neg",
+            str(tmp_path / "neg"), "--quiet"]  # fmt: skip
+    plain, moved = tmp_path / "plain.safetensors", tmp_path / "moved.safetensors"
+    assert main([*args, "-o", str(plain)]) == 0
+    assert main([*args, "-o", str(moved), "--prior", "0.1"]) == 0
+    a, b = load_detector(plain), load_detector(moved)
+    shift = np.log(0.1 / 0.9) - np.log(40 / 50)  # 40 positive and 50 negative crops
+    assert b.calibrator.b_ == pytest.approx(a.calibrator.b_ - shift, abs=1e-9)
+    assert b.summary["recalibration"]["prior"] == 0.1
+    assert b.summary["recalibration"]["data_prior"] == pytest.approx(40 / 90)

@@ -23,8 +23,10 @@ from torchtrack.learn import (
     calibrator_from_dict,
     calibrator_from_state,
     fit_calibrated,
+    prior_weights,
     reliability_bins,
     reliability_diagram,
+    with_prior,
 )
 
 
@@ -348,3 +350,100 @@ def test_fit_calibrated_holdout_and_cv():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fit_calibrated(BoostedStumps(3), X, y, cv=2)
+
+
+def _two_gaussians(n_pos, n_neg, seed):
+    rng = np.random.default_rng(seed)
+    s = np.concatenate([rng.normal(1.5, 1.0, n_pos), rng.normal(-1.5, 1.0, n_neg)])
+    return s, np.r_[np.ones(n_pos), np.zeros(n_neg)].astype(int)
+
+
+@pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
+def test_with_prior_calibrates_at_the_new_share(cls):
+    """Fitted on balanced scores, moved to 3%: calibrated on a test set of 3% positives from
+    the same two score distributions, where the unmoved map is not; the ranking stays."""
+    s, y = _two_gaussians(3000, 3000, 0)
+    cal = cls().fit(s, y)
+    moved = with_prior(cal, 0.03, 0.5)
+    ts, ty = _two_gaussians(300, 9700, 1)
+    before = calibration_metrics(cal.predict_proba(ts), ty)["ece"]
+    after = calibration_metrics(moved.predict_proba(ts), ty)["ece"]
+    assert before > 0.05 and after < 0.01
+    p0, p1 = cal.predict_proba(ts), moved.predict_proba(ts)
+    assert np.all(np.diff(p1[np.argsort(ts)]) >= -1e-12)  # still monotone in the score
+    assert np.all(p1 <= p0 + 1e-12)  # a lower share lowers every probability
+    # estimated from the balanced data alone, weighted to the new share: close to the test's
+    w = prior_weights(y, 0.03)
+    est = calibration_metrics(moved.predict_proba(s), y, sample_weight=w)["ece"]
+    assert est == pytest.approx(after, abs=0.01)
+    same = with_prior(cal, 0.5, 0.5).predict_proba(ts)
+    np.testing.assert_allclose(same, p0, rtol=0, atol=1e-12)  # no change of share: the same
+
+
+def test_with_prior_platt_moves_b_and_isotonic_keeps_0_and_1():
+    s, y = _two_gaussians(200, 600, 2)
+    cal = PlattCalibrator().fit(s, y)
+    a0, b0 = cal.a_, cal.b_
+    moved = with_prior(cal, 0.1, 0.25)
+    shift = np.log(0.1 / 0.9) - np.log(0.25 / 0.75)
+    assert moved is not cal and (cal.a_, cal.b_) == (a0, b0)  # the original is untouched
+    assert moved.a_ == a0 and moved.b_ == pytest.approx(b0 - shift, abs=1e-12)
+    iso = IsotonicCalibrator().fit(s, y)
+    mi = with_prior(iso, 0.1, 0.25)
+    y0, y1 = iso.y_thresholds_, mi.y_thresholds_
+    ends = (y0 == 0) | (y0 == 1)
+    assert bool(ends.any()) and torch.equal(y1[ends], y0[ends])
+    inner = ~ends
+    expect = torch.sigmoid(torch.logit(y0[inner]) + shift)
+    torch.testing.assert_close(y1[inner], expect, rtol=0, atol=1e-12)
+    assert torch.equal(mi.x_thresholds_, iso.x_thresholds_)
+    state, meta = mi.to_state()
+    assert torch.equal(calibrator_from_state(state, meta).y_thresholds_, y1)
+
+
+@pytest.mark.parametrize("bad", [0, 1, 0.0, 1.5, -0.2, float("nan"), "0.1", None, True])
+def test_with_prior_and_weights_refuse_bad_shares(bad):
+    s, y = _two_gaussians(50, 50, 3)
+    cal = PlattCalibrator().fit(s, y)
+    with pytest.raises(errors.ConfigError, match=r"prior must be a share of positives in \(0, 1\)"):
+        with_prior(cal, bad, 0.5)
+    with pytest.raises(errors.ConfigError, match=r"base_prior must be a share"):
+        with_prior(cal, 0.5, bad)
+    with pytest.raises(errors.ConfigError, match=r"prior must be a share"):
+        prior_weights(y, bad)
+
+
+def test_with_prior_needs_a_fitted_calibrator_and_weights_both_classes():
+    with pytest.raises(errors.NotFittedError):
+        with_prior(PlattCalibrator(), 0.1, 0.5)
+    with pytest.raises(errors.NotFittedError):
+        with_prior(IsotonicCalibrator(), 0.1, 0.5)
+    with pytest.raises(errors.ConfigError, match="PlattCalibrator or an IsotonicCalibrator"):
+        with_prior(object(), 0.1, 0.5)
+    with pytest.raises(errors.DataError, match="both classes"):
+        prior_weights(np.ones(10), 0.1)
+    with pytest.raises(errors.DataError, match="only 0 and 1"):
+        prior_weights(np.array([0, 1, 2]), 0.1)
+
+
+def test_weighted_metrics_equal_repeated_samples(tmp_path):
+    """Integer weights give the metrics of the data with each sample repeated that often;
+    prior weights average 1 and give positives the asked share."""
+    s, y = _scores(120, 5)
+    p = PlattCalibrator().fit(s, y).predict_proba(s)
+    w = np.random.default_rng(0).integers(0, 4, size=120).astype(float)
+    w[0] = 1.0
+    rep = np.repeat(np.arange(120), w.astype(int))
+    got = calibration_metrics(p, y, 9, sample_weight=w)
+    ref = calibration_metrics(p[rep], y[rep], 9)
+    for k in ("nll", "brier", "ece"):
+        assert got[k] == pytest.approx(ref[k], rel=1e-9, abs=1e-12)
+    pw = prior_weights(y, 0.05)
+    assert float(pw.mean()) == pytest.approx(1.0, rel=1e-12)
+    assert float(pw[torch.as_tensor(y) == 1].sum() / pw.sum()) == pytest.approx(0.05, rel=1e-12)
+    with pytest.raises(errors.DataError, match="non-negative"):
+        calibration_metrics(p, y, sample_weight=-np.ones(120))
+    with pytest.raises(errors.ShapeError, match="sample_weight must have shape"):
+        calibration_metrics(p, y, sample_weight=np.ones(3))
+    out = reliability_diagram(p, y, tmp_path / "w.png", sample_weight=pw)
+    assert out.read_bytes()[:4] == b"\x89PNG"

@@ -12,7 +12,10 @@ Two inputs (Chateau et al. 2006, section 2.4):
 
 It prints NLL, Brier score and ECE (equal-width bins, default 15) before calibration, after it
 on the calibration data itself, and after it by 5-fold cross-validation (the honest estimate),
-and can draw a reliability diagram (``--plot``).
+and can draw a reliability diagram (``--plot``). ``--prior P`` moves the fitted map to data
+whose positives are a share ``P`` (:func:`torchtrack.learn.with_prior`; a scan's windows are
+mostly background, crops for calibration often half positives) and weights every metric and
+the diagram to that share (:func:`torchtrack.learn.prior_weights`).
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ examples:
 
   # any classifier's scores: a CSV with columns score,label (header optional)
   torchtrack calibrate --scores scores.csv --json platt.json --plot reliability.png
+
+  # probabilities for data where 3% are positives, calibrated on balanced crops
+  torchtrack calibrate --scores scores.csv --json platt.json --prior 0.03
 
 "before" is the model's current calibration when it has one; otherwise the logistic
 1/(1+exp(-m)) of the raw margin (or the scores themselves when all lie in [0, 1]).
@@ -86,6 +92,15 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="OUT", help="write the calibration to this JSON file")
     add_out(p, "MODEL", "write the calibrated model here (default: MODEL itself)")
     p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
+    p.add_argument(
+        "--prior",
+        type=float,
+        metavar="P",
+        help="share of positives where the probabilities will be used (e.g. among the windows "
+        "a scan scores), in (0, 1): the fitted map's log-odds move by logit(P) - logit(the "
+        "calibration data's share) and the metrics are weighted to that share (default: the "
+        "calibration data's own share)",
+    )
     p.add_argument(
         "--bins", type=int, default=15, help="ECE / diagram bins, 1 to 1000 (default 15)"
     )
@@ -253,12 +268,15 @@ def crop_margins(
 # ---------------------------------------------------------------------------- metrics
 
 
-def cv_probabilities(method: str, s: Any, y01: Any, k: int = 5, seed: int = 0) -> Any:
+def cv_probabilities(
+    method: str, s: Any, y01: Any, k: int = 5, seed: int = 0, prior: float | None = None
+) -> Any:
     """Out-of-fold calibrated probabilities ``(n,)`` (stratified ``k`` folds), or ``None`` when a
-    class has fewer than ``k`` samples."""
+    class has fewer than ``k`` samples; with ``prior``, each fold's calibrator moved to that
+    share of positives from its training part's (:func:`~torchtrack.learn.with_prior`)."""
     import torch
 
-    from torchtrack.learn import make_calibrator
+    from torchtrack.learn import make_calibrator, with_prior
 
     g = torch.Generator().manual_seed(seed)
     fold = torch.empty(s.shape[0], dtype=torch.long)
@@ -275,6 +293,8 @@ def cv_probabilities(method: str, s: Any, y01: Any, k: int = 5, seed: int = 0) -
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             cal = make_calibrator(method).fit(s[tr], y01[tr])
+        if prior is not None:
+            cal = with_prior(cal, prior, float(y01[tr].double().mean()))
         p[te] = cal.predict_proba(s[te])
     return p
 
@@ -320,6 +340,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--bins must be in [1, {MAX_BINS}], got {args.bins}")
     if args.min_per_class < 1:
         raise ConfigError(f"--min-per-class must be >= 1, got {args.min_per_class}")
+    if args.prior is not None and not 0.0 < args.prior < 1.0:  # NaN fails too
+        raise ConfigError(
+            f"--prior must be a share of positives in (0, 1) (exclusive), got {args.prior}"
+        )
     from torchtrack.cli._common import check_distinct, check_output_file
 
     check_output_file(args.json, "--json")
@@ -417,16 +441,32 @@ def run(args: argparse.Namespace) -> int:
         cal = make_calibrator(args.method).fit(s, y01)
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
+    data_prior = n_pos / (n_pos + n_neg)
+    weights = None
+    if args.prior is not None:
+        from torchtrack.learn import prior_weights, with_prior
+
+        cal = with_prior(cal, args.prior, data_prior)
+        weights = prior_weights(y01, args.prior)
     p_after = cal.predict_proba(s)
     rows = [
-        (before_name, calibration_metrics(p_before, y01, args.bins)),
-        ("after (in-sample)", calibration_metrics(p_after, y01, args.bins)),
+        (before_name, calibration_metrics(p_before, y01, args.bins, weights)),
+        ("after (in-sample)", calibration_metrics(p_after, y01, args.bins, weights)),
     ]
-    p_cv = cv_probabilities(args.method, s, y01, 5, args.seed)
+    p_cv = cv_probabilities(args.method, s, y01, 5, args.seed, args.prior)
     if p_cv is not None:
-        rows.append(("after (5-fold CV)", calibration_metrics(p_cv, y01, args.bins)))
+        rows.append(("after (5-fold CV)", calibration_metrics(p_cv, y01, args.bins, weights)))
     print(f"calibration data: {n_pos + n_neg} scores ({n_pos} positive, {n_neg} negative)")
     print(f"method: {args.method}")
+    if args.prior is not None:
+        import math
+
+        shift = math.log(args.prior / (1 - args.prior)) - math.log(data_prior / (1 - data_prior))
+        print(
+            f"prior: probabilities for a positive share of {args.prior:g} (the calibration "
+            f"data's: {data_prior:.4g}), log-odds moved by {shift:+.4g}; the metrics below weight "
+            "the samples to that share"
+        )
     if args.method == "platt":
         print(f"P(positive | m) = 1 / (1 + exp(A m + B)),  A = {cal.a_:.6g},  B = {cal.b_:.6g}")
     print(_format_table(rows, args.bins))
@@ -439,6 +479,8 @@ def run(args: argparse.Namespace) -> int:
         "n_pos": n_pos,
         "n_neg": n_neg,
         "ece_bins": args.bins,
+        "prior": args.prior if args.prior is not None else data_prior,
+        "data_prior": data_prior,
         "metrics": metrics,
         "source": source,
     }
@@ -474,7 +516,7 @@ def run(args: argparse.Namespace) -> int:
             if p_cv is not None:
                 curves["after (5-fold CV)"] = p_cv
             new_file = not os.path.exists(args.plot)
-            reliability_diagram(curves, y01, args.plot, n_bins=args.bins)
+            reliability_diagram(curves, y01, args.plot, n_bins=args.bins, sample_weight=weights)
             written += [args.plot] if new_file else []
         if args.json:
             doc = {"format": JSON_FORMAT, "format_version": JSON_VERSION, **calibrator_to_dict(cal)}

@@ -22,8 +22,10 @@ from torchtrack.learn.calibration import (
     calibration_metrics,
     fit_calibrated,
     make_calibrator,
+    prior_weights,
     reliability_bins,
     reliability_diagram,
+    with_prior,
 )
 from torchtrack.learn.svm import SVMClassifier
 from torchtrack.learn.trees import BoostedTrees
@@ -45,9 +47,11 @@ __all__ = [
     "classifier_from_state",
     "fit_calibrated",
     "make_calibrator",
+    "prior_weights",
     "reliability_bins",
     "reliability_diagram",
     "select_features",
+    "with_prior",
 ]
 
 CLASSIFIERS: dict[str, type] = {

@@ -42,7 +42,9 @@ __all__ = [
     "fit_calibrated",
     "make_calibrator",
     "platt_fit",
+    "prior_weights",
     "reliability_diagram",
+    "with_prior",
 ]
 
 METHODS = ("platt", "isotonic")
@@ -389,7 +391,9 @@ def make_calibrator(method: str) -> PlattCalibrator | IsotonicCalibrator:
 # ------------------------------------------------------------------------ diagnostics
 
 
-def calibration_metrics(p: Any, y: Any, n_bins: int = 15) -> dict[str, float]:
+def calibration_metrics(
+    p: Any, y: Any, n_bins: int = 15, sample_weight: Any = None
+) -> dict[str, float]:
     """NLL, Brier score and ECE of probabilities ``p (n,)`` for labels ``y (n,)`` in ``{0, 1}``.
 
     * ``nll``: mean of ``-[y log p + (1 - y) log(1 - p)]``, ``p`` clipped to ``[1e-15, 1 - 1e-15]``.
@@ -398,18 +402,94 @@ def calibration_metrics(p: Any, y: Any, n_bins: int = 15) -> dict[str, float]:
       of ``[0, 1]`` (bin ``b`` holds ``b / n_bins <= p < (b + 1) / n_bins``; ``p = 1`` goes to the
       last bin); empty bins contribute nothing.
 
+    With ``sample_weight (n,)`` every mean and count is weighted (e.g. :func:`prior_weights`:
+    the metrics the same scores would have where positives are a given share).
+
     Raises:
-        DataError: probabilities outside ``[0, 1]`` or NaN; labels other than 0 / 1.
+        DataError: probabilities outside ``[0, 1]`` or NaN; labels other than 0 / 1; bad
+            sample weights (negative, not finite, all zero).
         ConfigError: ``n_bins`` outside ``[1, MAX_BINS]``.
     """
     pt, yt = _probabilities_and_labels(p, y)
     pc = pt.clamp(1e-15, 1 - 1e-15)
-    nll = float(-(yt * pc.log() + (1 - yt) * (1 - pc).log()).mean())
-    brier = float(((pt - yt) ** 2).mean())
-    _, sp, sy = _bin_sums(pt, yt, n_bins)
+    loss = -(yt * pc.log() + (1 - yt) * (1 - pc).log())
+    sw = _sample_weight(sample_weight, pt)
+    if sw is None:
+        nll = float(loss.mean())
+        brier = float(((pt - yt) ** 2).mean())
+        total = float(pt.numel())
+    else:
+        total = float(sw.sum())
+        nll = float((sw * loss).sum() / total)
+        brier = float((sw * (pt - yt) ** 2).sum() / total)
+    _, sp, sy = _bin_sums(pt, yt, n_bins, sw)
     # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
-    ece = float((sp - sy).abs().sum() / pt.numel())
+    ece = float((sp - sy).abs().sum() / total)
     return {"nll": nll, "brier": brier, "ece": ece}
+
+
+def prior_weights(y: Any, prior: float) -> torch.Tensor:
+    """Sample weights ``(n,)`` float64 that make positives a share ``prior`` of labels ``y (n,)``
+    in ``{0, 1}``: ``prior / pi`` for each positive, ``(1 - prior) / (1 - pi)`` for each
+    negative, ``pi`` the share of positives in ``y`` (their mean is 1).
+
+    Raises:
+        ConfigError: ``prior`` not a number in ``(0, 1)``.
+        DataError: ``y`` holds one class only (no share to move), or labels other than 0 / 1.
+    """
+    _check_prior(prior, "prior")
+    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64)
+    if bool(((yt != 0) & (yt != 1)).any()):
+        raise errors.DataError("y must contain only 0 and 1")
+    pi = float(yt.mean()) if yt.numel() else 0.0
+    if not 0.0 < pi < 1.0:
+        raise errors.DataError("prior weights need labels of both classes")
+    pos = torch.full_like(yt, prior / pi)
+    return torch.where(yt == 1, pos, torch.full_like(yt, (1.0 - prior) / (1.0 - pi)))
+
+
+def _check_prior(prior: Any, name: str) -> None:
+    if not (is_number(prior) and 0.0 < float(prior) < 1.0):
+        raise errors.ConfigError(
+            f"{name} must be a share of positives in (0, 1) (exclusive), got {prior!r}"
+        )
+
+
+def with_prior(
+    calibrator: PlattCalibrator | IsotonicCalibrator, prior: float, base_prior: float
+) -> PlattCalibrator | IsotonicCalibrator:
+    """A copy of a fitted ``calibrator`` for data whose positives are a share ``prior``, when it
+    was fitted on data where they were a share ``base_prior``: every calibrated log-odds moves
+    by ``logit(prior) - logit(base_prior)`` (the change of priors of Saerens, Latinne &
+    Decaestecker 2002, exact when the classes' score distributions stay the same). Platt: ``B``
+    moves by minus that shift; isotonic: every level ``y`` becomes ``sigmoid(logit(y) +
+    shift)`` (0 and 1 stay). The scores' ranking is untouched.
+
+    Raises:
+        ConfigError: ``prior`` or ``base_prior`` not in ``(0, 1)``; not a calibrator of this
+            module.
+        NotFittedError: an unfitted calibrator.
+    """
+    _check_prior(prior, "prior")
+    _check_prior(base_prior, "base_prior")
+    shift = math.log(prior / (1.0 - prior)) - math.log(base_prior / (1.0 - base_prior))
+    if isinstance(calibrator, PlattCalibrator):
+        check_fitted(calibrator, "a_")
+        out = PlattCalibrator(calibrator.max_iter, calibrator.tol)
+        out.a_, out.b_, out.n_iter_ = calibrator.a_, calibrator.b_ - shift, calibrator.n_iter_
+        return out
+    if isinstance(calibrator, IsotonicCalibrator):
+        check_fitted(calibrator, "x_thresholds_")
+        out = IsotonicCalibrator()
+        y = calibrator.y_thresholds_
+        moved = torch.sigmoid(torch.logit(y.to(torch.float64)) + shift).to(y.dtype)
+        out.x_thresholds_ = calibrator.x_thresholds_.clone()
+        out.y_thresholds_ = torch.where((y == 0) | (y == 1), y, moved)
+        return out
+    raise errors.ConfigError(
+        f"with_prior takes a PlattCalibrator or an IsotonicCalibrator, got "
+        f"{type(calibrator).__name__}"
+    )
 
 
 def _probabilities_and_labels(p: Any, y: Any) -> tuple[torch.Tensor, torch.Tensor]:
@@ -434,12 +514,18 @@ def _check_bins(n_bins: Any) -> None:
 
 
 def _bin_sums(
-    pt: torch.Tensor, yt: torch.Tensor, n_bins: int
+    pt: torch.Tensor, yt: torch.Tensor, n_bins: int, sw: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per equal-width bin of ``[0, 1]`` (``p = 1`` in the last): count, sum of ``p``, sum
-    of ``y``."""
+    of ``y`` (with weights ``sw``: their sum and the weighted sums)."""
     _check_bins(n_bins)
     b = (pt * n_bins).floor().long().clamp(0, n_bins - 1)
+    if sw is not None:
+        return (
+            torch.bincount(b, weights=sw, minlength=n_bins),
+            torch.bincount(b, weights=sw * pt, minlength=n_bins),
+            torch.bincount(b, weights=sw * yt, minlength=n_bins),
+        )
     cnt = torch.bincount(b, minlength=n_bins)
     return (
         cnt,
@@ -484,6 +570,7 @@ def reliability_diagram(
     n_bins: int = 15,
     title: str | None = None,
     label: str = "calibrated",
+    sample_weight: Any = None,
 ) -> Path:
     """Write a reliability diagram (PNG, atomically) and return its path.
 
@@ -496,6 +583,8 @@ def reliability_diagram(
         p: probabilities ``(n,)``, or a dict of label -> ``(n,)`` probabilities.
         y: labels ``(n,)`` in ``{0, 1}``.
         path: destination ``.png`` file.
+        sample_weight: optional ``(n,)`` weights of the samples (:func:`prior_weights`): the
+            frequencies, means and metrics are weighted, the histogram counts them.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -512,8 +601,9 @@ def reliability_diagram(
     edges = np.linspace(0, 1, n_bins + 1)
     for name, pv in curves.items():
         pt = as_float_tensor(pv, f"p[{name}]", ndim=1, dtype=torch.float64).cpu()
-        m = calibration_metrics(pt, yt, n_bins)
-        cnt, sp, sy = _bin_sums(pt, yt, n_bins)
+        m = calibration_metrics(pt, yt, n_bins, sample_weight)
+        sw = None if sample_weight is None else _sample_weight(sample_weight, pt)
+        cnt, sp, sy = _bin_sums(pt, yt, n_bins, sw)
         mp, my = sp / cnt.clamp_min(1), sy / cnt.clamp_min(1)
         keep = (cnt > 0).numpy()
         ax.plot(
@@ -522,14 +612,20 @@ def reliability_diagram(
             marker="o",
             label=f"{name} (ECE {m['ece']:.3f}, NLL {m['nll']:.3f})",
         )
-        axh.hist(pt.numpy(), bins=edges, histtype="step", label=name)
+        axh.hist(
+            pt.numpy(),
+            bins=edges,
+            histtype="step",
+            label=name,
+            weights=None if sw is None else sw.numpy(),
+        )
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_ylabel("observed positive frequency")
     ax.set_title(title or f"Reliability diagram ({n_bins} equal-width bins)")
     ax.legend(loc="upper left", fontsize=8)
     axh.set_xlabel("predicted probability")
-    axh.set_ylabel("count")
+    axh.set_ylabel("count" if sample_weight is None else "weighted count")
     axh.set_yscale("log")
     fig.tight_layout()
     dest = Path(path)
