@@ -7,7 +7,13 @@ by cross-validation. The sign convention matches scikit-learn's ``_SigmoidCalibr
 (``expit(-(a m + b))``), so a good classifier gets ``A < 0``.
 
 Diagnostics: negative log-likelihood, Brier score and expected calibration error (ECE) with
-equal-width probability bins (default 15), plus a reliability diagram written as PNG.
+equal-width probability bins (default 15), plus a reliability diagram written as PNG; all can
+weight the samples (:func:`prior_weights`: as if positives were another share of them).
+
+A calibrated probability is calibrated to the share of positives it was fitted on: a Platt fit
+on crops of which a third are persons over-states every window of a scan, where persons are a
+few in a thousand. :func:`with_prior` moves a fitted calibrator to another share (Saerens,
+Latinne & Decaestecker 2002).
 """
 
 from __future__ import annotations
