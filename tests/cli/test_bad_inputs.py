@@ -145,6 +145,8 @@ def corpus(tmp_path_factory, forge_model):
     v = (c / "clip.avi").read_bytes()
     (c / "cut.avi").write_bytes(v[: len(v) // 2])  # frames readable, then it ends early
     (c / "empty.mp4").write_bytes(b"")
+    # a header and no frame: it opens, then gives nothing (the messages ended in '()')
+    cv2.VideoWriter(str(c / "zero.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48)).release()
     (c / "text.mp4").write_text("this is not a video\n")
     (c / "photo.png").write_bytes((c / "frames" / "0000.png").read_bytes())
     (c / "afile").write_text("x")
@@ -472,6 +474,11 @@ CASES: list[Case] = [
         f"track {{c}}/text.mp4 {HB} -o {{o}}/b.csv",
         "cannot be opened|no readable frame",
     ),
+    E(
+        "track-source-zero-frame-video",
+        f"track {{c}}/zero.avi {HB} -o {{o}}/b.csv",
+        r"no readable frame in .*zero\.avi: nothing was tracked \(it holds no frame\)$",
+    ),
     E("track-source-camera", f"track 97 {HB} -o {{o}}/b.csv", "camera index 97"),
     A(
         "track-truncated-jpeg",
@@ -649,6 +656,11 @@ CASES += [
         "detect-source-text-video",
         "detect {c}/toy.safetensors {c}/text.mp4 -o {o}/d.jsonl",
         "cannot be opened|no frame",
+    ),
+    E(
+        "detect-source-zero-frame-video",
+        "detect {c}/toy.safetensors {c}/zero.avi -o {o}/d.jsonl",
+        r"no frame of .*zero\.avi could be processed \(it holds no frame\)$",
     ),
     E(
         "detect-strict-truncated",

@@ -453,7 +453,7 @@ def _no_readable_frame(src) -> Exception:
     (an image folder of float TIFFs said only 'no readable frame')."""
     from torchtrack.errors import TrackerError
 
-    why = f" ({src.bad_frames[0].reason})" if src.bad_frames else ""
+    why = f" ({src.bad_frames[0].reason})" if src.bad_frames else " (it holds no frame)"
     return TrackerError(f"no readable frame in {src.name}: nothing was tracked{why}")
 
 
