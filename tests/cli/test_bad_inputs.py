@@ -500,6 +500,14 @@ CASES: list[Case] = [
     A("track-video-out", f"{T} {HB} --video {{o}}/v.avi", "wrote", ("v.avi",)),
     # trackers and options
     E("track-tracker-unknown", f"{T} --tracker sift --box 10,14,14,20", "unknown tracker 'sift'"),
+    # no --box: the first-frame scan cannot fit the 48x64 frames, and its hint was to 'scan
+    # with min_scale <= ...', which no option of track sets
+    E(
+        "track-single-no-box-frames-below-window",
+        f"{T} --tracker camshift -o {{o}}/b.csv",
+        r"the 'pedestrian' detector cannot look for the target on the first frame \(frame 48x64 "
+        r".*\): give the target's box with --box x,y,w,h \(.*0000\.png\)$",
+    ),
     E(
         "track-tracker-spec",
         f"{T} --tracker histogram:n_particles --box 10,14,14,20",

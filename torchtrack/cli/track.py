@@ -881,11 +881,17 @@ def detect_box(model, frame):
     """The best detection of ``model`` (default: bundled pedestrian) on ``frame`` as a ``(4,)``
     box; :class:`TrackerError` when nothing scores at least 0.5."""
     from torchtrack.detect.scan import scan
-    from torchtrack.errors import TrackerError
+    from torchtrack.errors import ShapeError, TrackerError
     from torchtrack.track.detector_pf import resolve_detector
 
     det = resolve_detector(model or "pedestrian")
-    boxes, _ = scan(det, frame, threshold=0.5, min_scale=0.5, scale_step=1.15, stride=0.08)
+    try:
+        boxes, _ = scan(det, frame, threshold=0.5, min_scale=0.5, scale_step=1.15, stride=0.08)
+    except ShapeError as exc:  # its 'scan with min_scale <= ...' is no option of this command
+        raise ShapeError(
+            f"the {det.name!r} detector cannot look for the target on the first frame ({exc}): "
+            "give the target's box with --box x,y,w,h"
+        ) from None
     if boxes.shape[0] == 0:
         raise TrackerError(
             f"the {det.name!r} detector found nothing on the first frame; give the target's "
