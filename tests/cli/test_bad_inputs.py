@@ -149,6 +149,8 @@ def corpus(tmp_path_factory, forge_model):
     cv2.VideoWriter(str(c / "zero.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48)).release()
     (c / "text.mp4").write_text("this is not a video\n")
     (c / "photo.png").write_bytes((c / "frames" / "0000.png").read_bytes())
+    _frames(c / "samestem", 3)  # 0000.png ... 0002.png, and a 0001.jpg beside them
+    cv2.imwrite(str(c / "samestem" / "0001.jpg"), cv2.imread(str(c / "frames" / "0001.png")))
     (c / "afile").write_text("x")
     # models
     toy = save_detector(c / "toy.safetensors", _toy_detector())
@@ -624,6 +626,13 @@ CASES += [
     E("detect-out-parent", f"{D} -o {{o}}/x/d.jsonl", "does not exist"),
     E("detect-annotate-file", f"{D} --annotate {{c}}/afile", "is an existing file"),
     E("detect-annotate-parent", f"{D} --annotate {{o}}/x/y", "does not exist"),
+    # 0001.jpg and 0001.png: both annotated as 0001.png, the first lost without a word
+    E(
+        "detect-annotate-same-stem",
+        "detect {c}/toy.safetensors {c}/samestem -q -o {o}/d.jsonl --annotate {o}/ann",
+        r"--annotate .* writes each frame as <its name>\.png: .*samestem/0001\.jpg and "
+        r".*samestem/0001\.png would both be 0001\.png",
+    ),
     E("detect-video-avi", f"{D} --video {{o}}/v.avi", r"\.mp4"),
     E("detect-video-dir", f"{D} --video {{c}}/frames", r"\.mp4|existing folder"),
     E("detect-out-equals-video", f"{D} -o {{o}}/v.mp4 --video {{o}}/v.mp4", "same file"),

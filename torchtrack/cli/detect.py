@@ -365,6 +365,25 @@ def draw_detections(frame, boxes, probs, color=(0, 255, 0)):
     return img
 
 
+def _check_annotated_names(files: list[Path], annotate: str) -> None:
+    """Each frame file is annotated into ``DIR/<its stem>.png``: two of one stem (``0001.jpg``,
+    ``0001.png``) would be one PNG, the second written over the first, silently.
+
+    Raises:
+        ConfigError: naming both files.
+    """
+    from torchtrack.errors import ConfigError
+
+    seen: dict[str, Path] = {}
+    for f in files:
+        first = seen.setdefault(f.stem, f)
+        if first is not f:
+            raise ConfigError(
+                f"--annotate {annotate!r} writes each frame as <its name>.png: {first} and {f} "
+                f"would both be {f.stem}.png, the second over the first; rename one of them"
+            )
+
+
 class _Writers:
     """Annotated PNGs (each written atomically) and an annotated video (written to a
     temporary file, renamed on success)."""
@@ -490,6 +509,8 @@ def run(args: argparse.Namespace) -> int:
             )
     src = _open(args.source)
     files = src.files
+    if args.annotate and files is not None:
+        _check_annotated_names(files, args.annotate)
     fps = src.fps
     skipped: list[tuple[int, str]] = []
     n_frames = n_det = 0
