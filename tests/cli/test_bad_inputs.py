@@ -2016,6 +2016,25 @@ def test_detect_that_fails_midway_leaves_no_annotated_frames(corpus, tmp_path, c
     assert not ann.exists() and not out.exists()
 
 
+def test_failed_detect_keeps_an_earlier_runs_annotated_frames(corpus, tmp_path, capsys):
+    """The same --annotate DIR again, and this run fails after annotating the first frames:
+    the earlier run's annotated frames stay as they were (they were all deleted, while its
+    --out JSON lines were kept)."""
+    import shutil
+
+    frames = tmp_path / "frames"
+    shutil.copytree(corpus / "frames", frames)
+    ann, out = tmp_path / "ann", tmp_path / "d.jsonl"
+    argv = ["detect", str(corpus / "toy.safetensors"), str(frames), "--batch", "1", "-q"]
+    assert main([*argv, "--threshold", "0.9", "-o", str(out), "--annotate", str(ann)]) == 0
+    before = {p.name: p.read_bytes() for p in ann.iterdir()}
+    assert len(before) == 6
+    cv2.imwrite(str(frames / "zzzz.png"), np.zeros((4, 4, 3), np.uint8))  # last, too small
+    assert main([*argv, "--strict", "-o", str(out), "--annotate", str(ann)]) == 1
+    assert "Traceback" not in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in ann.iterdir()} == before  # no temporary file either
+
+
 def test_warnings_print_as_one_line_like_errors():
     """A library warning under the CLI reads `torchtrack COMMAND: warning: ...`, without the
     warning class, the module's path and its code line; the format is restored afterwards."""

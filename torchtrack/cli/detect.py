@@ -420,10 +420,18 @@ class _Writers:
                 self.dir.mkdir()
                 self._made_dir = True
             stem = Path(name).stem if name else f"frame_{index:06d}"
-            with atomic_path(self.dir / f"{stem}.png") as tmp:
+            dest = self.dir / f"{stem}.png"
+            if dest.exists():
+                # an earlier run's frame: replaced when this run succeeds (the stack renames
+                # its temporary file then), kept when it fails (it was deleted with the rest)
+                tmp = self._stack.enter_context(atomic_path(dest))
                 if not cv2.imwrite(str(tmp), img):
-                    raise VideoError(f"cannot write {self.dir / (stem + '.png')}")
-            self._written.append(self.dir / f"{stem}.png")
+                    raise VideoError(f"cannot write {dest}")
+            else:
+                with atomic_path(dest) as tmp:
+                    if not cv2.imwrite(str(tmp), img):
+                        raise VideoError(f"cannot write {dest}")
+                self._written.append(dest)
         if self._tmp is not None:
             h, w = img.shape[:2]
             if self._writer is None:
