@@ -102,6 +102,10 @@ def test_bad_init_boxes():
         t.init(FRAME, [float("nan"), 1, 4, 4])
     with pytest.raises(ShapeError, match=r"\(4,\) or \(B, 4\)"):
         t.init(FRAME, [1, 1, 4])
+    # not numbers at all: torch's own TypeError / ValueError ("new(): invalid data type 'str'")
+    for box in ("1,1,4,4", [1, 1, "4", 4], [[1, 1, 4, 4], [1, 1]], [1, None, 4, 4]):
+        with pytest.raises(ShapeError, match=r"init box must be \(4,\) or \(B, 4\) numbers"):
+            t.init(FRAME, box)
     with pytest.raises(TrackerError, match="needs an initial box"):
         t.init(FRAME, None)
 

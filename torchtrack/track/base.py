@@ -190,7 +190,13 @@ class Tracker(abc.ABC):
                 )
         else:
             # a tracker runs where its frames are: its boxes go there too
-            boxes = torch.as_tensor(box).to(frame.device, torch.float64)
+            try:
+                boxes = torch.as_tensor(box).to(frame.device, torch.float64)
+            except (TypeError, ValueError, RuntimeError):  # a string, ragged lists, None inside
+                raise ShapeError(
+                    f"init box must be (4,) or (B, 4) numbers x, y, w, h, got "
+                    f"{type(box).__name__} {box!r}"[:200]
+                ) from None
             if boxes.ndim == 1:
                 boxes = boxes.reshape(1, -1)
             if boxes.ndim != 2 or boxes.shape[-1] != 4:
