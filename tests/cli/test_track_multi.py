@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import cv2
@@ -143,6 +144,26 @@ def test_scan_workers_with_outside_detections_is_refused(clip, dets, tmp_path, c
     assert main([*argv, "--scan-workers", "2"]) == 1
     assert "--detections FILE replaces them" in capsys.readouterr().err and not out.exists()
     assert main([*argv, "--scan-workers", "0"]) == 0
+
+
+def test_scan_every_with_outside_detections_is_refused(clip, dets, tmp_path, capsys):
+    """The detections of every frame were taken while the tracker counted its misses as if it
+    scanned every k-th frame: other tracks than with scan_every 1, without a word."""
+    out = tmp_path / "o.txt"
+    argv = ["track", str(clip), "--detections", str(dets), "--mot", str(out), "-q"]
+    (tmp_path / "multi.toml").write_text("scan_every = 2\n")
+    for extra in (
+        ["--scan-every", "3"],
+        ["--tracker", "multi:scan_every=3"],
+        ["--config", str(tmp_path / "multi.toml")],
+    ):
+        assert main([*argv, *extra]) == 1
+        err = capsys.readouterr().err
+        assert re.search(
+            r"scan_every = [23] .* sets how often the tracker scans: --detections", err
+        )
+        assert not out.exists() and not (tmp_path / "o.txt.part").exists()
+    assert main([*argv, "--scan-every", "1"]) == 0
 
 
 def test_scan_workers_write_the_same_tracks(tmp_path, one_thread):

@@ -607,6 +607,16 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_batch, default_scan_workers
 
     device = device_of(args)
+    if args.detections and mt.config.scan_every != 1:
+        # the outside detections are taken on every frame whatever scan_every says, while the
+        # tracker counted misses as if it scanned every k-th frame: other tracks, silently
+        from torchtrack.errors import ConfigError
+
+        raise ConfigError(
+            f"scan_every = {mt.config.scan_every} (--scan-every, multi:scan_every or --config) "
+            f"sets how often the tracker scans: --detections {args.detections!r} replaces the "
+            "scans with the detections of every frame; drop it"
+        )
     dets, det_boxes = (
         external_detections(args, len(src) or None) if args.detections else (None, None)
     )
