@@ -2016,6 +2016,16 @@ def test_detect_that_fails_midway_leaves_no_annotated_frames(corpus, tmp_path, c
     assert not ann.exists() and not out.exists()
 
 
+def test_detect_gives_each_reason_for_no_frame_once(corpus, tmp_path, capsys):
+    """Three 1x1 frames, each too small for the window for the same reason: the error said it
+    three times over; frames of different reasons (undecodable files) each keep theirs."""
+    assert main(["detect", str(corpus / "toy.safetensors"), str(corpus / "tiny")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("is smaller than the detector window") == 1, err
+    assert main(["detect", str(corpus / "toy.safetensors"), str(corpus / "corrupt")]) == 1
+    assert capsys.readouterr().err.count("cannot be decoded") == 3
+
+
 def test_failed_detect_keeps_an_earlier_runs_annotated_frames(corpus, tmp_path, capsys):
     """The same --annotate DIR again, and this run fails after annotating the first frames:
     the earlier run's annotated frames stay as they were (they were all deleted, while its

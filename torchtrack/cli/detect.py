@@ -618,7 +618,8 @@ def run(args: argparse.Namespace) -> int:
             raise DataError(f"{src.bad_frames[-1].reason} in {args.source} (--strict)")
         if n_frames == 0:
             # nothing was written: leave no empty output behind
-            detail = "; ".join(r for _, r in skipped[:3]) or (
+            # each reason once: three frames too small for the window said it three times
+            detail = "; ".join(list(dict.fromkeys(r for _, r in skipped))[:3]) or (
                 src.bad_frames[0].reason if src.bad_frames else "it holds no frame"
             )  # a video that ended at once, or of 0 frames: the message said only '()'
             raise DataError(f"no frame of {args.source} could be processed ({detail})")
