@@ -228,6 +228,28 @@ def test_malformed_header_is_a_typed_error(tmp_path, model_path, forge_model, he
         load_detector(bad)
 
 
+@pytest.mark.parametrize("inner", [False, True])
+def test_deeply_nested_header_is_a_typed_error(tmp_path, model_path, inner):
+    """JSON nested 10^5 deep, in the header or in the torchtrack description: Python's decoder
+    raised a RecursionError (a traceback from the CLI)."""
+    data = model_path.read_bytes()
+    (n,) = struct.unpack("<Q", data[:8])
+    header = json.loads(data[8 : 8 + n])
+    deep = "[" * 100_000 + "]" * 100_000
+    if inner:
+        md = header["__metadata__"]
+        md["torchtrack"] = md["torchtrack"][:-1] + ', "x": ' + deep + "}"
+        text = json.dumps(header)
+    else:
+        text = json.dumps(header)[:-1] + ', "x": ' + deep + "}"
+    h = text.encode() + b" " * (-len(text) % 8)
+    bad = tmp_path / "deep.safetensors"
+    bad.write_bytes(struct.pack("<Q", len(h)) + h + data[8 + n :])
+    what = "the torchtrack description" if inner else "its header"
+    with pytest.raises(ModelFormatError, match=f"deep.safetensors'?: {what} nests JSON .* deeply"):
+        load_detector(bad)
+
+
 @pytest.mark.parametrize(
     "meta_edit, match",
     [

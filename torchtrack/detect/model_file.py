@@ -146,6 +146,8 @@ def parse_container(data: bytes, where: str) -> Container:
         header = json.loads(data[8 : 8 + n].decode("utf-8"))
     except (UnicodeDecodeError, ValueError):
         header = None
+    except RecursionError:  # '[[[[...' nested 10^5 deep: Python's own traceback
+        raise _fail(where, "its header nests JSON arrays or objects too deeply to read") from None
     md = header.get("__metadata__") if isinstance(header, dict) else None
     text = md.get("torchtrack") if isinstance(md, dict) else None
     if not isinstance(text, str):
@@ -158,6 +160,10 @@ def parse_container(data: bytes, where: str) -> Container:
         meta = json.loads(text)
     except ValueError:
         raise _fail(where, "the torchtrack description is not valid JSON") from None
+    except RecursionError:
+        raise _fail(
+            where, "the torchtrack description nests JSON arrays or objects too deeply to read"
+        ) from None
     sig = md.get(SIGNATURE_KEY)
     entries: dict[str, TensorEntry] = {}
     items = [(k, v) for k, v in header.items() if k != "__metadata__"]
