@@ -192,6 +192,9 @@ def corpus(tmp_path_factory, forge_model):
         'window = [16, 16]\nsurprise = 1\n[data]\npositives = ["crops/pos"]\n'
     )
     (c / "tracker_unknown.toml").write_text("n_particles = 50\nsurprise = 2\n")
+    # nested 10^5 deep: the TOML and JSON decoders' RecursionError was a traceback
+    (c / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    (c / "deep.json").write_text('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}")
     (c / "haar_stride.toml").write_text(  # a bank no model file holds: trained, then refused
         'window = [16, 16]\n[data]\npositives = ["crops/pos"]\nnegatives = ["crops/neg"]\n'
         '[features]\nkind = "haar"\nstride = 17\n[learn]\nn_features = 4\n'
@@ -557,6 +560,19 @@ CASES: list[Case] = [
         "track-config-bad-toml",
         f"{T} --tracker histogram --config {{c}}/bad.toml --box 10,14,14,20",
         "TOML|toml",
+    ),
+    *(
+        E(
+            f"track-config-deep-{name}",
+            f"{T} --tracker {name} --config {{c}}/deep.toml --box 10,14,14,20 -o {{o}}/b.csv",
+            "nests arrays or tables too deeply to read",
+        )
+        for name in ("histogram", "cotrain")
+    ),
+    E(
+        "track-dynamics-deep",
+        f"{T} --tracker multi:dynamics={{c}}/deep.toml -o {{o}}/b.csv",
+        r"dynamics config .*deep\.toml': it nests arrays or tables too deeply to read",
     ),
     E("track-max-frames-0", f"{T} {HB} --max-frames 0", "--max-frames must be >= 1"),
     E("track-max-frames-text", f"{T} {HB} --max-frames ten", "invalid int", 2),
@@ -1063,6 +1079,11 @@ CASES += [
     E("mot-det-missing", f"{MT} --detections {{c}}/none.txt --mot {{o}}/m.txt", "does not exist"),
     E("mot-det-malformed", f"{MT} --detections {{c}}/det_bad.txt --mot {{o}}/m.txt", "line 2"),
     E("mot-det-zero-box", f"{MT} --detections {{c}}/det_zero.txt --mot {{o}}/m.txt", "line 1"),
+    E(
+        "mot-det-calibration-deep",
+        f"{MT} --detections {{c}}/det.txt --det-calibration {{c}}/deep.json --mot {{o}}/m.txt",
+        r"--det-calibration .*deep\.json' is not a calibration JSON .*recursion",
+    ),
     E(
         "mot-det-calibration-alone",
         f"{MT} --det-calibration {{c}}/none.json --mot {{o}}/m.txt",

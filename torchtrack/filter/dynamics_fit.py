@@ -276,6 +276,11 @@ def load_chateau_toml(
         ) from None
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise ConfigError(f"cannot read dynamics config {os.fspath(path)!r}: {e}") from None
+    except RecursionError:  # '[[[[...' nested 10^5 deep
+        raise ConfigError(
+            f"cannot read dynamics config {os.fspath(path)!r}: it nests arrays or tables too "
+            "deeply to read"
+        ) from None
     data.pop("fit", None)
     try:
         model = ChateauAR.from_params(data, window=window)

@@ -813,6 +813,10 @@ def load_tracker_config(path: str | os.PathLike, cls: type[C]) -> C:
         raise ConfigError(f"cannot read tracker config {p!r}: {e.strerror or e}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"tracker config {p!r} is not valid TOML: {e}") from None
+    except RecursionError:  # '[[[[...' nested 10^5 deep: Python's own traceback
+        raise ConfigError(
+            f"tracker config {p!r} is not valid TOML: it nests arrays or tables too deeply to read"
+        ) from None
     except UnicodeDecodeError as e:
         raise ConfigError(
             f"tracker config {p!r} is not valid TOML: not UTF-8 text ({e.reason} at byte {e.start})"
