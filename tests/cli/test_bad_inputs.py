@@ -1450,6 +1450,11 @@ CASES += [
         f"{T} {HB} --config {{c}}/binary.toml",
         "is not valid TOML: not UTF-8",
     ),
+    E(  # the cotrain tracker reads its config itself: a UnicodeDecodeError traceback
+        "track-cotrain-config-binary",
+        f"{T} --box 10,14,14,20 --tracker cotrain --config {{c}}/binary.toml -o {{o}}/b.csv",
+        r"bad TOML in .*binary\.toml: not UTF-8 text \(invalid start byte at byte 0\)",
+    ),
     E(
         "track-spec-config-binary",
         f"{T} --box 10,14,14,20 --tracker histogram:config={{c}}/binary.toml",

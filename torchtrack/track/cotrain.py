@@ -186,6 +186,10 @@ def load_cotrain_config(path: str | Path, **overrides: Any) -> CoTrainConfig:
         raise ConfigError(f"cannot read tracker config {path}: {e}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"bad TOML in {path}: {e}") from None
+    except UnicodeDecodeError as e:  # a binary file: the decoder's own traceback
+        raise ConfigError(
+            f"bad TOML in {path}: not UTF-8 text ({e.reason} at byte {e.start})"
+        ) from None
     except RecursionError:  # '[[[[...' nested 10^5 deep
         raise ConfigError(
             f"bad TOML in {path}: it nests arrays or tables too deeply to read"
