@@ -83,6 +83,15 @@ def test_registry_config_and_errors(tmp_path):
     cfg.write_text("[cotrain]\nparticles = 50\nresampler = 'sir'\n")
     t = CoTrainTracker(config=str(cfg), max_iter=2)
     assert (t.config.particles, t.config.resampler, t.config.max_iter) == (50, "sir", 2)
+    cfg.write_text("particles = 50\nresampler = 'sir'\n")  # the top level, without a table
+    assert CoTrainTracker(config=str(cfg)).config.particles == 50
+    # a key above the table was dropped without a word (the default 300 particles taken)
+    cfg.write_text("particles = 50\n[cotrain]\nresampler = 'sir'\n")
+    with pytest.raises(ConfigError, match=r"key\(s\) 'particles' outside the \[cotrain\] table"):
+        CoTrainTracker(config=str(cfg))
+    cfg.write_text("cotrain = 5\n")  # a TypeError ('int' object is not a mapping)
+    with pytest.raises(ConfigError, match=r"'cotrain' must be the \[cotrain\] table .* got 5"):
+        CoTrainTracker(config=str(cfg))
     cfg.write_text("partcles = 50\n")
     with pytest.raises(ConfigError, match="partcles"):
         CoTrainTracker(config=str(cfg))

@@ -194,7 +194,18 @@ def load_cotrain_config(path: str | Path, **overrides: Any) -> CoTrainConfig:
         raise ConfigError(
             f"bad TOML in {path}: it nests arrays or tables too deeply to read"
         ) from None
-    data = data.get("cotrain", data)
+    if "cotrain" in data:
+        table, rest = data.pop("cotrain"), sorted(data)
+        if not isinstance(table, dict):  # 'cotrain = 5': a TypeError from {**5}
+            raise ConfigError(
+                f"{path}: 'cotrain' must be the [cotrain] table of parameters, got {table!r}"
+            )
+        if rest:  # they were dropped without a word, the defaults taken instead
+            raise ConfigError(
+                f"{path}: key(s) {', '.join(map(repr, rest))} outside the [cotrain] table would "
+                "not be read: put them inside it"
+            )
+        data = table
     return _make_config({**data, **overrides}, str(path))
 
 
