@@ -103,6 +103,9 @@ def test_registry_config_and_errors(tmp_path):
         CoTrainTracker(particles=0)
     with pytest.raises(ConfigError, match="must be int"):
         CoTrainTracker(particles=1.5)
+    # a bool is no number: motion_std = true ran as 1.0 (the other fields refused it)
+    with pytest.raises(ConfigError, match="motion_std must be float, got True"):
+        CoTrainTracker(motion_std=True)
     with pytest.raises(ConfigError, match="unknown positives"):
         CoTrainTracker(positives="box")
     with pytest.raises(ConfigError, match="cannot read"):

@@ -217,8 +217,9 @@ def _make_config(values: dict[str, Any], where: str) -> CoTrainConfig:
             f"{where}: unknown cotrain parameter(s) {', '.join(unknown)}; valid: "
             f"{', '.join(sorted(known))}"
         )
-    if isinstance(values.get("motion_std"), int):
-        values["motion_std"] = float(values["motion_std"])
+    v = values.get("motion_std")
+    if isinstance(v, int) and not isinstance(v, bool):  # true was taken as 1.0, unchecked
+        values["motion_std"] = float(v)
     return CoTrainConfig(**values)
 
 
