@@ -202,6 +202,9 @@ def test_camshift_reports_a_vanished_target():
     assert t.failures == 3
     with pytest.raises(ConfigError, match=r"bins must be an integer in \[2, 256\]"):
         CamShiftTracker(bins=1)
+    # camshift:min_confidence=true ran at 1.0: the target was (almost) never visible
+    with pytest.raises(ConfigError, match=r"min_confidence must be in \[0, 1\] .* got True"):
+        CamShiftTracker(min_confidence=True)
 
 
 def test_unknown_kind():

@@ -204,7 +204,11 @@ class CamShiftTracker(Tracker):
         super().__init__()
         if isinstance(bins, bool) or not isinstance(bins, int) or not 2 <= bins <= 256:
             raise ConfigError(f"camshift bins must be an integer in [2, 256], got {bins!r}")
-        if not (isinstance(min_confidence, (int, float)) and 0 <= min_confidence <= 1):
+        if not (  # a bool is no share: min_confidence=true ran at 1.0, never visible
+            isinstance(min_confidence, (int, float))
+            and not isinstance(min_confidence, bool)
+            and 0 <= min_confidence <= 1
+        ):
             raise ConfigError(
                 f"camshift min_confidence must be in [0, 1] (a mean back-projection share), "
                 f"got {min_confidence!r}"
