@@ -268,6 +268,7 @@ def corpus(tmp_path_factory, forge_model):
     (c / "det.txt").write_text(
         "".join(f"{t + 1},-1,{11 + 2 * t},15,14,20,0.9,-1,-1,-1\n" for t in range(6))
     )
+    (c / "det.txt.part").write_text((c / "det.txt").read_text())  # detections, oddly named
     (c / "det_bad.txt").write_text("1,-1,10,15,14,20,0.9,-1,-1,-1\n2,-1,ten,15,14,20,0.9\n")
     (c / "det_zero.txt").write_text("1,-1,10,15,0,20,0.9,-1,-1,-1\n")
     (c / "det_tall.txt").write_text(  # boxes far taller than the frames (wrong units)
@@ -1075,6 +1076,18 @@ CASES += [
         "mot-equals-out",
         f"{MT} --detections {{c}}/det.txt --mot {{o}}/m.txt -o {{o}}/m.txt",
         "same file",
+    ),
+    # the rows stream into PATH.part: the CSV ended in x.csv and no x.csv.part was left, while
+    # both were reported written
+    E(
+        "track-out-is-mots-part",
+        f"{MT} --detections {{c}}/det.txt -o {{o}}/x.csv.part --mot {{o}}/x.csv",
+        r"--out and --mot's temporary file name the same file '.*x\.csv\.part'",
+    ),
+    E(
+        "track-out-part-is-detections",
+        f"{MT} --detections {{c}}/det.txt.part --mot {{c}}/det.txt",
+        r"--mot's temporary file '.*det\.txt\.part' is the input --detections",
     ),
     E("mot-det-missing", f"{MT} --detections {{c}}/none.txt --mot {{o}}/m.txt", "does not exist"),
     E("mot-det-malformed", f"{MT} --detections {{c}}/det_bad.txt --mot {{o}}/m.txt", "line 2"),

@@ -275,12 +275,20 @@ def check_track_outputs(args: argparse.Namespace, source: str, out, video, mot=N
     check_output_file(mot, "--mot")
     check_output_file(video, "--video", (".mp4", ".avi"))
     src = source if isinstance(source, str) and os.path.isfile(source) else None
-    check_distinct({"SOURCE": src, "--out": out, "--mot": mot, "--video": video})
+    # the rows stream into PATH.part (_track_io.RowWriter), renamed at the end: -o x.csv.part
+    # --mot x.csv wrote the CSV into x.csv and no x.csv.part, saying it wrote both
+    staged = {
+        f"{option}'s temporary file": f"{os.fspath(path)}.part"
+        for option, path in (("--out", out), ("--mot", mot))
+        if path
+    }
+    outputs = {"--out": out, "--mot": mot, "--video": video, **staged}
+    check_distinct({"SOURCE": src, **outputs})
     inputs = {"SOURCE": source if isinstance(source, str) else None}
     for option, dest in (("--detections", "detections"), ("--config", "config"),
                          ("--detect", "detect"), ("--det-calibration", "det_calibration")):  # fmt: skip
         inputs[option] = getattr(args, dest, None)
-    check_spares_inputs({"--out": out, "--mot": mot, "--video": video}, inputs)
+    check_spares_inputs(outputs, inputs)
 
 
 @dataclass
