@@ -486,6 +486,11 @@ CASES: list[Case] = [
         r"no readable frame in .*zero\.avi: nothing was tracked \(it holds no frame\)$",
     ),
     E("track-source-camera", f"track 97 {HB} -o {{o}}/b.csv", "camera index 97"),
+    E(  # one truncated JPEG as the source: OpenCV's video reader gave it grey-filled, tracked
+        "track-source-one-truncated-jpeg",
+        f"track {{c}}/jpgs/0002.jpg {HB} -o {{o}}/b.csv",
+        r"no readable frame in .*0002\.jpg: nothing was tracked \(image .*0002\.jpg is truncated",
+    ),
     A(
         "track-truncated-jpeg",
         f"track {{c}}/jpgs {HB} -o {{o}}/b.csv",

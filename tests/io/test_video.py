@@ -240,6 +240,25 @@ def test_truncated_jpeg_is_a_bad_frame_and_a_bad_crop(tmp_path, capfd, keep):
     assert "JPEG" not in capfd.readouterr().err  # libjpeg's own warning does not leak
 
 
+def test_one_image_file_is_read_by_the_image_decoder(tmp_path):
+    """A single image given as the source went to OpenCV's video reader: a truncated JPEG was
+    one grey-filled frame and a float TIFF one black frame, both taken as read. Now they are
+    the unreadable frames they are in a folder; a good image is one frame, as there."""
+    good = _jpeg(tmp_path / "a.jpg")
+    cut = tmp_path / "b.jpg"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    src = FrameSource(cut)
+    assert list(src) == [] and src.n_bad == 1
+    assert "b.jpg is truncated" in src.bad_frames[0].reason
+    _write(tmp_path / "f.tiff", np.full((8, 10), 0.5, np.float32))
+    src = FrameSource(tmp_path / "f.tiff")
+    assert list(src) == [] and "unsupported image dtype float32" in src.bad_frames[0].reason
+    src = FrameSource(good)
+    (frame,) = list(src)
+    assert src.name == str(good) and len(src) == 1
+    assert torch.equal(frame, read_image(good))
+
+
 def test_truncated_real_frame(data_dir, tmp_path):
     """A BoBoT frame cut to 25% of its bytes (the issue's case)."""
     src = data_dir / "tracking" / "bobot_pedestrian" / "frames" / "img0002.jpg"

@@ -344,6 +344,11 @@ class FrameSource:
             if p.is_dir():
                 self.kind = "folder"
                 self._files = list_image_files(p)
+            elif p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS:
+                # one image: through the one image decoder, as in a folder. OpenCV's video
+                # reader took a truncated JPEG filled with grey, and a float TIFF as black
+                self.kind = "files"
+                self._files = [p]
             elif p.is_file():
                 self.kind = "video"
                 with native_output() as log:
