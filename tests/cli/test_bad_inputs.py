@@ -658,6 +658,16 @@ CASES += [
     E("detect-video-avi", f"{D} --video {{o}}/v.avi", r"\.mp4"),
     E("detect-video-dir", f"{D} --video {{c}}/frames", r"\.mp4|existing folder"),
     E("detect-out-equals-video", f"{D} -o {{o}}/v.mp4 --video {{o}}/v.mp4", "same file"),
+    E(
+        "detect-out-equals-annotate",
+        f"{D} -o {{o}}/a --annotate {{o}}/a",
+        r"--out and --annotate name the same file '.*/a'",
+    ),
+    E(
+        "detect-video-equals-annotate",
+        f"{D} --video {{o}}/a.mp4 --annotate {{o}}/a.mp4",
+        r"--video and --annotate name the same file '.*/a\.mp4'",
+    ),
     E("detect-threshold-2", f"{D} --threshold 2", "--threshold is a probability"),
     E("detect-threshold-nan", f"{D} --threshold nan", "--threshold is a probability"),
     E("detect-min-scale-0", f"{D} --min-scale 0", "--min-scale must be > 0"),

@@ -314,7 +314,11 @@ def _check_args(args: argparse.Namespace) -> None:
     check_output_file(args.video, "--video", (".mp4",))
     check_output_dir(args.annotate, "--annotate")
     source = args.source if Path(args.source).is_file() else None
-    check_distinct({"SOURCE": source, "--out": args.out, "--video": args.video})
+    # --annotate's folder is made at the first frame: one path for it and --out ran the whole
+    # scan, then failed to write --out there and left the annotated frames
+    check_distinct(
+        {"SOURCE": source, "--out": args.out, "--video": args.video, "--annotate": args.annotate}
+    )
     from torchtrack.cli._common import check_spares_inputs
 
     check_spares_inputs(
