@@ -236,6 +236,17 @@ def corpus(tmp_path_factory, forge_model):
     (c / "labelonly.csv").write_text(  # the named column where the first two put it: read so
         "margin,label\n" + "".join(f"{a},{b}\n" for a, b in zip(m, y, strict=True))
     )
+    flat = {"x": [0.1, 0.9], "y": [0.5, 0.5]}  # an isotonic map of one value: no ranking
+    (c / "cal_iso_flat.json").write_text(
+        json.dumps(
+            {
+                "format": "torchtrack-calibration",
+                "format_version": 1,
+                "tensors": {k: {"dtype": "float64", "data": v} for k, v in flat.items()},
+                "calibrator": {"kind": "isotonic"},
+            }
+        )
+    )
     (c / "binary.toml").write_bytes(b"\xff\xfe\x00")  # not UTF-8: no TOML, JSON or name list
     for name, a in (("cal_inverted", 1.43), ("cal_flat", 0.0), ("cal_good", -1.2)):
         doc = {"format": "torchtrack-calibration", "format_version": 1, "tensors": {}}
@@ -1516,6 +1527,12 @@ CASES += [
         "track {c}/frames --detections {c}/det.txt --det-calibration {c}/cal_inverted.json "
         "--mot {o}/m.txt",
         r"Platt slope A = 1.43 must be in \[-1e\+06, 0\)",
+    ),
+    E(  # every detection at 0.5 was taken: the flat Platt map was refused, this one not
+        "track-det-calibration-isotonic-flat",
+        "track {c}/frames --detections {c}/det.txt --det-calibration {c}/cal_iso_flat.json "
+        "--mot {o}/m.txt",
+        "its isotonic map gives every score the probability 0.5, so it does not rank",
     ),
     E(
         "track-det-calibration-flat",

@@ -580,6 +580,13 @@ def external_detections(args: argparse.Namespace, n_frames: int | None):
                 f"be in [{-cap:g}, 0): with A >= 0 the probability falls (or stays flat) as the "
                 "detection score rises; was it fitted on inverted labels?"
             )
+        y = getattr(cal, "y_thresholds_", None)
+        if y is not None and len(y) and bool((y == y[0]).all()):  # as a flat Platt, refused
+            raise ConfigError(
+                f"--det-calibration {args.det_calibration!r}: its isotonic map gives every score "
+                f"the probability {float(y[0]):.4g}, so it does not rank the detections; was it "
+                "fitted on scores unrelated to the labels?"
+            )
         prob = cal.predict_proba(score).to(torch.float64)
     else:
         from torchtrack.track.multi import score_probabilities
