@@ -126,7 +126,8 @@ def register(subparsers) -> None:
         "--scan-every",
         type=int,
         metavar="K",
-        help="multi-target: scan for detections every K-th frame (default: the config's, 1)",
+        help="multi-target: scan for detections every K-th frame, or with --detections take "
+        "those of every K-th frame (default: the config's, 1)",
     )
     p.add_argument(
         "--max-targets", type=int, metavar="N", help="multi-target: at most N targets at once"
@@ -622,16 +623,6 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
     from torchtrack.track.scan_ahead import ScanAhead, default_scan_batch, default_scan_workers
 
     device = device_of(args)
-    if args.detections and mt.config.scan_every != 1:
-        # the outside detections are taken on every frame whatever scan_every says, while the
-        # tracker counted misses as if it scanned every k-th frame: other tracks, silently
-        from torchtrack.errors import ConfigError
-
-        raise ConfigError(
-            f"scan_every = {mt.config.scan_every} (--scan-every, multi:scan_every or --config) "
-            f"sets how often the tracker scans: --detections {args.detections!r} replaces the "
-            "scans with the detections of every frame; drop it"
-        )
     dets, det_boxes = (
         external_detections(args, len(src) or None) if args.detections else (None, None)
     )
@@ -671,6 +662,8 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         for j, r in smoother.push(i, res, offset=mt.camera_offset, detections=dets_i):
             emit(j, r)  # an inactive smoother gives back (i, res)
 
+    every = mt.config.scan_every
+
     def _track_frames(frames) -> None:
         nonlocal n_frames, t_track
         for i, frame, scan in frames:
@@ -683,7 +676,10 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 _check_detections_fit(args.detections, det_boxes, frame)
             t1 = time.perf_counter()
             if dets is not None:
-                res = mt.update(frame.to(device), dets(i))
+                # the detections of the frames the tracker would scan (every scan_every-th
+                # readable one), as track_sequence gives them: the tracker counts its misses so
+                scanned = (mt.frame_index + 1) % every == 0
+                res = mt.update(frame.to(device), dets(i) if scanned else None)
             else:
                 res = mt.update(frame.to(device), scan=scan)
             t_track += time.perf_counter() - t1
