@@ -167,7 +167,9 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
         raise DataError(f"score file {str(p)!r} has no rows")
     si, li = 0, 1
     first = [c.strip() for c in rows[0][1]]
-    numeric = [_is_float(c) for c in first[:2]]
+    from torchtrack.io.sequences import is_float_text
+
+    numeric = [is_float_text(c) for c in first[:2]]
     if any(numeric) and not all(numeric):
         # one number and one word: a first data row with a typo ('0.9O,1'), dropped as a
         # header without a word
@@ -218,14 +220,6 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
     if not scores:
         raise DataError(f"score file {str(p)!r} has a header but no data rows")
     return torch.tensor(scores, dtype=torch.float64), torch.tensor(labels, dtype=torch.float64)
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def crop_margins(

@@ -261,7 +261,8 @@ _CSV_COLUMN_SETS = {
 }
 
 
-def _is_float(s: str) -> bool:
+def is_float_text(s: str) -> bool:
+    """Whether ``float(s)`` reads ``s`` (a CSV cell: a number, or a header's word)."""
     try:
         float(s)
     except ValueError:
@@ -297,7 +298,7 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
     if not rows:
         raise SequenceError(f"box CSV {p} is empty")
     header = [c.strip().lower() for c in rows[0]]
-    has_header = not all(_is_float(c) for c in header if c)
+    has_header = not all(is_float_text(c) for c in header if c)
     if not has_header:
         return parse_box_file(p, "xywh")
     fmt = None
