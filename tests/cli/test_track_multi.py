@@ -329,3 +329,55 @@ def test_gaps_filled_and_boxes_smoothed(clip, tmp_path):
     assert (np.diff(filled[:, 0]) >= 0).all()  # frame order kept
     # smoothed and filled boxes stay on the walker (x = 20 + 3 (f + 1) px at 0-based frame f)
     assert np.abs(f1[:, 2] - (23 + 3 * f1[:, 0])).max() < 6
+
+
+@pytest.mark.parametrize(
+    "exc",
+    [
+        RuntimeError(
+            "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
+            "memory: you tried to allocate 91234567890 bytes. Error code 12 (Cannot allocate "
+            "memory)"
+        ),
+        MemoryError("Unable to allocate 9.09 TiB for an array with shape (10000000000000,)"),
+    ],
+)
+def test_out_of_memory_midway_is_an_error_and_leaves_no_output(
+    clip, dets, tmp_path, capsys, monkeypatch, exc
+):
+    """An allocation failure on the 4th frame (torch's CPU allocator, numpy's MemoryError) was
+    a traceback; now a one-line error, exit 1, and the run's outputs are gone."""
+    from torchtrack.track.multi import MultiTargetTracker
+
+    update, calls = MultiTargetTracker.update, []
+
+    def failing(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 4:
+            raise exc
+        return update(self, *a, **k)
+
+    monkeypatch.setattr(MultiTargetTracker, "update", failing)
+    out, mot = tmp_path / "o.csv", tmp_path / "o.txt"
+    argv = ["track", str(clip), "--detections", str(dets), "--out", str(out), "--mot", str(mot)]
+    assert main([*argv, "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("torchtrack track: error: out of memory (")
+    assert ("you tried to allocate 91234567890 bytes" in err) or ("9.09 TiB" in err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["det.txt", "grey.avi"]
+
+
+def test_other_runtime_errors_keep_their_traceback(clip, dets, tmp_path, monkeypatch):
+    """Only allocation failures are reported as such: any other RuntimeError is a bug."""
+    from torchtrack.track.multi import MultiTargetTracker
+
+    def broken(self, *a, **k):
+        raise RuntimeError("shape mismatch in some op")
+
+    monkeypatch.setattr(MultiTargetTracker, "update", broken)
+    with pytest.raises(RuntimeError, match="shape mismatch"):
+        main(
+            ["track", str(clip), "--detections", str(dets), "--mot", str(tmp_path / "o.txt"), "-q"]
+        )
+    assert not (tmp_path / "o.txt").exists()

@@ -118,6 +118,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _out_of_memory(exc: BaseException) -> str | None:
+    """What an allocation failure says (numpy's MemoryError, torch's CPU allocator and CUDA
+    out-of-memory errors, both RuntimeErrors), or None for any other error."""
+    if isinstance(exc, MemoryError):
+        return str(exc) or "no detail"
+    text = str(exc)
+    if isinstance(exc, RuntimeError) and (
+        "can't allocate memory" in text or "out of memory" in text.lower()
+    ):
+        tried = text.find("you tried to allocate")
+        return text[tried:].split(".")[0] if tried >= 0 else text.splitlines()[0][:200]
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     # OpenCV reads its log level once, at import: warnings it would print before our own
     # clean error message are noise (errors still show). Set first, before anything a
@@ -137,6 +151,18 @@ def main(argv: list[str] | None = None) -> int:
     except TorchTrackError as exc:
         _close_progress_bars()
         print(f"torchtrack {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except (MemoryError, RuntimeError) as exc:
+        what = _out_of_memory(exc)
+        if what is None:  # not an allocation: a bug, with its traceback
+            raise
+        # the outputs of the run were removed on the way out, as for any failed run
+        _close_progress_bars()
+        print(
+            f"torchtrack {args.command}: error: out of memory ({what}); smaller frames, fewer "
+            "particles or targets, fewer --jobs / --scan-workers, or a machine with more memory",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt as exc:
         _close_progress_bars()
