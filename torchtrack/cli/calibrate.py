@@ -167,7 +167,7 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
         raise DataError(f"score file {str(p)!r} has no rows")
     si, li = 0, 1
     first = [c.strip() for c in rows[0][1]]
-    from torchtrack.io.sequences import is_float_text
+    from torchtrack.io.text import is_float_text, text_float
 
     numeric = [is_float_text(c) for c in first[:2]]
     if any(numeric) and not all(numeric):
@@ -199,9 +199,7 @@ def read_scores_csv(path: str | Path) -> tuple[Any, Any]:
             bad.append(f"line {line}: expected at least {max(si, li) + 1} columns, got {len(r)}")
             continue
         try:
-            if "_" in r[si] or "_" in r[li]:  # Python reads 1_000 as 1000; a CSV does not
-                raise ValueError
-            s, lab = float(r[si]), float(r[li])
+            s, lab = text_float(r[si]), text_float(r[li])
         except ValueError:
             bad.append(f"line {line}: not numbers: {','.join(r)[:60]!r}")
             continue

@@ -268,14 +268,13 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
 
     from torchtrack.errors import ConfigError
     from torchtrack.io.mot import SCALE_RANGE, find_mot_sequences, load_mot_sequence
+    from torchtrack.io.text import text_float
     from torchtrack.io.video import VIDEO_EXTENSIONS
 
     scale = None
     if gt_scale != "auto":
         try:
-            if "_" in gt_scale:  # float() reads 0_625 as 625, a scale in range
-                raise ValueError
-            scale = float(gt_scale)
+            scale = text_float(gt_scale)  # float() reads 0_625 as 625, a scale in range
         except ValueError:
             scale = math.nan
         lo, hi = SCALE_RANGE

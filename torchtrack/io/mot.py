@@ -57,6 +57,7 @@ import numpy as np
 
 from torchtrack.errors import MotFormatError, SequenceError, ShapeError, VideoError
 from torchtrack.io.atomic import atomic_write
+from torchtrack.io.text import text_float
 from torchtrack.io.video import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
@@ -271,9 +272,7 @@ def read_mot(
             continue
         parts = _SPLIT.split(s)
         try:
-            if "_" in s:  # Python reads 1_0 as 10; no MOT tool does
-                raise ValueError
-            vals = [float(v) for v in parts]
+            vals = [text_float(v) for v in parts]
         except ValueError:
             raise _fail(p, no, f"not a row of numbers ({word} file)", line) from None
         if n_cols is None:

@@ -45,6 +45,7 @@ import torch
 
 from torchtrack.errors import ConfigError, SequenceError, VideoError
 from torchtrack.io.mot import MAX_SEQ_LENGTH
+from torchtrack.io.text import is_float_text, text_float
 from torchtrack.io.video import VIDEO_EXTENSIONS, FrameSource, list_image_files, natural_key
 
 __all__ = [
@@ -152,9 +153,7 @@ def _parse_rows(path: Path, allowed: tuple[int, ...]) -> list[list[float]]:
             )
         parts = [p for p in _SPLIT.split(s) if p]
         try:
-            if "_" in s:  # Python reads 2_05 as 205; a box file does not
-                raise ValueError
-            vals = [float(p) for p in parts]
+            vals = [text_float(p) for p in parts]
         except ValueError:
             raise SequenceError(
                 f"{path} line {no} is not numeric: {s[:60]!r} (expected "
@@ -261,15 +260,6 @@ _CSV_COLUMN_SETS = {
 }
 
 
-def is_float_text(s: str) -> bool:
-    """Whether ``float(s)`` reads ``s`` (a CSV cell: a number, or a header's word)."""
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
-
-
 def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.Tensor:
     """Read a CSV of boxes into ``(T, 4)`` float64 xywh 0-based boxes.
 
@@ -319,12 +309,10 @@ def read_box_csv(path: str | os.PathLike, n_frames: int | None = None) -> torch.
         if not any(c.strip() for c in r):
             raise SequenceError(f"{p} line {no} is blank (blank lines only allowed at the end)")
         try:
-            if any("_" in r[i] for i in (*idx, vcol, fcol) if i is not None):
-                raise ValueError  # Python reads 1_0 as 10; a CSV does not
-            v = [float(r[i]) for i in idx]
-            if vcol is not None and float(r[vcol]) == 0:
+            v = [text_float(r[i]) for i in idx]
+            if vcol is not None and text_float(r[vcol]) == 0:
                 v = [math.nan] * 4
-            fv = float(r[fcol]) if fcol is not None else 0.0
+            fv = text_float(r[fcol]) if fcol is not None else 0.0
         except (ValueError, IndexError):
             raise SequenceError(f"{p} line {no} is not numeric or too short: {r}") from None
         if fmt == "xyxy":  # a reversed row read as absent, without a word

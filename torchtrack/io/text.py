@@ -1,0 +1,30 @@
+"""Numbers in text files (box files, MOT rows, score CSVs, command-line values), read as those
+files mean them: Python's ``float()`` less its own syntax of underscores, which reads ``1_0``
+as 10 and ``0_625`` as 625 where no data file or tool does."""
+
+from __future__ import annotations
+
+__all__ = ["is_float_text", "text_float"]
+
+
+def text_float(s: str) -> float:
+    """``float(s)`` for a number written in a data file.
+
+    Raises:
+        ValueError: ``s`` is not a number, or holds an underscore (``1_0``: a typo or a cut
+            field, not ten).
+    """
+    if "_" in s:
+        raise ValueError(f"not a number in a data file: {s!r}")
+    return float(s)
+
+
+def is_float_text(s: str) -> bool:
+    """Whether ``float(s)`` reads ``s`` (a CSV cell: a number, or a header's word). Underscored
+    numbers count as numbers here, so that a row holding one is reported as a bad row, with
+    its line, by the reader that parses it with :func:`text_float`."""
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
