@@ -332,10 +332,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--bins must be in [1, {MAX_BINS}], got {args.bins}")
     if args.min_per_class < 1:
         raise ConfigError(f"--min-per-class must be >= 1, got {args.min_per_class}")
-    if args.prior is not None and not 0.0 < args.prior < 1.0:  # NaN fails too
-        raise ConfigError(
-            f"--prior must be a share of positives in (0, 1) (exclusive), got {args.prior}"
-        )
+    if args.prior is not None:  # before any crop is read
+        from torchtrack.learn.calibration import check_prior
+
+        check_prior(args.prior, "--prior")
     from torchtrack.cli._common import check_distinct, check_output_file
 
     check_output_file(args.json, "--json")
@@ -451,9 +451,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"calibration data: {n_pos + n_neg} scores ({n_pos} positive, {n_neg} negative)")
     print(f"method: {args.method}")
     if args.prior is not None:
-        import math
+        from torchtrack.learn.calibration import prior_shift
 
-        shift = math.log(args.prior / (1 - args.prior)) - math.log(data_prior / (1 - data_prior))
+        shift = prior_shift(args.prior, data_prior)
         print(
             f"prior: probabilities for a positive share of {args.prior:g} (the calibration "
             f"data's: {data_prior:.4g}), log-odds moved by {shift:+.4g}; the metrics below weight "

@@ -48,6 +48,7 @@ __all__ = [
     "fit_calibrated",
     "make_calibrator",
     "platt_fit",
+    "prior_shift",
     "prior_weights",
     "reliability_diagram",
     "with_prior",
@@ -443,7 +444,7 @@ def prior_weights(y: Any, prior: float) -> torch.Tensor:
         ConfigError: ``prior`` not a number in ``(0, 1)``.
         DataError: ``y`` holds one class only (no share to move), or labels other than 0 / 1.
     """
-    _check_prior(prior, "prior")
+    check_prior(prior, "prior")
     yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64)
     if bool(((yt != 0) & (yt != 1)).any()):
         raise errors.DataError("y must contain only 0 and 1")
@@ -454,11 +455,24 @@ def prior_weights(y: Any, prior: float) -> torch.Tensor:
     return torch.where(yt == 1, pos, torch.full_like(yt, (1.0 - prior) / (1.0 - pi)))
 
 
-def _check_prior(prior: Any, name: str) -> None:
+def check_prior(prior: Any, name: str) -> None:
+    """:class:`ConfigError` unless ``prior`` is a share of positives in ``(0, 1)``, naming it
+    ``name``."""
     if not (is_number(prior) and 0.0 < float(prior) < 1.0):
         raise errors.ConfigError(
             f"{name} must be a share of positives in (0, 1) (exclusive), got {prior!r}"
         )
+
+
+def prior_shift(prior: float, base_prior: float) -> float:
+    """The log-odds shift ``logit(prior) - logit(base_prior)`` that :func:`with_prior` applies.
+
+    Raises:
+        ConfigError: ``prior`` or ``base_prior`` not in ``(0, 1)``.
+    """
+    check_prior(prior, "prior")
+    check_prior(base_prior, "base_prior")
+    return math.log(prior / (1.0 - prior)) - math.log(base_prior / (1.0 - base_prior))
 
 
 def with_prior(
@@ -476,9 +490,7 @@ def with_prior(
             module.
         NotFittedError: an unfitted calibrator.
     """
-    _check_prior(prior, "prior")
-    _check_prior(base_prior, "base_prior")
-    shift = math.log(prior / (1.0 - prior)) - math.log(base_prior / (1.0 - base_prior))
+    shift = prior_shift(prior, base_prior)
     if isinstance(calibrator, PlattCalibrator):
         check_fitted(calibrator, "a_")
         out = PlattCalibrator(calibrator.max_iter, calibrator.tol)
