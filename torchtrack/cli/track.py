@@ -662,8 +662,6 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
         for j, r in smoother.push(i, res, offset=mt.camera_offset, detections=dets_i):
             emit(j, r)  # an inactive smoother gives back (i, res)
 
-    every = mt.config.scan_every
-
     def _track_frames(frames) -> None:
         nonlocal n_frames, t_track
         for i, frame, scan in frames:
@@ -676,10 +674,9 @@ def _run_multi(args, mt, src, source, *, out, video, mot) -> TrackSummary:
                 _check_detections_fit(args.detections, det_boxes, frame)
             t1 = time.perf_counter()
             if dets is not None:
-                # the detections of the frames the tracker would scan (every scan_every-th
-                # readable one), as track_sequence gives them: the tracker counts its misses so
-                scanned = (mt.frame_index + 1) % every == 0
-                res = mt.update(frame.to(device), dets(i) if scanned else None)
+                # the detections of the frames the tracker would scan, as track_sequence gives
+                # them: the tracker counts its misses so
+                res = mt.update(frame.to(device), dets(i) if mt.scans_next() else None)
             else:
                 res = mt.update(frame.to(device), scan=scan)
             t_track += time.perf_counter() - t1

@@ -433,6 +433,12 @@ class MultiTargetTracker:
             return torch.ones(boxes.shape[0], dtype=torch.bool, device=boxes.device)
         return _cut(boxes, height) | line.consistent(boxes, self.config.ground_gate)
 
+    def scans_next(self) -> bool:
+        """Whether the next :meth:`update` falls on a frame this tracker scans (every
+        ``scan_every``-th readable frame, from the first): where detections from outside, or
+        cached scans, go in."""
+        return (self.frame_index + 1) % self.config.scan_every == 0
+
     def scan_ground(self, t: int) -> GroundLine | None:
         """The line the scan of frame ``t`` (0-based, counted as :meth:`update` counts) uses:
         the ground plane as it was after frame ``t - GROUND_LAG``; None before that, while it
@@ -1513,7 +1519,7 @@ def track_sequence(
                 continue
             d = None
             # the frames the tracker would scan: every scan_every-th readable one, its own count
-            if per_frame is not None and (tracker.frame_index + 1) % tracker.config.scan_every == 0:
+            if per_frame is not None and tracker.scans_next():
                 idx = torch.from_numpy(per_frame[i]) if i < len(per_frame) else None
                 d = empty if idx is None or idx.numel() == 0 else (boxes_all[idx], conf_all[idx])
             if as_scans:
