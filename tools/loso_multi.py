@@ -131,12 +131,20 @@ def degrade(
     gray: bool = False,
     gain: float = 0.0,
     period: float = 100.0,
+    blur: float = 0.0,
+    jpeg: int = 0,
 ) -> np.ndarray:
     """``(H, W, C)`` uint8 with its contrast scaled by ``contrast`` about 128 and Gaussian
     noise of sd ``noise`` (grey levels) added, the draw seeded by ``index``; with ``gray``
     first made grey (ITU-R 601 luma in all three channels: a monochrome camera); with ``gain``
     its brightness then multiplied by ``1 + gain sin(2 pi index / period)`` (light that changes
-    over the video, as ``tools/make_copies.py --gain`` does to single-target sequences)."""
+    over the video, as ``tools/make_copies.py --gain`` does to single-target sequences); with
+    ``blur`` first blurred by a Gaussian of that sd in pixels (a soft lens, focus or motion);
+    with ``jpeg`` last compressed as a JPEG of that quality (1-100: a low-bitrate camera)."""
+    import cv2
+
+    if blur > 0:
+        frame = cv2.GaussianBlur(frame, (0, 0), blur)
     out = frame.astype(np.float32)
     if gray:
         luma = out @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
@@ -146,32 +154,48 @@ def degrade(
         out *= 1.0 + gain * math.sin(2.0 * math.pi * index / period)
     if noise > 0:
         out += np.random.default_rng(index).normal(0.0, noise, frame.shape).astype(np.float32)
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    if jpeg:
+        _, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg)])
+        out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED).reshape(out.shape)
+    return out
 
 
 def degraded(seq: MotSequence, spec: str, cache: Path) -> MotSequence:
     """``seq`` through :func:`degrade` (``spec``:
-    ``contrast=C,noise=S[,gray=1][,gain=A[,period=P]]``), written once as a MOTChallenge folder
-    (PNG frames, the ground truth in their pixels) under ``cache``."""
-    usage = "contrast=C,noise=S[,gray=1][,gain=A[,period=P]]"
+    ``contrast=C,noise=S[,gray=1][,gain=A[,period=P]][,blur=B][,jpeg=Q]``), written once as a
+    MOTChallenge folder (PNG frames, the ground truth in their pixels) under ``cache``."""
+    usage = "contrast=C,noise=S[,gray=1][,gain=A[,period=P]][,blur=B][,jpeg=Q]"
     try:
         kv = dict(item.split("=") for item in spec.split(","))
         contrast, noise = float(kv.pop("contrast", 1.0)), float(kv.pop("noise", 0.0))
         gray = bool(int(kv.pop("gray", 0)))
         gain, period = float(kv.pop("gain", 0.0)), float(kv.pop("period", 100.0))
+        blur, jpeg = float(kv.pop("blur", 0.0)), int(kv.pop("jpeg", 0))
     except ValueError:
         raise SystemExit(f"--degrade: expected {usage}, got {spec!r}") from None
-    if kv or not (0 < contrast <= 1 and noise >= 0 and 0 <= gain < 1 and period > 0):
+    if kv or not (
+        0 < contrast <= 1
+        and noise >= 0
+        and 0 <= gain < 1
+        and period > 0
+        and 0 <= blur <= 20
+        and 0 <= jpeg <= 100
+    ):
         raise SystemExit(
-            f"--degrade: expected contrast in (0, 1], noise >= 0, gain in [0, 1) and "
-            f"period > 0 ({usage}), got {spec!r}"
+            f"--degrade: expected contrast in (0, 1], noise >= 0, gain in [0, 1), period > 0, "
+            f"blur in [0, 20] px and jpeg in [0, 100] ({usage}), got {spec!r}"
         )
     name = f"{seq.name}-c{contrast:g}-n{noise:g}{'-gray' if gray else ''}"
     if gain:
         name += f"-gain{gain:g}-p{period:g}"
+    if blur:
+        name += f"-blur{blur:g}"
+    if jpeg:
+        name += f"-jpeg{jpeg}"
     return _copy(
         seq, name, cache / "degraded",
-        lambda img, i: degrade(img, contrast, noise, i, gray, gain, period),
+        lambda img, i: degrade(img, contrast, noise, i, gray, gain, period, blur, jpeg),
     )  # fmt: skip
 
 

@@ -121,7 +121,29 @@ def test_degrade_gain_follows_the_sine_and_leaves_the_default_unchanged():
     assert np.array_equal(loso.degrade(frame, 1.0, 0.0, 0, gain=0.5), frame)  # sin 0 = 0
 
 
-@pytest.mark.parametrize("spec", ["gain=1", "gain=-0.1", "gain=0.5,period=0", "gain=x"])
+def test_degrade_blur_softens_and_jpeg_compresses():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 256, (32, 48, 3), dtype=np.uint8)
+    soft = loso.degrade(frame, 1.0, 0.0, 0, blur=1.5)
+    # a blurred frame keeps its mean and loses most of its pixel-to-pixel differences
+    assert abs(float(soft.mean()) - float(frame.mean())) < 2.0
+    assert (
+        np.abs(np.diff(soft.astype(float), axis=1)).mean()
+        < 0.5 * np.abs(np.diff(frame.astype(float), axis=1)).mean()
+    )
+    packed = loso.degrade(frame, 1.0, 0.0, 0, jpeg=20)
+    assert packed.shape == frame.shape and packed.dtype == np.uint8
+    assert 0 < np.abs(packed.astype(int) - frame.astype(int)).mean() < 60
+    assert np.array_equal(loso.degrade(frame, 1.0, 0.0, 0, blur=0.0, jpeg=0), frame)
+
+
+@pytest.mark.parametrize(
+    "spec",
+    ["gain=1", "gain=-0.1", "gain=0.5,period=0", "gain=x", "blur=-1", "blur=30", "jpeg=101",
+     "jpeg=2.5"],
+)  # fmt: skip
 def test_degrade_refuses_a_bad_gain(spec, tmp_path):
     with pytest.raises(SystemExit, match="--degrade: expected"):
         loso.degraded(None, spec, tmp_path)
