@@ -1,5 +1,5 @@
-"""Copies of single-target sequences that change one thing: the frame rate, the colour, or the
-light.
+"""Copies of single-target sequences that change one thing: the frame rate, the colour, the
+light, or the sharpness.
 
 Issue 13's sequences kept aside differ from the dev set in ways the dev set can be made to show
 with its own targets, frames and ground truth:
@@ -13,6 +13,9 @@ with its own targets, frames and ground truth:
   copy's frame index, ``P = --period``, default 100 frames; values clipped to 0..255): light that
   changes while the target is followed (a cloud, a lamp, a camera's exposure). Named
   ``<sequence>-gain<A>``.
+* ``--blur S`` blurs every frame with a Gaussian of sd S pixels (a soft lens, a camera out of
+  focus, motion blur without its direction): the animal head "moving fast with blur" of the
+  sequences kept aside. Named ``<sequence>-blur<S>``.
 
 The options combine (``-every3-grey``). Copies that change pixels write lossless PNG frames;
 ``--every`` alone links. Each copy has a ``groundtruth.csv`` (``frame,x,y,w,h``; frames where
@@ -21,6 +24,7 @@ the target is absent keep NaN boxes), the layout ``torchtrack eval --sequences``
     python tools/make_copies.py --every 3 --out runs/dev_every3
     python tools/make_copies.py --grey --out runs/dev_grey
     python tools/make_copies.py --gain 0.5 --out runs/dev_gain
+    python tools/make_copies.py --blur 1.5 --out runs/dev_blur
     torchtrack eval --sequences runs/dev_grey --seed 0 --jobs 2 --out runs/grey/seed0 \\
         --trackers adaptive-haar mil
 
@@ -47,13 +51,16 @@ from torchtrack.io.sequences import Sequence, find_sequences  # noqa: E402
 from torchtrack.io.video import FrameSource  # noqa: E402
 
 
-def copy_name(name: str, every: int = 1, grey: bool = False, gain: float = 0.0) -> str:
+def copy_name(
+    name: str, every: int = 1, grey: bool = False, gain: float = 0.0, blur: float = 0.0
+) -> str:
     """The copy's folder name: ``name`` with one suffix per change."""
     return (
         name
         + (f"-every{every}" if every > 1 else "")
         + ("-grey" if grey else "")
         + (f"-gain{gain:g}" if gain else "")
+        + (f"-blur{blur:g}" if blur else "")
     )
 
 
@@ -70,12 +77,14 @@ def make_copy(
     grey: bool = False,
     gain: float = 0.0,
     period: float = 100.0,
+    blur: float = 0.0,
 ) -> Path:
     """Write the copy of ``seq`` under ``out`` (see the module doc); returns its folder.
 
     Raises:
-        SequenceError: ``every`` < 1, ``gain`` outside [0, 1), ``period`` <= 0, no change asked
-            for, or a frame-rate-only copy of a sequence without frame files (a video).
+        SequenceError: ``every`` < 1, ``gain`` outside [0, 1), ``period`` <= 0, ``blur``
+            outside [0, 20] pixels, no change asked for, or a frame-rate-only copy of a
+            sequence without frame files (a video).
     """
     if every < 1:
         raise SequenceError(f"--every must be >= 1, got {every}")
@@ -83,12 +92,14 @@ def make_copy(
         raise SequenceError(f"--gain must be in [0, 1) (brightness stays positive), got {gain}")
     if not period > 0:
         raise SequenceError(f"--period must be > 0 frames, got {period}")
-    if every == 1 and not grey and not gain:
-        raise SequenceError("nothing to change: give --every K > 1, --grey or --gain A")
-    links = not grey and not gain
+    if not 0.0 <= blur <= 20.0:
+        raise SequenceError(f"--blur must be in [0, 20] pixels (a Gaussian's sd), got {blur}")
+    if every == 1 and not grey and not gain and not blur:
+        raise SequenceError("nothing to change: give --every K > 1, --grey, --gain A or --blur S")
+    links = not grey and not gain and not blur
     if links and not seq.frames:
         raise SequenceError(f"sequence {seq.name} ({seq.root}) has no frame files to link")
-    folder = out / copy_name(seq.name, every, grey, gain)
+    folder = out / copy_name(seq.name, every, grey, gain, blur)
     frames = folder / "frames"
     frames.mkdir(parents=True, exist_ok=True)
     keep = range(0, len(seq), every)
@@ -104,13 +115,19 @@ def make_copy(
                 dst.unlink()
             dst.symlink_to(src)
     else:
-        _write_frames(seq, keep, frames, grey, gain, period)
+        _write_frames(seq, keep, frames, grey, gain, period, blur)
     (folder / "groundtruth.csv").write_text("\n".join(rows) + "\n")
     return folder
 
 
 def _write_frames(
-    seq: Sequence, keep: range, frames: Path, grey: bool, gain: float, period: float
+    seq: Sequence,
+    keep: range,
+    frames: Path,
+    grey: bool,
+    gain: float,
+    period: float,
+    blur: float = 0.0,
 ) -> None:
     import cv2
 
@@ -129,6 +146,8 @@ def _write_frames(
             if frame is None:
                 raise SequenceError(f"sequence {seq.name}: frame {keep[j] + 1} could not be read")
             img = frame.permute(1, 2, 0).numpy()  # (H, W, 3) uint8 RGB
+            if blur:
+                img = cv2.GaussianBlur(img, (0, 0), blur)
             if grey:
                 img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
             else:
@@ -166,13 +185,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--period", type=float, default=100.0, help="frames per cycle of --gain (default 100)"
     )
+    ap.add_argument(
+        "--blur",
+        type=float,
+        default=0.0,
+        help="Gaussian blur of sd S pixels, S in [0, 20] (default 0: sharp as recorded)",
+    )
     ap.add_argument("--out", type=Path, required=True, help="folder of the copies")
     args = ap.parse_args(argv)
     try:
         seqs = [s for src in args.sources for s in find_sequences(src)]
         for s in seqs:
             folder = make_copy(
-                s, args.every, args.out, grey=args.grey, gain=args.gain, period=args.period
+                s,
+                args.every,
+                args.out,
+                grey=args.grey,
+                gain=args.gain,
+                period=args.period,
+                blur=args.blur,
             )
             print(f"{folder.name}: {len(range(0, len(s), args.every))} frames")
     except TorchTrackError as e:

@@ -72,8 +72,22 @@ def test_gain_copy_follows_the_sine(data_dir, tmp_path):
     assert fb[5].double().mean() > 1.3 * fa[5].double().mean()
 
 
+def test_blur_copy_is_the_gaussian_blur_of_every_frame(data_dir, tmp_path):
+    import cv2
+
+    seq = load_sequence(data_dir / "tracking" / "otb" / "Crossing")[0].head(4)
+    folder = make_copies.make_copy(seq, 1, tmp_path, blur=1.5)
+    assert folder.name == "Crossing-blur1.5"
+    fa, fb = _frames(seq, 4), _frames(load_sequence(folder)[0], 4)
+    for i in range(4):
+        want = cv2.GaussianBlur(fa[i].permute(1, 2, 0).numpy(), (0, 0), 1.5)
+        assert torch.equal(fb[i], torch.from_numpy(want).permute(2, 0, 1))  # lossless PNG
+    assert not torch.equal(fa[0], fb[0])
+
+
 def test_changes_combine_in_the_name():
     assert make_copies.copy_name("BoBoT", 3, True, 0.25) == "BoBoT-every3-grey-gain0.25"
+    assert make_copies.copy_name("BoBoT", 1, False, 0.0, 2.0) == "BoBoT-blur2"
     assert make_copies.copy_name("BoBoT", 1, False, 0.0) == "BoBoT"
 
 
@@ -85,6 +99,8 @@ def test_bad_arguments_and_missing_source(tmp_path, data_dir):
         make_copies.make_copy(seq, 1, tmp_path, gain=1.0)
     with pytest.raises(SequenceError, match="--period must be > 0"):
         make_copies.make_copy(seq, 1, tmp_path, gain=0.5, period=0)
+    with pytest.raises(SequenceError, match=r"--blur must be in \[0, 20\]"):
+        make_copies.make_copy(seq, 1, tmp_path, blur=-1.0)
     with pytest.raises(SequenceError, match="nothing to change"):
         make_copies.make_copy(seq, 1, tmp_path)
     assert make_copies.main(["--out", str(tmp_path), str(tmp_path / "missing")]) == 1
