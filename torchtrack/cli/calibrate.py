@@ -75,8 +75,20 @@ def register(subparsers) -> None:
         metavar="MODEL",
         help="detector model file to calibrate, or a bundled name (pedestrian, vehicle) with -o OUT",
     )
-    p.add_argument("--pos", nargs="+", metavar="DIR", help="folders of positive calibration crops")
-    p.add_argument("--neg", nargs="+", metavar="DIR", help="folders of negative calibration crops")
+    p.add_argument(
+        "--pos",
+        nargs="+",
+        action="extend",
+        metavar="DIR",
+        help="folders of positive calibration crops",
+    )
+    p.add_argument(
+        "--neg",
+        nargs="+",
+        action="extend",
+        metavar="DIR",
+        help="folders of negative calibration crops",
+    )
     p.add_argument(
         "--region",
         nargs=4,

@@ -49,6 +49,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--sequences",
         nargs="+",
+        action="extend",
         metavar="PATH",
         help="sequence folders, folders of sequences (searched 3 levels deep), or videos with a "
         "same-stem .csv",
@@ -56,6 +57,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--trackers",
         nargs="+",
+        action="extend",
         metavar="NAME",
         help="tracker names, optionally with parameters: name:key=value,key=value "
         "(see --list-trackers)",
@@ -64,6 +66,7 @@ def register(subparsers) -> None:
     mot.add_argument(
         "--mot",
         nargs="+",
+        action="extend",
         metavar="SEQ",
         help="MOTChallenge sequence folders (seqinfo.ini, gt/gt.txt, img1/), folders holding "
         "them (e.g. MOT15/train), or videos whose ground truth --gt gives",
@@ -71,6 +74,7 @@ def register(subparsers) -> None:
     mot.add_argument(
         "--results",
         nargs="+",
+        action="extend",
         metavar="FILE_OR_DIR",
         help="one per tracker: a MOT results file (one sequence) or a folder with "
         "<sequence name>.txt per sequence",
@@ -84,6 +88,7 @@ def register(subparsers) -> None:
     mot.add_argument(
         "--gt",
         nargs="+",
+        action="extend",
         metavar="FILE",
         default=[],
         help="ground-truth file of each video in --mot, in order",

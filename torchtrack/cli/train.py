@@ -49,10 +49,18 @@ def register(subparsers) -> None:
     )
     p.add_argument("--config", metavar="TOML", help="training config (see configs/*.toml)")
     add_out(p, "MODEL", "model file to write", required=True)
-    p.add_argument("--pos", nargs="+", metavar="DIR", help="folders of positive crops")
-    p.add_argument("--neg", nargs="+", metavar="DIR", help="folders of negative crops")
     p.add_argument(
-        "--neg-images", nargs="+", metavar="PATH", help="object-free images (folders or files)"
+        "--pos", nargs="+", action="extend", metavar="DIR", help="folders of positive crops"
+    )
+    p.add_argument(
+        "--neg", nargs="+", action="extend", metavar="DIR", help="folders of negative crops"
+    )
+    p.add_argument(
+        "--neg-images",
+        nargs="+",
+        action="extend",
+        metavar="PATH",
+        help="object-free images (folders or files)",
     )
     p.add_argument(
         "--random-negatives", type=int, metavar="N", help="random windows of --neg-images"
@@ -73,7 +81,9 @@ def register(subparsers) -> None:
         "--holdout", type=float, metavar="F", help="calibration hold-out fraction (default 0.3)"
     )
     p.add_argument("--mining-rounds", type=int, metavar="R", help="hard-negative mining rounds")
-    p.add_argument("--exclude", nargs="+", metavar="LIST", help="files of names never to use")
+    p.add_argument(
+        "--exclude", nargs="+", action="extend", metavar="LIST", help="files of names never to use"
+    )
     p.add_argument("--mirror", action="store_true", help="add mirror images of the positives")
     p.add_argument("--seed", type=seed_value, help="random seed (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
