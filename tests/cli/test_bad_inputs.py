@@ -990,6 +990,11 @@ CASES += [
         "needs labelled calibration crops",
     ),
     E("cal-model-out-dir", f"{CM} -o {{c}}/frames", "is an existing folder"),
+    E(  # meant --json: the calibrated model was written, binary, into cal.json
+        "cal-model-out-not-a-model",
+        f"{CM} -o {{o}}/cal.json",
+        r"--out '.*cal.json' must end in .safetensors, got .json",
+    ),
     E(
         "cal-model-few",
         "calibrate {c}/toy.safetensors --pos {c}/few/pos --neg {c}/few/neg -o {o}/m.safetensors",
@@ -1387,6 +1392,11 @@ CASES += [
     E("sign-new-key-dir", "sign --new-key {c}/frames", "is an existing folder"),
     E("sign-new-key-model", "sign {c}/toy.safetensors --new-key {o}/k.pem", "takes no MODEL"),
     E("sign-two-modes", "sign {c}/toy.safetensors --check --key {c}/alice.pem", "exactly one of"),
+    E(  # the signed model was written over the public key beside the private one
+        "sign-out-not-a-model",
+        "sign {c}/toy.safetensors --key {c}/alice.pem -o {o}/alice.pub",
+        r"--out '.*alice.pub' must end in .safetensors, got .pub",
+    ),
     E(
         "sign-out-dir",
         "sign {c}/toy.safetensors --key {c}/alice.pem -o {c}/frames",

@@ -352,7 +352,6 @@ def run(args: argparse.Namespace) -> int:
 
     check_output_file(args.json, "--json")
     check_output_file(args.plot, "--plot", (".png", ".pdf", ".svg"))
-    check_output_file(args.out, "--out")
     check_distinct({"--json": args.json, "--plot": args.plot, "--out": args.out})
     check_distinct({"--json": args.json, "--plot": args.plot, "MODEL": args.model})
     check_distinct({"--json": args.json, "--plot": args.plot, "--scores": args.scores})
@@ -362,6 +361,8 @@ def run(args: argparse.Namespace) -> int:
     # --out may be MODEL itself: the calibration is written into the model, atomically
     check_spares_inputs(outs, {"--pos": args.pos or [], "--neg": args.neg or []})
     check_spares_inputs({"--json": args.json, "--plot": args.plot}, {"MODEL": args.model})
+    # a model file, as train writes: -o cal.json (meant --json) got the binary model
+    check_output_file(args.out, "--out", (".safetensors",))
     det = None
     if args.scores is not None:
         if args.pos or args.neg or args.out:

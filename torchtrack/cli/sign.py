@@ -65,11 +65,11 @@ def check_outputs(args: argparse.Namespace) -> None:
 
     if args.new_key:
         check_output_file(args.new_key, "--new-key")
-    if args.out:
-        check_output_file(args.out, "--out")
     # the signed model never lands on a key (a private key overwritten is lost for good)
     keys = {"--key": args.key, "--trusted-key": getattr(args, "trusted_key", None) or []}
     check_spares_inputs({"--out": args.out, "--new-key": args.new_key}, keys)
+    if args.out:  # a model file (-o KEY.pub wrote the model over the public key)
+        check_output_file(args.out, "--out", (".safetensors",))
 
 
 def run(args: argparse.Namespace) -> int:
