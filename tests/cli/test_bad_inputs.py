@@ -450,6 +450,16 @@ CASES: list[Case] = [
     E("track-box-five", f"{T} --tracker camshift --box 1,2,3,4,5 -o {{o}}/b.csv", "four numbers"),
     E("track-box-text", f"{T} --tracker camshift --box a,b,c,d -o {{o}}/b.csv", "four numbers"),
     E("track-box-empty", f"{T} --tracker camshift --box '' -o {{o}}/b.csv", "four numbers"),
+    E(  # was the box 1,2,3,4: the value after the gap read one place early
+        "track-box-empty-value",
+        f"{T} --tracker camshift --box 1,,2,3,4 -o {{o}}/b.csv",
+        "--box '1,,2,3,4' has an empty value",
+    ),
+    E(  # float() read '1_0' as 10, where the box files refuse it
+        "track-box-underscore",
+        f"{T} --tracker camshift --box 1_0,2,3,4 -o {{o}}/b.csv",
+        "four numbers x,y,w,h .*got '1_0,2,3,4'",
+    ),
     E(
         "track-box-subpixel",
         f"{T} --tracker camshift --box 1,1,0.2,0.2 -o {{o}}/b.csv",

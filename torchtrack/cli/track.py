@@ -784,10 +784,17 @@ def parse_box(text: str):
     import torch
 
     from torchtrack.errors import BoxError
+    from torchtrack.io.text import EMPTY_FIELD, SEPARATORS, text_float
 
-    parts = [p.strip() for p in text.replace(" ", ",").split(",") if p.strip()]
-    try:
-        vals = [float(p) for p in parts]
+    s = text.strip()
+    if EMPTY_FIELD.search(s):  # '10,,20,30,40' was the box 10,20,30,40 (a value skipped)
+        raise BoxError(
+            f"--box {text!r} has an empty value (a comma first, or two commas with nothing "
+            "between): give four numbers x,y,w,h (pixels)"
+        )
+    parts = [p for p in SEPARATORS.split(s) if p]
+    try:  # as the box files read them: '1_0' is no ten
+        vals = [text_float(p) for p in parts]
     except ValueError:
         raise BoxError(f"--box must be four numbers x,y,w,h (pixels), got {text!r}") from None
     if len(vals) != 4:

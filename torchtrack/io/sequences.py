@@ -45,7 +45,7 @@ import torch
 
 from torchtrack.errors import ConfigError, SequenceError, VideoError
 from torchtrack.io.mot import MAX_SEQ_LENGTH
-from torchtrack.io.text import is_float_text, text_float
+from torchtrack.io.text import EMPTY_FIELD, SEPARATORS, is_float_text, text_float
 from torchtrack.io.video import VIDEO_EXTENSIONS, FrameSource, list_image_files, natural_key
 
 __all__ = [
@@ -62,9 +62,6 @@ __all__ = [
     "read_box_csv",
 ]
 
-_SPLIT = re.compile(r"[,\s]+")
-#: a value left empty: a comma first or two commas with only blanks between (_SPLIT skips it)
-_EMPTY_FIELD = re.compile(r"^,|,\s*,")
 _FRAME_DIRS = ("img", "frames", "images", "color")
 _CSV_NAMES = ("groundtruth.csv", "gt.csv", "boxes.csv")
 _MISMATCH = ("error", "truncate")
@@ -146,12 +143,12 @@ def _parse_rows(path: Path, allowed: tuple[int, ...]) -> list[list[float]]:
         s = line.strip()
         if not s:
             raise SequenceError(f"{path} line {no} is blank (blank lines only allowed at the end)")
-        if _EMPTY_FIELD.search(s):  # '10,,20,30,40' was read as the box 10,20,30,40
+        if EMPTY_FIELD.search(s):  # '10,,20,30,40' was read as the box 10,20,30,40
             raise SequenceError(
                 f"{path} line {no} has an empty value (a comma first, or two commas with "
                 f"nothing between): {s[:60]!r}"
             )
-        parts = [p for p in _SPLIT.split(s) if p]
+        parts = [p for p in SEPARATORS.split(s) if p]
         try:
             vals = [text_float(p) for p in parts]
         except ValueError:

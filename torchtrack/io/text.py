@@ -4,7 +4,15 @@ as 10 and ``0_625`` as 625 where no data file or tool does."""
 
 from __future__ import annotations
 
-__all__ = ["is_float_text", "text_float"]
+import re
+
+__all__ = ["EMPTY_FIELD", "SEPARATORS", "is_float_text", "text_float"]
+
+#: what separates the numbers of a box line (a box file's, ``track --box``'s): commas, blanks
+SEPARATORS = re.compile(r"[,\s]+")
+#: a value left empty: a comma first or two commas with only blanks between (SEPARATORS skips
+#: it, so '10,,20,30,40' would read as the four numbers 10,20,30,40)
+EMPTY_FIELD = re.compile(r"^,|,\s*,")
 
 
 def text_float(s: str) -> float:
