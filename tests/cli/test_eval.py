@@ -247,3 +247,43 @@ def test_mot_runs_the_multi_target_tracker_and_scores_it(data_dir, tmp_path, cap
     assert main(["eval", "--mot", str(seq), "--trackers", "multi"]) == 1
     assert main(["eval", "--mot", str(seq), "--results", str(out / "multi"),
                  "--public-detections"]) == 1  # fmt: skip
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, "error"])
+def test_mot_trackers_run_stopped_keeps_an_earlier_runs_tracks(
+    data_dir, tmp_path, capsys, monkeypatch, stop
+):
+    """eval --mot A B --trackers multi -o DIR, stopped (Ctrl-C or an error) while tracking B:
+    A's tracks, written by an earlier run into DIR/multi/A.txt, were deleted with this run's
+    outputs. The tracks are now written once every sequence is tracked: the old file stays."""
+    import shutil
+
+    import torchtrack.track.multi as multi
+    from torchtrack.errors import TrackerError
+    from torchtrack.io.mot import read_mot
+
+    tud = data_dir / "mot" / "TUD-Stadtmitte"
+    other = tmp_path / "Other"
+    (other / "gt").mkdir(parents=True)
+    ini = (tud / "seqinfo.ini").read_text().replace("name=TUD-Stadtmitte", "name=Other")
+    (other / "seqinfo.ini").write_text(ini)
+    (other / "img1").symlink_to(tud / "img1")
+    shutil.copy(tud / "gt" / "gt.txt", other / "gt" / "gt.txt")
+    earlier = tmp_path / "ev" / "multi" / "TUD-Stadtmitte.txt"  # an earlier run's tracks
+    earlier.parent.mkdir(parents=True)
+    earlier.write_text("1,1,10,10,20,40,1,-1,-1,-1\n")
+    calls = []
+
+    def second_stops(*a, **k):  # the first sequence tracked (one box), the second stopped
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt if stop is KeyboardInterrupt else TrackerError("boom")
+        return read_mot(earlier)
+
+    monkeypatch.setattr(multi, "track_sequence", second_stops)
+    argv = ["eval", "--mot", str(tud), str(other), "--trackers", "multi", "--max-frames", "3",
+            "-o", str(tmp_path / "ev"), "-q"]  # fmt: skip
+    assert main(argv) == (130 if stop is KeyboardInterrupt else 1)
+    assert "Traceback" not in capsys.readouterr().err
+    assert earlier.read_text() == "1,1,10,10,20,40,1,-1,-1,-1\n"
+    assert not (earlier.parent / "Other.txt").exists()

@@ -470,9 +470,12 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
             public[seq.name] = dataclasses.replace(d, conf=score_probabilities(
                 torch.from_numpy(d.conf)).numpy())  # fmt: skip
     out = Path(args.out)
-    # what this run makes, removed again if it fails: a half set of tracks looks finished
+    # what this run makes, removed again if it fails: a half set of tracks looks finished.
+    # The tracks are written once every sequence is tracked: a run stopped on its second
+    # sequence deleted the first one's file that an earlier run had written
     made = [d for d in (out, *(out / label for label in labels)) if not d.exists()]
-    written: list[Path] = []
+    tracked: list[tuple[Path, object]] = []
+    written: list[Path] = []  # the files this run created (not those it replaced)
     try:
         for (spec, params), label in zip(specs, labels, strict=True):
             for seq in seqs:
@@ -490,9 +493,12 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
                         scan_workers=default_scan_workers() if device.type == "cpu" else 0,
                         device=device,
                     )
-                written.append(out / label / f"{seq.name}.txt")
-                write_mot(written[-1], rows)
+                tracked.append((out / label / f"{seq.name}.txt", rows))
                 print(f"{spec} on {seq.name}: {len(rows)} boxes, {mt.stats['confirmed']} targets")
+        for path, rows in tracked:
+            new_file = not path.exists()
+            write_mot(path, rows)
+            written += [path] if new_file else []
         summary = evaluate_mot(
             seqs,
             [out / label for label in labels],
