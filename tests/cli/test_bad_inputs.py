@@ -1616,6 +1616,34 @@ CASES += [
     ),
     E("track-tracker-unknown-lists-multi", f"{T} --tracker sift", "known trackers: multi"),
     E("track-multi-with-box", f"{T} --tracker multi --box 10,14,14,20", "takes no --box"),
+    # a key set both by an option and by the --tracker spec: one was dropped without a word
+    # (or MultiTargetTracker's TypeError 'got multiple values' for config and generator)
+    E(
+        "track-multi-generator-key",
+        f"{T} --tracker multi:generator=1 -o {{o}}/b.csv",
+        "'generator' is no key of the multi-target tracker",
+    ),
+    E(
+        "track-multi-scan-every-twice",
+        f"{T} --tracker multi:scan_every=2 --scan-every 3 -o {{o}}/b.csv",
+        r"--scan-every 3 and --tracker 'multi:scan_every=2' \(scan_every=2\) both set",
+    ),
+    E(
+        "track-multi-model-twice",
+        f"{T} --tracker multi:model=vehicle --detect {{c}}/toy.safetensors -o {{o}}/b.csv",
+        "--detect .* and --tracker 'multi:model=vehicle' .* both set the tracker's 'model'",
+    ),
+    E(
+        "track-adapt-twice",
+        f"{T} --tracker adaptive-haar:adapt=none --adapt global --box 10,14,14,20 -o {{o}}/b.csv",
+        "--adapt global and --tracker 'adaptive-haar:adapt=none' .* both set",
+    ),
+    E(
+        "track-detect-twice",
+        f"{T} --tracker detector:model=vehicle --detect {{c}}/toy.safetensors --box 10,14,14,20 "
+        "-o {o}/b.csv",
+        "--detect .* and --tracker 'detector:model=vehicle' .* both set",
+    ),
     E(
         "track-frames-below-window",
         "track {c}/tiny --detect {c}/toy.safetensors -o {o}/b.csv",

@@ -519,23 +519,43 @@ def build_multi(args: argparse.Namespace):
     ``--seed``)."""
     import torch
 
+    from torchtrack.errors import ConfigError
     from torchtrack.track.base import parse_tracker_spec
     from torchtrack.track.multi import MultiTargetTracker
 
     params: dict = {}
     if args.tracker:
         _, params = parse_tracker_spec(args.tracker)
-    if args.scan_every is not None:
-        params["scan_every"] = args.scan_every
-    if args.max_targets is not None:
-        params["max_targets"] = args.max_targets
-    if args.detect is not None:
-        params["model"] = args.detect
-    return MultiTargetTracker(
-        config=args.config,
-        generator=torch.Generator().manual_seed(args.seed),
-        **params,
-    )
+    if "generator" in params:  # was MultiTargetTracker's TypeError 'multiple values'
+        raise ConfigError(
+            f"--tracker {args.tracker!r}: 'generator' is no key of the multi-target tracker "
+            "(--seed seeds its generator)"
+        )
+    for option, key, value in (
+        ("--scan-every", "scan_every", args.scan_every),
+        ("--max-targets", "max_targets", args.max_targets),
+        ("--detect", "model", args.detect),
+        ("--config", "config", args.config),
+    ):
+        _set_once(params, key, value, option, args.tracker)
+    return MultiTargetTracker(generator=torch.Generator().manual_seed(args.seed), **params)
+
+
+def _set_once(params: dict, key: str, value, option: str, spec: str | None) -> None:
+    """``params[key] = value`` (unless ``value`` is ``None``) for the option that sets the
+    tracker's ``key``; :class:`ConfigError` when the ``--tracker`` spec sets it too: one of
+    the two was dropped without a word (the option for the multi-target tracker, the spec's
+    value for the others), or a TypeError for ``config``."""
+    from torchtrack.errors import ConfigError
+
+    if value is None:
+        return
+    if key in params:
+        raise ConfigError(
+            f"{option} {value} and --tracker {spec!r} ({key}={params[key]}) both set the "
+            f"tracker's {key!r}: give it once"
+        )
+    params[key] = value
 
 
 def external_detections(args: argparse.Namespace, n_frames: int | None):
@@ -877,9 +897,9 @@ def build_tracker(args: argparse.Namespace, auto: bool):
             continue
         if key not in accepted:
             raise ConfigError(f"tracker {name!r} does not take {opt}")
-        params.setdefault(key, value)
-    if args.detect is not None and "model" in accepted:
-        params.setdefault("model", args.detect)
+        _set_once(params, key, value, opt, args.tracker)
+    if "model" in accepted:
+        _set_once(params, "model", args.detect, "--detect", args.tracker)
     if info.accepts_generator and "generator" not in params:
         from torchtrack.cli._common import device_of
 
