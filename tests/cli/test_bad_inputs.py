@@ -1572,6 +1572,12 @@ CASES += [
         "calibrate --scores {c}/inverted.csv --json {o}/p.json --plot {o}/r.png",
         "negatives score higher; are the labels swapped",
     ),
+    E(  # the isotonic fit pooled every score into one probability: written, exit 0
+        "cal-scores-inverted-isotonic",
+        "calibrate --scores {c}/inverted.csv --method isotonic --json {o}/p.json --plot {o}/r.png",
+        "isotonic fit gives every score the probability .*, so it does not rank them: .* the "
+        "negatives score as high as the positives; are the labels swapped",
+    ),
     A(
         "cal-scores-huge",
         "calibrate --scores {c}/huge.csv --json {o}/p.json",

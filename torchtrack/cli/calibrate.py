@@ -489,25 +489,39 @@ def run(args: argparse.Namespace) -> int:
         "metrics": metrics,
         "source": source,
     }
-    if args.method == "platt" and (cal.a_ > 0 or (det is not None and cal.a_ == 0)):
+    falls = args.method == "platt" and (cal.a_ > 0 or (det is not None and cal.a_ == 0))
+    # an isotonic map of one value (the PAV pooled every score: they do not rise with the
+    # labels) was written without a word, where Platt's A >= 0 on the same data is refused;
+    # identical scores give one value either way (Platt's A = 0, warned, kept for --scores)
+    flat = (
+        args.method == "isotonic"
+        and bool((cal.y_thresholds_ == cal.y_thresholds_[0]).all())
+        and (det is not None or not bool((s == s[0]).all()))
+    )
+    if falls or flat:
         from torchtrack.errors import DataError
 
         what = "score" if det is None else "model's margin"
+        higher = "higher" if falls else "as high as the positives"
         if det is not None:
             why = (
-                "on these crops the model scores the negatives higher; are --pos and --neg "
+                f"on these crops the model scores the negatives {higher}; are --pos and --neg "
                 "swapped, or is it the wrong model?"
             )
         else:
             why = (
-                f"in {str(args.scores)!r} the negatives score higher; are the labels swapped "
+                f"in {str(args.scores)!r} the negatives score {higher}; are the labels swapped "
                 "(the larger label is the positive class), or does a lower score mean positive "
                 "(then negate the scores)?"
             )
-        raise DataError(
+        head = (
             f"the Platt fit gives a probability that falls as the {what} rises "
-            f"(A = {cal.a_:.4g} >= 0): {why} Nothing was written"
+            f"(A = {cal.a_:.4g} >= 0)"
+            if falls
+            else f"the isotonic fit gives every {what} the probability "
+            f"{float(cal.y_thresholds_[0]):.4g}, so it does not rank them"
         )
+        raise DataError(f"{head}: {why} Nothing was written")
     # Every output is written before any is reported, the model (which may be MODEL itself)
     # last: when one fails, those this run created before it are removed (a file that was
     # there before the run, now replaced, is left: its old content is gone either way).
