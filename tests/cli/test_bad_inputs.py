@@ -2205,3 +2205,26 @@ def test_signing_under_required_signatures_reports_the_signer(corpus, tmp_path, 
     key = str(corpus / "alice.pem")
     assert main(["sign", str(corpus / "toy.safetensors"), "--key", key, "-o", str(out)]) == 0
     assert out.is_file()
+
+
+def test_signing_a_bundled_model_by_name_needs_an_out(corpus, tmp_path, monkeypatch, capsys):
+    """`sign NAME --key PEM` with a bundled model's name signed the installed model file in
+    place with the user's key (calibrate refuses to rewrite it): now a ConfigError asking for
+    -o; with -o the signed copy is written and the installed file is left as it was."""
+    import shutil
+
+    import torchtrack.detect.bundled as bundled
+
+    models = tmp_path / "models"
+    models.mkdir()
+    shutil.copy(corpus / "toy.safetensors", models / "toy.safetensors")
+    monkeypatch.setattr(bundled, "MODELS_DIR", models)
+    monkeypatch.chdir(tmp_path)  # 'toy' names no file here
+    before = (models / "toy.safetensors").read_bytes()
+    key = str(corpus / "alice.pem")
+    assert main(["sign", "toy", "--key", key]) == 1
+    assert "MODEL 'toy' is a bundled model: give -o OUT" in capsys.readouterr().err
+    assert (models / "toy.safetensors").read_bytes() == before
+    assert main(["sign", "toy", "--key", key, "-o", str(tmp_path / "s.safetensors")]) == 0
+    assert (tmp_path / "s.safetensors").is_file()
+    assert (models / "toy.safetensors").read_bytes() == before

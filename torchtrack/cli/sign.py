@@ -47,7 +47,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("model", nargs="?", metavar="MODEL", help="model file to sign or check")
     p.add_argument("--key", metavar="PEM", help="Ed25519 private key to sign with")
-    add_out(p, "MODEL", "write the signed model here (default: MODEL itself)")
+    add_out(
+        p, "MODEL", "write the signed model here (default: MODEL itself; needed for a bundled name)"
+    )
     p.add_argument(
         "--new-key",
         metavar="PEM",
@@ -73,6 +75,8 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from torchtrack.errors import ConfigError
 
     modes = sum(bool(x) for x in (args.new_key, args.check, args.key))
@@ -111,6 +115,13 @@ def run(args: argparse.Namespace) -> int:
         }[st.status]
         print(f"{path}: valid model file, {text}")
         return 0
+    if args.out is None and path != Path(args.model):
+        # the name of a bundled model: its installed file was signed in place with this key
+        # (no longer the project's), as calibrate refuses to rewrite it
+        raise ConfigError(
+            f"MODEL {args.model!r} is a bundled model: give -o OUT for the signed copy (the "
+            "installed model file is not rewritten)"
+        )
     dest = sign_model(path, args.key, args.out)
     from torchtrack.detect.signing import TrustPolicy
 
