@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -287,3 +288,19 @@ def test_mot_trackers_run_stopped_keeps_an_earlier_runs_tracks(
     assert "Traceback" not in capsys.readouterr().err
     assert earlier.read_text() == "1,1,10,10,20,40,1,-1,-1,-1\n"
     assert not (earlier.parent / "Other.txt").exists()
+
+
+@pytest.mark.parametrize(
+    "name, says",
+    [
+        ("", "--import '' is not a module name"),  # importlib's ValueError traceback
+        (".rel", "--import '.rel' is not a module name"),  # importlib's TypeError traceback
+        ("badsyn", r"cannot import tracker module 'badsyn': invalid syntax \(badsyn.py, line 1\)"),
+    ],
+)
+def test_import_of_a_bad_module_name_or_a_broken_module(name, says, tmp_path, capsys, monkeypatch):
+    (tmp_path / "badsyn.py").write_text("def f(:\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert main(["eval", "--import", name, "--list-trackers"]) == 1
+    err = capsys.readouterr().err
+    assert re.search(says, err) and "Traceback" not in err, err

@@ -172,9 +172,14 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.track.base import available_trackers, tracker_info, tracker_names
 
     for mod in args.modules:
+        # '' and '.rel' were importlib's ValueError / TypeError tracebacks
+        if not all(part.isidentifier() for part in mod.split(".")):
+            raise ConfigError(
+                f"--import {mod!r} is not a module name (dotted Python names, e.g. mypkg.trackers)"
+            )
         try:
             importlib.import_module(mod)
-        except ImportError as exc:
+        except (ImportError, SyntaxError) as exc:  # SyntaxError: says its file and line
             raise ConfigError(f"cannot import tracker module {mod!r}: {exc}") from exc
     if args.list_trackers:
         avail = set(available_trackers())
