@@ -667,6 +667,13 @@ D = "detect {c}/toy.safetensors {c}/frames -q"
 CASES += [
     E("detect-out-dir", f"{D} -o {{c}}/frames", "is an existing folder"),
     E("detect-out-parent", f"{D} -o {{o}}/x/d.jsonl", "does not exist"),
+    # a folder not made yet: Path() dropped the slash and the file 'new' was written
+    E("detect-out-slash", f"{D} -o {{o}}/new/", r"--out '.*new/' ends in '/', a folder"),
+    E(
+        "cal-json-slash",
+        "calibrate --scores {c}/scores.csv --json {o}/new/",
+        r"--json '.*new/' ends in '/', a folder",
+    ),
     E("detect-annotate-file", f"{D} --annotate {{c}}/afile", "is an existing file"),
     E("detect-annotate-parent", f"{D} --annotate {{o}}/x/y", "does not exist"),
     # 0001.jpg and 0001.png: both annotated as 0001.png, the first lost without a word

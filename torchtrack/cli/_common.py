@@ -219,6 +219,10 @@ def check_output_file(path: str | None, option: str, suffixes: tuple[str, ...] =
     p = Path(path)
     if p.is_dir():
         raise ConfigError(f"{option} {str(p)!r} is an existing folder; give a file name")
+    text = os.fspath(path)
+    if text.endswith(os.sep) or (os.altsep and text.endswith(os.altsep)):
+        # Path() drops the slash: 'runs/' (a folder not made yet) was written as a file 'runs'
+        raise ConfigError(f"{option} {text!r} ends in {text[-1]!r}, a folder; give a file name")
     if suffixes and p.suffix.lower() not in suffixes:
         raise ConfigError(
             f"{option} {str(p)!r} must end in {' or '.join(suffixes)}, got {p.suffix or 'none'}"
