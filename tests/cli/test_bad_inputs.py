@@ -602,7 +602,15 @@ CASES: list[Case] = [
         r"dynamics config .*deep\.toml': it nests arrays or tables too deeply to read",
     ),
     E("track-max-frames-0", f"{T} {HB} --max-frames 0", "--max-frames must be >= 1"),
-    E("track-max-frames-text", f"{T} {HB} --max-frames ten", "invalid int", 2),
+    E("track-max-frames-text", f"{T} {HB} --max-frames ten", "must be an integer, got 'ten'", 2),
+    # int() / float() read '1_0' as 10: 10 frames tracked, detections below 5 dropped
+    E("track-max-frames-underscore", f"{T} {HB} --max-frames 1_0", "got '1_0'", 2),
+    E(
+        "track-det-min-score-underscore",
+        "track {c}/frames --detections {c}/det.txt --det-min-score 0_5 --mot {o}/m.txt",
+        "argument --det-min-score: must be a number, got '0_5'",
+        2,
+    ),
     E("track-threads-0", f"{T} {HB} --threads 0", "--threads must be >= 1"),
     # one source: no backend is built, and -1 was accepted and ignored
     E(

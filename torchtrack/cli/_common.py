@@ -32,6 +32,8 @@ __all__ = [
     "check_output_file",
     "check_scan_workers",
     "check_spares_inputs",
+    "integer",
+    "number",
     "seed_value",
     "show_progress",
     "trust_scope",
@@ -52,13 +54,32 @@ def add_progress(p: argparse.ArgumentParser) -> None:
     )
 
 
+def integer(text: str) -> int:
+    """An integer option's value (argparse ``type``): ``int()`` less its underscores, as the
+    data files read numbers (:mod:`torchtrack.io.text`): ``--max-frames 1_0`` was 10 frames."""
+    if "_" not in text:
+        try:
+            return int(text)
+        except ValueError:
+            pass
+    raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}")
+
+
+def number(text: str) -> float:
+    """A real-valued option's value (argparse ``type``): ``float()`` less its underscores
+    (:func:`torchtrack.io.text.text_float`): ``--det-min-score 0_5`` was 5."""
+    from torchtrack.io.text import text_float
+
+    try:
+        return text_float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+
+
 def seed_value(text: str) -> int:
     """``--seed``: an integer in ``[0, 2^63 - 1]`` (what a torch generator takes); argparse
     reports anything else as a usage error naming the option."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    n = integer(text)
     if not 0 <= n < 2**63:
         raise argparse.ArgumentTypeError(f"must be in [0, 2^63 - 1], got {text}")
     return n
@@ -67,7 +88,7 @@ def seed_value(text: str) -> int:
 def add_threads(p: argparse.ArgumentParser, default: int = 1) -> None:
     p.add_argument(
         "--threads",
-        type=int,
+        type=integer,
         default=default,
         metavar="N",
         help=f"torch threads (default {default})",
@@ -136,7 +157,7 @@ def add_backend(p: argparse.ArgumentParser, unit: str) -> None:
     )
     g.add_argument(
         "--jobs",
-        type=int,
+        type=integer,
         metavar="N",
         help="local: parallel processes (default 1 = in this process); ray: CPUs of the local "
         "Ray instance started without --address (default: all cores)",
@@ -150,7 +171,7 @@ def add_backend(p: argparse.ArgumentParser, unit: str) -> None:
     )
     g.add_argument(
         "--max-retries",
-        type=int,
+        type=integer,
         default=3,
         metavar="N",
         help="times Ray reruns a task whose worker process or node died (default 3)",

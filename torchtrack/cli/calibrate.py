@@ -26,6 +26,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from torchtrack.cli._common import integer, number
+
 _EPILOG = """\
 examples:
   # recalibrate a detector on held-out labelled crops, in place, with a reliability plot
@@ -92,12 +94,16 @@ def register(subparsers) -> None:
     p.add_argument(
         "--region",
         nargs=4,
-        type=int,
+        type=integer,
         metavar=("X", "Y", "W", "H"),
         help="object box inside each crop (with --crop-size), e.g. INRIA 96x160: 16 16 64 128",
     )
     p.add_argument(
-        "--crop-size", nargs=2, type=int, metavar=("H", "W"), help="crop size --region refers to"
+        "--crop-size",
+        nargs=2,
+        type=integer,
+        metavar=("H", "W"),
+        help="crop size --region refers to",
     )
     p.add_argument("--scores", metavar="CSV", help="CSV of score,label rows instead of a model")
     p.add_argument("--method", choices=("platt", "isotonic"), default="platt")
@@ -106,7 +112,7 @@ def register(subparsers) -> None:
     p.add_argument("--plot", metavar="PNG", help="write a reliability diagram")
     p.add_argument(
         "--prior",
-        type=float,
+        type=number,
         metavar="P",
         help="share of positives where the probabilities will be used (e.g. among the windows "
         "a scan scores), in (0, 1): the fitted map's log-odds move by logit(P) - logit(the "
@@ -114,13 +120,13 @@ def register(subparsers) -> None:
         "calibration data's own share)",
     )
     p.add_argument(
-        "--bins", type=int, default=15, help="ECE / diagram bins, 1 to 1000 (default 15)"
+        "--bins", type=integer, default=15, help="ECE / diagram bins, 1 to 1000 (default 15)"
     )
     p.add_argument("--seed", type=seed_value, default=0, help="seed of the CV folds (default 0)")
     p.add_argument("--strict", action="store_true", help="fail on unreadable or non-image files")
     p.add_argument(
         "--min-per-class",
-        type=int,
+        type=integer,
         default=10,
         metavar="N",
         help="fewest positive and negative samples to calibrate on (default 10; Platt's two "

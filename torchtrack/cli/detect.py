@@ -31,6 +31,8 @@ import math
 import sys
 from pathlib import Path
 
+from torchtrack.cli._common import integer, number
+
 # Default scan settings (docs/benchmarks/scan.md says how they were chosen).
 THRESHOLD = 0.5
 MIN_HEIGHT = 32.0
@@ -83,7 +85,7 @@ def register(subparsers) -> None:
     add_out(p, "JSONL", "write the JSON lines here (default: stdout)")
     p.add_argument(
         "--threshold",
-        type=float,
+        type=number,
         default=THRESHOLD,
         metavar="P",
         help=f"keep detections with calibrated probability >= P (default {THRESHOLD:g})",
@@ -92,32 +94,32 @@ def register(subparsers) -> None:
     p.add_argument("--video", metavar="MP4", help="write an annotated video (mp4v)")
     p.add_argument(
         "--min-height",
-        type=float,
+        type=number,
         default=MIN_HEIGHT,
         metavar="PX",
         help=f"smallest object height in frame pixels (default {MIN_HEIGHT:g})",
     )
     p.add_argument(
         "--min-scale",
-        type=float,
+        type=number,
         help="smallest window / model window, at least 0.0625 (overrides --min-height)",
     )
-    p.add_argument("--max-scale", type=float, help="largest window / model window")
+    p.add_argument("--max-scale", type=number, help="largest window / model window")
     p.add_argument(
         "--scale-step",
-        type=float,
+        type=number,
         default=SCALE_STEP,
         help=f"ratio of successive scales (default {SCALE_STEP:g})",
     )
     p.add_argument(
         "--stride",
-        type=float,
+        type=number,
         default=STRIDE,
         help=f"window step / window size (default {STRIDE:g})",
     )
     p.add_argument(
         "--nms-iou",
-        type=float,
+        type=number,
         default=NMS_IOU,
         help=f"non-maximum suppression overlap threshold (default {NMS_IOU:g}; 1: off)",
     )
@@ -142,7 +144,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--cascade",
-        type=float,
+        type=number,
         metavar="MARGIN",
         help="loosen the soft cascade: every tree's threshold lowered to at most this running "
         "margin, e.g. -5 (channel models; more objects found, more false ones, slower; on the "
@@ -151,19 +153,19 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--batch",
-        type=int,
+        type=integer,
         default=4,
         metavar="B",
         help=f"frames scored together, 1 to {MAX_BATCH} (default 4)",
     )
     p.add_argument(
         "--scan-workers",
-        type=int,
+        type=integer,
         metavar="N",
         help="scan the batches in N forked processes while this one reads and writes (the same "
         "detections; default 2 on Linux with two cores or more, else 0 = in this process)",
     )
-    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("--max-frames", type=integer, metavar="N", help="stop after N frames")
     p.add_argument("--strict", action="store_true", help="fail on an unreadable image")
     add_progress(p)
     add_threads(p, default=2)
@@ -176,7 +178,7 @@ def add_box_refinement(p: argparse.ArgumentParser) -> None:
     benchmark scripts that score its scan)."""
     p.add_argument(
         "--vote-iou",
-        type=float,
+        type=number,
         default=None,
         help="refine each detection with the windows above --threshold that overlap it by this "
         f"IoU (weighted mean position and scale; the probability stays the best window's; "
@@ -184,7 +186,7 @@ def add_box_refinement(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--pad",
-        type=float,
+        type=number,
         default=PAD,
         help="let windows hang this fraction of their size over the image's edges (the edge "
         f"pixels continued), to find objects the edge cuts (default {PAD:g}; at most 0.5)",

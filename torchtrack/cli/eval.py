@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 
+from torchtrack.cli._common import integer
 from torchtrack.io.atomic import path_key
 
 
@@ -119,7 +120,10 @@ def register(subparsers) -> None:
         "scored: its box as is (default, OTB protocol) or as a miss",
     )
     p.add_argument(
-        "--max-frames", type=int, metavar="N", help="use only the first N frames of each sequence"
+        "--max-frames",
+        type=integer,
+        metavar="N",
+        help="use only the first N frames of each sequence",
     )
     p.add_argument(
         "--on-mismatch",

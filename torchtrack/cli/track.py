@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 
+from torchtrack.cli._common import integer, number
+
 _EPILOG = """\
 examples:
   torchtrack track demo --video tracked.mp4
@@ -124,17 +126,17 @@ def register(subparsers) -> None:
     p.add_argument("--config", metavar="FILE", help="tracker config TOML (configs/trackers/)")
     p.add_argument(
         "--scan-every",
-        type=int,
+        type=integer,
         metavar="K",
         help="multi-target: scan for detections every K-th frame, or with --detections take "
         "those of every K-th frame (default: the config's, 1)",
     )
     p.add_argument(
-        "--max-targets", type=int, metavar="N", help="multi-target: at most N targets at once"
+        "--max-targets", type=integer, metavar="N", help="multi-target: at most N targets at once"
     )
     p.add_argument(
         "--scan-workers",
-        type=int,
+        type=integer,
         metavar="N",
         help="multi-target: scan the coming frames in N forked processes while the tracker "
         "steps the current one (the same tracks, faster; default 2 on Linux with two cores "
@@ -155,7 +157,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--det-min-score",
-        type=float,
+        type=number,
         metavar="S",
         help="drop --detections scoring below S (in the file's own units)",
     )
@@ -163,7 +165,7 @@ def register(subparsers) -> None:
     p.add_argument("--mot", metavar="TXT", help="write the tracks in MOTChallenge format")
     p.add_argument("--video", metavar="FILE", help="write an annotated video (.mp4 / .avi)")
     p.add_argument("--particles", action="store_true", help="draw particles in --video")
-    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("--max-frames", type=integer, metavar="N", help="stop after N frames")
     p.add_argument(
         "--color",
         choices=("rgb", "gray"),

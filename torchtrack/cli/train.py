@@ -19,6 +19,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from torchtrack.cli._common import integer, number
+
 _EPILOG = """\
 examples:
   torchtrack train --config configs/pedestrian.toml -o pedestrian.safetensors
@@ -63,11 +65,11 @@ def register(subparsers) -> None:
         help="object-free images (folders or files)",
     )
     p.add_argument(
-        "--random-negatives", type=int, metavar="N", help="random windows of --neg-images"
+        "--random-negatives", type=integer, metavar="N", help="random windows of --neg-images"
     )
-    p.add_argument("--window", nargs=2, type=int, metavar=("H", "W"), help="window size")
+    p.add_argument("--window", nargs=2, type=integer, metavar=("H", "W"), help="window size")
     p.add_argument("--name", help="detector name stored in the model")
-    p.add_argument("--features", type=int, metavar="T", help="selected features (default 40)")
+    p.add_argument("--features", type=integer, metavar="T", help="selected features (default 40)")
     p.add_argument(
         "--bank",
         choices=("haar", "channels"),
@@ -78,9 +80,9 @@ def register(subparsers) -> None:
     p.add_argument("--variant", choices=("discrete", "real", "gentle"), help="boosting variant")
     p.add_argument("--calibration", choices=("platt", "isotonic"))
     p.add_argument(
-        "--holdout", type=float, metavar="F", help="calibration hold-out fraction (default 0.3)"
+        "--holdout", type=number, metavar="F", help="calibration hold-out fraction (default 0.3)"
     )
-    p.add_argument("--mining-rounds", type=int, metavar="R", help="hard-negative mining rounds")
+    p.add_argument("--mining-rounds", type=integer, metavar="R", help="hard-negative mining rounds")
     p.add_argument(
         "--exclude", nargs="+", action="extend", metavar="LIST", help="files of names never to use"
     )
