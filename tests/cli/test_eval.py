@@ -304,3 +304,31 @@ def test_import_of_a_bad_module_name_or_a_broken_module(name, says, tmp_path, ca
     assert main(["eval", "--import", name, "--list-trackers"]) == 1
     err = capsys.readouterr().err
     assert re.search(says, err) and "Traceback" not in err, err
+
+
+def test_mot_trackers_with_a_path_in_the_spec_write_one_folder_each(
+    data_dir, tmp_path, monkeypatch, capsys, trackeval
+):
+    """eval --mot SEQ --trackers multi:model=../../../x/v.safetensors -o ev: the tracker's
+    folder was named after the spec with its slashes, so the tracks went to nested folders,
+    here outside ev (ev/multi_model-../../../x/v.safetensors/ is x/v.safetensors/ beside ev);
+    now one folder in ev, the slashes as '_'."""
+    import shutil
+
+    import torchtrack.track.multi as multi
+    from torchtrack.detect.bundled import MODELS_DIR
+    from torchtrack.io.mot import read_mot
+
+    (tmp_path / "x").mkdir()
+    shutil.copy(MODELS_DIR / "vehicle.safetensors", tmp_path / "x" / "v.safetensors")
+    work = tmp_path / "a" / "b" / "c"
+    work.mkdir(parents=True)
+    monkeypatch.chdir(work)
+    rows = tmp_path / "rows.txt"
+    rows.write_text("1,1,10,10,20,40,1,-1,-1,-1\n")
+    monkeypatch.setattr(multi, "track_sequence", lambda *a, **k: read_mot(rows))
+    spec = "multi:model=../../../x/v.safetensors"
+    tud = str(data_dir / "mot" / "TUD-Stadtmitte")
+    assert main(["eval", "--mot", tud, "--trackers", spec, "--max-frames", "3", "-o", "ev"]) == 0
+    assert (work / "ev" / "multi_model-.._.._.._x_v.safetensors" / "TUD-Stadtmitte.txt").is_file()
+    assert sorted(p.name for p in work.iterdir()) == ["ev"]  # nothing beside ev

@@ -422,6 +422,7 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
     """``torchtrack eval --mot SEQ ... --trackers multi[:key=value,...] ... -o DIR``: run the
     multi-target tracker on every sequence (``DIR/<tracker>/<sequence>.txt``), then score."""
     import dataclasses
+    import re
     from pathlib import Path
 
     import torch
@@ -451,7 +452,12 @@ def run_mot_trackers(args: argparse.Namespace) -> int:
                 f"{spec!r}"
             )
         specs.append((spec, params))
-    labels = [spec.replace(":", "_").replace(",", "_").replace("=", "-") for spec, _ in specs]
+    # one folder name each: a path in the spec (multi:model=models/m.safetensors) made nested
+    # folders under --out (and with '..' ones outside it), left behind by a failed run
+    labels = [
+        re.sub(r"[/\\]", "_", spec.replace(":", "_").replace(",", "_").replace("=", "-"))
+        for spec, _ in specs
+    ]
     if len(set(labels)) != len(labels):
         raise ConfigError(f"--trackers given twice: {args.trackers}")
     seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
