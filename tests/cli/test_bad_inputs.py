@@ -618,6 +618,16 @@ CASES: list[Case] = [
         f"{T} {HB} -o {{o}}/b.csv --max-retries -1",
         r"--max-retries must be >= 0, got -1",
     ),
+    E(  # every source failed in turn, each with this error, and a manifest was left
+        "track-corpus-tracker-key",
+        f"{T} --tracker multi:bogus=2 --out-dir {{o}}/runs",
+        r"multi-target tracker: unknown key\(s\) 'bogus'",
+    ),
+    E(
+        "track-corpus-box",
+        f"{T} --tracker camshift --box 1,,2,3,4 --out-dir {{o}}/runs",
+        "--box '1,,2,3,4' has an empty value",
+    ),
     E(
         "track-corpus-max-retries-negative",
         f"{T} {HB} --out-dir {{o}}/runs --max-retries -1",

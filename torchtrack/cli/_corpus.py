@@ -129,7 +129,14 @@ def run_corpus_command(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from torchtrack.cli._common import backend_from_args, check_output_dir, show_progress
-    from torchtrack.cli.track import check_args, resolve_source
+    from torchtrack.cli.track import (
+        build_multi,
+        build_tracker,
+        check_args,
+        is_multi,
+        parse_box,
+        resolve_source,
+    )
     from torchtrack.errors import ConfigError
     from torchtrack.eval.corpus import find_sources, run_corpus
 
@@ -155,6 +162,14 @@ def run_corpus_command(args: argparse.Namespace) -> int:
     for k in kinds:
         setattr(one, k.keyword, os.path.join(tempfile.gettempdir(), "torchtrack-check" + k.suffix))
     check_args(one)
+    # the tracker of those options, once: a bad --tracker key or --box failed every source
+    # in turn (each reported failed, a manifest left) instead of the run, before any work
+    if is_multi(one):
+        build_multi(one)
+    else:
+        if one.box is not None:
+            parse_box(one.box)
+        build_tracker(one, auto=one.box is None)
     quiet = bool(getattr(args, "quiet", False))
 
     def log(msg: str) -> None:
