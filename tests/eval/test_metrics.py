@@ -209,3 +209,47 @@ def test_losses_and_reacquisitions_count_long_miss_runs():
     assert losses_and_reacquisitions(hit) == (2, 1)
     assert losses_and_reacquisitions(hit, min_run=5) == (3, 2)
     assert losses_and_reacquisitions(torch.ones(20, dtype=torch.bool)) == (0, 0)
+
+
+def test_curves_refuse_the_nan_of_absent_frames():
+    """frame_ious / centre_errors give NaN on absent-target frames; success_curve and
+    precision_curve counted those as failures (every point of the curve lowered), silently."""
+    from torchtrack.errors import DataError
+
+    with pytest.raises(DataError, match="success_curve: ious hold NaN"):
+        success_curve(torch.tensor([1.0, NAN]))
+    with pytest.raises(DataError, match="precision_curve: errors hold NaN"):
+        precision_curve(torch.tensor([1.0, NAN]))
+    assert precision_curve(torch.tensor([0.0, math.inf]))[0] == 0.5  # inf: a miss, as before
+    with pytest.raises(ShapeError, match=r"1-D tensor"):
+        success_curve(torch.ones(2, 2))
+
+
+def test_runs_need_1d_bool_flags():
+    """longest_run of a 2-D mask read each row as True (zeros(2, 2) gave 2); min_run = 0 counted
+    no loss but two re-acquisitions, True was taken as 1."""
+    from torchtrack.eval.metrics import losses_and_reacquisitions
+
+    with pytest.raises(ShapeError, match="longest_run: mask must be a 1-D bool tensor"):
+        longest_run(torch.zeros(2, 2, dtype=torch.bool))
+    with pytest.raises(ShapeError, match="hit must be a 1-D bool tensor"):
+        losses_and_reacquisitions(torch.tensor([1.0, 0.0]))
+    hit = torch.tensor([True, False, True])
+    for bad in (0, True, 1.5):
+        with pytest.raises(ConfigError, match="min_run must be an integer >= 1"):
+            losses_and_reacquisitions(hit, bad)
+
+
+def test_visible_must_be_flags_and_boxes_numbers():
+    """visible = 0.5 (a confidence) or NaN was read as True; bool boxes were scored as 0 / 1
+    pixel boxes."""
+    from torchtrack.errors import DataError
+
+    z = torch.zeros(3, 4)
+    for bad in (torch.tensor([1.0, 0.5, 0.0]), torch.tensor([1.0, NAN, 0.0])):
+        with pytest.raises(DataError, match="visible must be bool flags"):
+            evaluate_sequence(z, z, bad)
+    m = evaluate_sequence(z, z, torch.tensor([1, 0, 1]))  # 0 / 1 integers are flags
+    assert m.track_ratio == 50.0
+    with pytest.raises(ShapeError, match="pred must hold real numbers"):
+        centre_errors(torch.ones(3, 4, dtype=torch.bool), z)

@@ -54,8 +54,8 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
-from torchtrack.boxes import box_iou
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.boxes import _check_last4, box_iou
+from torchtrack.errors import ConfigError, DataError, ShapeError
 
 __all__ = [
     "BREAK_PX",
@@ -85,6 +85,8 @@ LOSS_FRAMES = 10
 
 
 def _check(pred: torch.Tensor, gt: torch.Tensor) -> None:
+    _check_last4(pred, "pred")  # not a tensor, bool or complex boxes (bools were 0 / 1 pixels)
+    _check_last4(gt, "gt")
     if pred.ndim != 2 or pred.shape[-1] != 4 or tuple(pred.shape) != tuple(gt.shape):
         raise ShapeError(
             f"pred and gt must both be (T, 4), got {tuple(pred.shape)} and {tuple(gt.shape)}"
@@ -129,22 +131,59 @@ def normalised_centre_errors(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tens
     return _mask_errors(torch.hypot(dx / g[:, 2], dy / g[:, 3]), pred, gt)
 
 
+def _check_curve_values(values: torch.Tensor, name: str, fn: str) -> None:
+    """ShapeError unless ``values`` is a 1-D real tensor; DataError if it holds NaN (the
+    absent-target frames of :func:`frame_ious` / :func:`centre_errors`, which the curves counted
+    as failures, lowering every point of the curve)."""
+    if not isinstance(values, torch.Tensor) or values.ndim != 1 or values.dtype == torch.bool:
+        got = (
+            f"{tuple(values.shape)} {values.dtype}"
+            if isinstance(values, torch.Tensor)
+            else type(values).__name__
+        )
+        raise ShapeError(f"{fn}: {name} must be a 1-D tensor of numbers (F,), got {got}")
+    if values.is_floating_point() and bool(torch.isnan(values).any()):
+        raise DataError(
+            f"{fn}: {name} hold NaN (frames whose target is absent): keep the present frames "
+            f"only, e.g. {name}[~{name}.isnan()]"
+        )
+
+
 def success_curve(ious: torch.Tensor, thresholds: torch.Tensor = SUCCESS_THRESHOLDS):
-    """Fraction of ``ious (F,)`` strictly above each threshold -> ``(K,)``; NaN if ``F = 0``."""
+    """Fraction of ``ious (F,)`` strictly above each threshold -> ``(K,)``; NaN if ``F = 0``.
+
+    Raises:
+        ShapeError: ``ious`` not 1-D numbers.
+        DataError: a NaN IoU (an absent-target frame of :func:`frame_ious`).
+    """
+    _check_curve_values(ious, "ious", "success_curve")
     if ious.numel() == 0:
         return torch.full(thresholds.shape, math.nan, dtype=torch.float64)
     return (ious[None, :] > thresholds[:, None]).to(torch.float64).mean(1)
 
 
 def precision_curve(errors: torch.Tensor, thresholds: torch.Tensor = PRECISION_THRESHOLDS):
-    """Fraction of ``errors (F,)`` at or below each threshold -> ``(K,)``; NaN if ``F = 0``."""
+    """Fraction of ``errors (F,)`` at or below each threshold -> ``(K,)``; NaN if ``F = 0``.
+    An infinite error (no prediction) is a miss at every threshold.
+
+    Raises:
+        ShapeError: ``errors`` not 1-D numbers.
+        DataError: a NaN error (an absent-target frame of :func:`centre_errors`).
+    """
+    _check_curve_values(errors, "errors", "precision_curve")
     if errors.numel() == 0:
         return torch.full(thresholds.shape, math.nan, dtype=torch.float64)
     return (errors[None, :] <= thresholds[:, None]).to(torch.float64).mean(1)
 
 
 def longest_run(mask: torch.Tensor) -> int:
-    """Length of the longest run of consecutive True values in a 1-D bool tensor."""
+    """Length of the longest run of consecutive True values in a 1-D bool tensor.
+
+    Raises:
+        ShapeError: ``mask`` not a 1-D bool tensor (the rows of a 2-D one were each read as
+            True, whatever they held).
+    """
+    _check_flags(mask, "mask", "longest_run")
     best = cur = 0
     for v in mask.tolist():
         cur = cur + 1 if v else 0
@@ -155,7 +194,18 @@ def longest_run(mask: torch.Tensor) -> int:
 def losses_and_reacquisitions(hit: torch.Tensor, min_run: int = LOSS_FRAMES) -> tuple[int, int]:
     """``(losses, reacquisitions)`` of a 1-D bool sequence over present frames (``hit``: the
     tracker overlaps the target): runs of at least ``min_run`` misses, and those of them that
-    are followed by a hit."""
+    are followed by a hit.
+
+    Raises:
+        ShapeError: ``hit`` not a 1-D bool tensor.
+        ConfigError: ``min_run`` not an integer >= 1 (0 counted no loss but every hit after a
+            miss as a re-acquisition).
+    """
+    _check_flags(hit, "hit", "losses_and_reacquisitions")
+    if isinstance(min_run, bool) or not hasattr(min_run, "__index__") or int(min_run) < 1:
+        raise ConfigError(
+            f"losses_and_reacquisitions: min_run must be an integer >= 1, got {min_run!r}"
+        )
     losses = found = run = 0
     for v in hit.tolist():  # a loop over frames
         if v:
@@ -167,6 +217,16 @@ def losses_and_reacquisitions(hit: torch.Tensor, min_run: int = LOSS_FRAMES) -> 
             if run == min_run:
                 losses += 1
     return losses, found
+
+
+def _check_flags(flags: torch.Tensor, name: str, fn: str) -> None:
+    if not isinstance(flags, torch.Tensor) or flags.ndim != 1 or flags.dtype != torch.bool:
+        got = (
+            f"{tuple(flags.shape)} {flags.dtype}"
+            if isinstance(flags, torch.Tensor)
+            else type(flags).__name__
+        )
+        raise ShapeError(f"{fn}: {name} must be a 1-D bool tensor, got {got}")
 
 
 def _mean_std(x: torch.Tensor) -> tuple[float, float]:
@@ -249,7 +309,8 @@ def evaluate_sequence(
             is scored (module doc).
 
     Raises:
-        ShapeError: mismatched shapes.
+        ShapeError: mismatched shapes, or boxes that are not real numbers (bool included).
+        DataError: a ``visible`` flag other than True / False (or 0 / 1).
         ConfigError: unknown ``invisible`` policy, or a frame of ``init_frames`` /
             ``reinit_frames`` outside the sequence.
     """
@@ -257,6 +318,12 @@ def evaluate_sequence(
     t = pred.shape[0]
     if visible is None:
         visible = torch.ones(t, dtype=torch.bool)
+    if not isinstance(visible, torch.Tensor):
+        raise ShapeError(f"visible must be a ({t},) bool tensor, got {type(visible).__name__}")
+    if visible.dtype != torch.bool and not bool(((visible == 0) | (visible == 1)).all()):
+        # a confidence given for the flags (0.5, NaN) was read as True by .to(bool)
+        bad = visible.reshape(-1)[~((visible == 0) | (visible == 1)).reshape(-1)][0]
+        raise DataError(f"visible must be bool flags (or 0 / 1), got the value {bad.item()}")
     visible = visible.to(torch.bool).reshape(-1)
     if visible.shape[0] != t:
         raise ShapeError(f"visible must be ({t},), got {tuple(visible.shape)}")
@@ -291,6 +358,8 @@ def evaluate_sequence(
             e[lost & gt_present] = math.inf
 
     iou_p, err_p, nerr_p = ious[present], err[present], nerr[present]
+    # a zero-size ground truth has no normalised error (0 / 0): a miss, as it always counted
+    nerr_p = torch.nan_to_num(nerr_p, nan=math.inf, posinf=math.inf)
     succ = success_curve(iou_p)
     prec = precision_curve(err_p)
     nprec = precision_curve(nerr_p, NORM_PRECISION_THRESHOLDS)
