@@ -181,3 +181,13 @@ def test_uniform_log_weights_checks_the_states_like_the_rest_of_the_module():
         uniform_log_weights(torch.zeros(3, 2))
     with pytest.raises(ShapeError, match=r"at least one particle per batch row \(N >= 1\)"):
         uniform_log_weights(torch.zeros(1, 0, 2))
+
+
+def test_best_particle_refuses_nan_log_weights():
+    """A NaN log-weight was taken by argmax as the largest: its particle came back as the
+    estimate, as the other estimators refuse NaN weights."""
+    x = torch.arange(6.0).reshape(1, 3, 2)
+    for bad in (math.nan, math.inf):
+        with pytest.raises(FilterError, match="best_particle: log-weights contain NaN or"):
+            best_particle(x, torch.tensor([[0.0, bad, -1.0]]))
+    assert best_particle(x, torch.tensor([[-math.inf, -1.0, -math.inf]])).tolist() == [[2.0, 3.0]]

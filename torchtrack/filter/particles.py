@@ -237,8 +237,14 @@ def weighted_cov(states: torch.Tensor, log_weights: torch.Tensor) -> torch.Tenso
 
 
 def best_particle(states: torch.Tensor, log_weights: torch.Tensor) -> torch.Tensor:
-    """The highest-weight particle of each row: ``(B, N, D)`` -> ``(B, D)``."""
+    """The highest-weight particle of each row: ``(B, N, D)`` -> ``(B, D)``.
+
+    Raises:
+        FilterError: a log-weight is NaN or ``+inf`` (argmax took a NaN as the largest).
+    """
     check_particles(states, log_weights)
+    if has_nan_or_posinf(log_weights):  # one reduction; normalize_log_weights' message
+        normalize_log_weights(log_weights, step="best_particle")
     idx = log_weights.argmax(dim=1)
     return states[torch.arange(states.shape[0], device=states.device), idx]
 
