@@ -92,6 +92,23 @@ def test_bad_sample_weights_are_refused_by_both_calibrators(cls):
     cls().fit(s, y, sample_weight=np.ones(100))
 
 
+@pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
+def test_weights_that_zero_one_class_out_are_refused(cls):
+    """Weights 0 on every negative fitted a one-class map without a word (isotonic: 1 for
+    every score; Platt: A = 0 with only a warning), as SVMClassifier already refused."""
+    s, y = _scores(100, 3)
+    with pytest.raises(errors.DataError, match="positive weight to samples of both classes"):
+        cls().fit(s, y, sample_weight=np.asarray(y, dtype=np.float64))
+
+
+@pytest.mark.parametrize("cls", [PlattCalibrator, IsotonicCalibrator])
+def test_complex_scores_are_refused(cls):
+    """Complex scores lost their imaginary part with only torch's UserWarning."""
+    s, y = _scores(100, 3)
+    with pytest.raises(errors.ShapeError, match="scores must hold real numbers"):
+        cls().fit(torch.as_tensor(s).to(torch.complex64), y)
+
+
 def test_flipping_labels_gives_one_minus_p():
     s, y = _scores(400, 7)
     p = PlattCalibrator().fit(s, y).predict_proba(s)

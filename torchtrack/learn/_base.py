@@ -104,6 +104,8 @@ def as_float_tensor(
             )
     if t.numel() == 0:
         raise errors.ShapeError(f"{name} is empty (shape {tuple(t.shape)})")
+    if t.is_complex():  # .to(float) dropped the imaginary part with only a UserWarning
+        raise errors.ShapeError(f"{name} must hold real numbers, got {t.dtype}")
     t = t.to(dtype)
     if check_finite:
         bad = ~torch.isfinite(t)
@@ -115,6 +117,18 @@ def as_float_tensor(
                 f"the first is at index {idx}: {t[first].item()}"
             )
     return t
+
+
+def check_weighted_classes(sw: torch.Tensor, y01: torch.Tensor, classes: Any) -> None:
+    """DataError unless the weights ``sw (n,)`` give a positive weight to samples of both
+    classes of ``y01 (n,)`` (``classes``: the two original labels, for the message): weights
+    that zero one class out fit a one-class model (an isotonic map of 1 everywhere)."""
+    weighted = y01.to(sw.device)[sw > 0]
+    if weighted.numel() and weighted.min() == weighted.max():
+        raise errors.DataError(
+            "sample_weight must give a positive weight to samples of both classes, "
+            f"got positive weights for class {classes[int(weighted[0])]!r} only"
+        )
 
 
 def as_binary_labels(y: Any, n: int, name: str = "y") -> tuple[torch.Tensor, np.ndarray]:

@@ -34,6 +34,7 @@ from torchtrack.learn._base import (
     as_float_tensor,
     check_fitted,
     check_kind,
+    check_weighted_classes,
     is_integer,
     is_number,
     state_meta,
@@ -230,9 +231,11 @@ class PlattCalibrator(BaseEstimator):
                 f"tol must be a finite number >= 0 (gradient tolerance), got {self.tol!r}"
             )
         s = _scores(scores)
-        y01, _ = as_binary_labels(y, s.shape[0])
+        y01, classes = as_binary_labels(y, s.shape[0])
         y01 = y01.to(s.device)
         sw = _sample_weight(sample_weight, s)
+        if sw is not None:  # one class weighted: A = 0 and only a warning
+            check_weighted_classes(sw, y01, classes)
         if bool((s == s[0]).all()):
             warnings.warn(
                 "all calibration scores are identical: the calibrator returns the (smoothed) "
@@ -340,9 +343,10 @@ class IsotonicCalibrator(BaseEstimator):
             raise errors.DataError(
                 f"scores span {lo:.3g} to {hi:.3g}, a range beyond the float range: rescale them"
             )
-        y01, _ = as_binary_labels(y, s.shape[0])
+        y01, classes = as_binary_labels(y, s.shape[0])
         sw = _sample_weight(sample_weight, s)
-        if sw is not None:
+        if sw is not None:  # one class weighted: a map of that class's label everywhere
+            check_weighted_classes(sw, y01, classes)
             sw = sw.cpu().numpy()
         iso = IsotonicRegression(y_min=0.0, y_max=1.0, increasing=True, out_of_bounds="clip")
         iso.fit(s.cpu().numpy(), y01.cpu().numpy().astype(np.float64), sample_weight=sw)

@@ -21,6 +21,7 @@ from torchtrack.learn._base import (
     as_float_tensor,
     check_fitted,
     check_kind,
+    check_weighted_classes,
     state_meta,
     state_tensor,
 )
@@ -109,12 +110,7 @@ class SVMClassifier(ClassifierMixin, BaseEstimator):
                 )
             if bool((swt < 0).any()) or float(swt.sum()) <= 0:
                 raise errors.DataError("sample_weight must be non-negative with a positive sum")
-            weighted = y01.cpu()[swt > 0]
-            if weighted.min() == weighted.max():
-                raise errors.DataError(
-                    "sample_weight must give a positive weight to samples of both classes, "
-                    f"got positive weights for class {classes[int(weighted[0])]!r} only"
-                )
+            check_weighted_classes(swt, y01, classes)
             sw = swt.numpy()
         svc = SVC(
             kernel=self.kernel,
