@@ -110,6 +110,22 @@ def test_bad_init_boxes():
         t.init(FRAME, None)
 
 
+def test_init_box_of_bools_or_complex_and_meta_frames_are_refused():
+    """A complex box lost its imaginary part with only torch's UserWarning and was tracked; a
+    bool box was read as 0 / 1 pixels (refused as 'a size below 3'); a frame on the meta device
+    failed inside the tracker with torch's 'item() cannot be called on meta tensors'."""
+    t = Shift()
+    with pytest.raises(ShapeError, match=r"real numbers x, y, w, h, got torch.complex64"):
+        t.init(FRAME, torch.tensor([1.0, 1, 4, 4], dtype=torch.complex64))
+    with pytest.raises(ShapeError, match=r"real numbers x, y, w, h, got torch.bool"):
+        t.init(FRAME, torch.ones(4, dtype=torch.bool))
+    with pytest.raises(ShapeError, match="on the 'meta' device"):
+        t.init(FRAME.to("meta"), [1, 1, 4, 4])
+    t.init(FRAME, [1, 1, 4, 4])
+    with pytest.raises(ShapeError, match="on the 'meta' device"):
+        t.update(FRAME.to("meta"))
+
+
 def test_max_targets():
     class One(Shift):
         name = "one"

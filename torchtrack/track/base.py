@@ -191,12 +191,18 @@ class Tracker(abc.ABC):
         else:
             # a tracker runs where its frames are: its boxes go there too
             try:
-                boxes = torch.as_tensor(box).to(frame.device, torch.float64)
+                boxes = torch.as_tensor(box)
             except (TypeError, ValueError, RuntimeError):  # a string, ragged lists, None inside
                 raise ShapeError(
                     f"init box must be (4,) or (B, 4) numbers x, y, w, h, got "
                     f"{type(box).__name__} {box!r}"[:200]
                 ) from None
+            # a complex box lost its imaginary part with only a warning; bools were 0 / 1 pixels
+            if boxes.is_complex() or boxes.dtype == torch.bool:
+                raise ShapeError(
+                    f"init box must be (4,) or (B, 4) real numbers x, y, w, h, got {boxes.dtype}"
+                )
+            boxes = boxes.to(frame.device, torch.float64)
             if boxes.ndim == 1:
                 boxes = boxes.reshape(1, -1)
             if boxes.ndim != 2 or boxes.shape[-1] != 4:
@@ -266,6 +272,8 @@ class Tracker(abc.ABC):
             )
         if frame.shape[1] < 2 or frame.shape[2] < 2:
             raise ShapeError(f"frame is too small: {tuple(frame.shape)}")
+        if frame.is_meta:  # no pixels to track: torch's 'item() cannot be called' came later
+            raise ShapeError("frame is on the 'meta' device: it holds no pixels to track")
 
 
 # ---------------------------------------------------------------------------------------------
