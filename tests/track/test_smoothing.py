@@ -10,7 +10,7 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter1d
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import BoxError, ConfigError, TrackerError
 from torchtrack.track.config import MultiTrackerConfig, apply_overrides
 from torchtrack.track.multi import MultiState
 from torchtrack.track.smoothing import TrackSmoother, gaussian_weights
@@ -147,13 +147,13 @@ def test_inactive_and_unreadable_frames():
     assert [t for t, _ in out] == [0, 1, 2]
     assert out[1][1] is None  # an unreadable frame stays without rows
     torch.testing.assert_close(out[0][1].boxes, box)  # a constant track stays where it is
-    with pytest.raises(ValueError, match="increasing order"):
+    with pytest.raises(TrackerError, match="increasing order"):
         sm.push(2, st)
     # inactive: each frame comes back at once, the same state
     off = TrackSmoother(0.0, 0)
     assert off.push(0, st) == [(0, st)] and off.push(1, None) == [(1, None)]
     assert off.push(2, st)[0][1] is st and off.flush() == []
-    with pytest.raises(ValueError, match="increasing order"):
+    with pytest.raises(TrackerError, match="increasing order"):
         off.push(2, st)
 
 
@@ -376,3 +376,30 @@ def test_backfill_covers_a_gap_an_identity_comes_back_from_with_its_detections()
         out += sm.flush()
         got = [t for t, s in out if 1 in s.ids.tolist()]
         assert got == want, bf
+
+
+def test_bad_settings_indices_and_boxes_are_refused():
+    """sigma=True smoothed over a sd of 1 frame and backfill_iou=True took 1.0; a string or
+    None sigma / backfill_iou and a None, inf or NaN fill_gaps / backfill were TypeError,
+    OverflowError or ValueError tracebacks; sigma=1e9 tried to allocate a 64 GB kernel. A
+    frame pushed out of order was a plain ValueError, a frame index True was frame 1, and a
+    NaN box spread NaN over every smoothed box of its identity within the kernel's reach."""
+    for kw in ({"sigma": True}, {"sigma": "1"}, {"sigma": None}, {"sigma": 1e9}):
+        with pytest.raises(ConfigError, match=r"sigma must be a finite number in \[0, 250"):
+            TrackSmoother(**kw)
+    with pytest.raises(ConfigError, match="sigma must be"):
+        gaussian_weights(float("nan"))
+    for kw in ({"fill_gaps": None}, {"fill_gaps": float("inf")}, {"backfill": float("nan")}):
+        with pytest.raises(ConfigError, match=r"must be a whole number in \[0, 1000\]"):
+            TrackSmoother(**kw)
+    for bad in (True, "0.5", None):
+        with pytest.raises(ConfigError, match=r"backfill_iou must be a number in \(0, 1\]"):
+            TrackSmoother(backfill_iou=bad)
+    assert TrackSmoother(sigma=2, fill_gaps=3.0).fill_gaps == 3  # whole floats still taken
+    sm = TrackSmoother(1.0, 2)
+    with pytest.raises(TrackerError, match="the frame index must be an integer, got True"):
+        sm.push(True, None)
+    box = torch.tensor([[float("nan"), 20.0, 8.0, 24.0]], dtype=torch.float64)
+    st = MultiState(torch.tensor([7]), box, torch.tensor([0.9]), torch.tensor([True]))
+    with pytest.raises(BoxError, match=r"frame 0, identity 7: box .* must be finite"):
+        sm.push(0, st)

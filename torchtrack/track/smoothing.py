@@ -47,19 +47,40 @@ tracks").
 
 from __future__ import annotations
 
-import math
+import numbers
 from collections import deque
 
 import torch
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import BoxError, ConfigError, TrackerError
 
 __all__ = ["TrackSmoother", "gaussian_weights"]
 
 
+def _is_real(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, numbers.Real)
+
+
+def _check_sigma(sigma) -> None:
+    """ConfigError unless ``sigma`` is a number in ``[0, MAX_SMOOTH_SIGMA]`` frames (a bool
+    was a sd of 1, a string or None a TypeError, 1e9 sized a 64 GB kernel)."""
+    from torchtrack.track.config import MAX_SMOOTH_SIGMA
+
+    if not (_is_real(sigma) and 0 <= sigma <= MAX_SMOOTH_SIGMA):  # NaN fails too
+        raise ConfigError(
+            f"track smoothing sigma must be a finite number in [0, {MAX_SMOOTH_SIGMA}] frames, "
+            f"got {sigma!r}"
+        )
+
+
 def gaussian_weights(sigma: float) -> torch.Tensor:
     """``(2R + 1,)`` float64 normalised Gaussian weights of ``sigma`` frames, ``R = int(4 sigma +
-    0.5)`` (SciPy's ``gaussian_filter1d`` kernel); ``[1.0]`` for ``sigma = 0``."""
+    0.5)`` (SciPy's ``gaussian_filter1d`` kernel); ``[1.0]`` for ``sigma = 0``.
+
+    Raises:
+        ConfigError: ``sigma`` not a number in ``[0, MAX_SMOOTH_SIGMA]`` (250 frames).
+    """
+    _check_sigma(sigma)
     if sigma <= 0:
         return torch.ones(1, dtype=torch.float64)
     r = int(4.0 * sigma + 0.5)
@@ -89,8 +110,9 @@ class TrackSmoother:
     frames)`` table.
 
     Raises:
-        ConfigError: ``sigma`` negative or not finite, ``fill_gaps`` or ``backfill`` negative
-            or not whole, ``backfill_iou`` outside ``(0, 1]``.
+        ConfigError: ``sigma`` not a number in ``[0, 250]`` frames, ``fill_gaps`` or
+            ``backfill`` not a whole number in ``[0, 1000]``, ``backfill_iou`` not a number in
+            ``(0, 1]`` (bools refused), as :class:`MultiTrackerConfig` bounds them.
     """
 
     def __init__(
@@ -101,13 +123,17 @@ class TrackSmoother:
         backfill_iou: float = 0.5,
         unswap: int = 0,
     ) -> None:
-        if not (math.isfinite(sigma) and sigma >= 0):
-            raise ConfigError(f"track smoothing sigma must be a finite number >= 0, got {sigma}")
+        from torchtrack.track.config import MAX_FILL_GAPS
+
+        _check_sigma(sigma)
         for name, v in (("fill_gaps", fill_gaps), ("backfill", backfill)):
-            if isinstance(v, bool) or int(v) != v or v < 0:
-                raise ConfigError(f"{name} must be a whole number >= 0, got {v!r}")
-        if not (0.0 < backfill_iou <= 1.0):
-            raise ConfigError(f"backfill_iou must be in (0, 1], got {backfill_iou!r}")
+            # None was int()'s TypeError, inf its OverflowError, NaN its ValueError
+            if not (_is_real(v) and 0 <= v <= MAX_FILL_GAPS and int(v) == v):
+                raise ConfigError(
+                    f"{name} must be a whole number in [0, {MAX_FILL_GAPS}], got {v!r}"
+                )
+        if not (_is_real(backfill_iou) and 0.0 < backfill_iou <= 1.0):  # True was 1.0
+            raise ConfigError(f"backfill_iou must be a number in (0, 1], got {backfill_iou!r}")
         self.sigma, self.fill_gaps = float(sigma), int(fill_gaps)
         self.backfill, self.backfill_iou = int(backfill), float(backfill_iou)
         self.weights = gaussian_weights(self.sigma)
@@ -151,8 +177,10 @@ class TrackSmoother:
         (M,))`` in the reported boxes' pixels and convention
         (:attr:`MultiTargetTracker.last_detections`), read by ``backfill``. Returns the frames
         now final."""
+        if isinstance(i, bool) or not isinstance(i, numbers.Integral):  # True was frame 1
+            raise TrackerError(f"TrackSmoother.push: the frame index must be an integer, got {i!r}")
         if i <= self._last:
-            raise ValueError(f"frames must be pushed in increasing order: {i} after {self._last}")
+            raise TrackerError(f"frames must be pushed in increasing order: {i} after {self._last}")
         self._last = i
         if not self.active:  # nothing to repair, fill or smooth: each frame is final as it comes
             return [(i, state)]
@@ -185,6 +213,13 @@ class TrackSmoother:
         if state is not None and len(state):
             ids = state.ids.detach().to("cpu", torch.int64)
             v = _rows(state.boxes, state.confidence, state.detected, ox, oy)
+            if not bool(torch.isfinite(v).all()):  # NaN spread over every frame in reach
+                k = int((~torch.isfinite(v).all(1)).nonzero()[0, 0])
+                raise BoxError(
+                    f"TrackSmoother.push: frame {i}, identity {int(ids[k])}: box "
+                    f"{state.boxes[k].tolist()} and confidence {float(state.confidence[k])} "
+                    f"must be finite (camera offset {(ox, oy)})"
+                )
             self._obs.append((i, ids, v))
             if self.backfill:
                 prev = next((o[1] for o in reversed(self._obs) if o[0] == i - 1), None)
