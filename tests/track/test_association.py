@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.errors import ShapeError
+from torchtrack.errors import ConfigError, ShapeError
 from torchtrack.track.association import association_cost, expected_iou, linear_assignment
 
 
@@ -56,3 +56,25 @@ def test_assignment_matches_brute_force_on_random_costs():
         best = min(sum(c[i, p[i]].item() for i in range(4)) for p in permutations(range(4)))
         got = sum(c[r, k].item() for r, k in res.pairs.tolist())
         assert got == pytest.approx(best)
+
+
+def test_bad_weights_gates_and_log_weights_are_refused():
+    """A (T, 1) log_weights broadcast over the particles (each overlap summed N times, clamped
+    to 1); bool boxes were 0 / 1 pixels; a negative cue weight gave costs above 1, a NaN one
+    NaN costs; max_cost NaN forbade every pair; all without a word."""
+    parts = torch.tensor([[[0.0, 0.0, 10.0, 10.0], [5.0, 0.0, 10.0, 10.0]]])
+    dets = torch.tensor([[0.0, 0.0, 10.0, 10.0]])
+    with pytest.raises(ShapeError, match=r"log_weights must be \(T, N\) = \(1, 2\)"):
+        expected_iou(parts, torch.zeros(1, 1), dets)
+    with pytest.raises(ShapeError, match="detections must hold real numbers"):
+        expected_iou(parts, torch.zeros(1, 2), dets.bool())
+    ov, app = torch.tensor([[0.9]]), torch.tensor([[0.5]])
+    for kw in ({"w_overlap": -1.0}, {"w_appearance": math.nan}, {"gate": math.nan}, {"gate": True}):
+        with pytest.raises(ConfigError, match=r"association_cost: .* must be a finite number"):
+            association_cost(ov, app, **kw)
+    torch.testing.assert_close(  # w_appearance 0: the overlap alone, as before
+        association_cost(ov, app, w_overlap=0.0, w_appearance=0.0), 1 - ov.double()
+    )
+    with pytest.raises(ConfigError, match="max_cost must be a number"):
+        linear_assignment(torch.zeros(1, 1), max_cost=math.nan)
+    assert len(linear_assignment(torch.zeros(1, 1), max_cost=math.inf)) == 1

@@ -642,6 +642,18 @@ def test_bad_frames_and_detections():
     assert len(make().update(blank(40, 320), (people(0)[:0], torch.ones(0)))) == 0  # no scan
 
 
+def test_bool_or_complex_detections_are_refused():
+    """Bool boxes were 1 x 1 pixel detections (a target was born on one), a bool probability
+    was 1, complex boxes lost their imaginary part with only torch's warning."""
+    for boxes, p in (
+        (torch.ones((3, 4), dtype=torch.bool), torch.ones(3)),
+        (people(0).to(torch.complex64), torch.ones(3)),
+        (people(0), torch.ones(3, dtype=torch.bool)),
+    ):
+        with pytest.raises(ShapeError, match="detections must be real numbers, got boxes"):
+            make().update(blank(), (boxes, p))
+
+
 def test_the_same_detection_twice_starts_one_target():
     """A detections file with every row twice (or another detector's unsuppressed windows):
     one target per person, not two on the same boxes."""

@@ -18,11 +18,14 @@ like norfair's distance functions.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import numpy as np
 import torch
 
-from torchtrack.boxes import box_iou_matrix
-from torchtrack.errors import ShapeError
+from torchtrack.boxes import _check_last4, box_iou_matrix
+from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = ["Assignment", "association_cost", "expected_iou", "linear_assignment"]
 
@@ -39,13 +42,22 @@ def expected_iou(
 
     Returns:
         ``(T, M)`` float64 in [0, 1].
+
+    Raises:
+        ShapeError: shapes as above not met, or boxes that are not real numbers.
     """
     if particle_boxes.ndim != 3 or particle_boxes.shape[-1] != 4 or detections.ndim != 2:
         raise ShapeError(
             f"particle_boxes must be (T, N, 4) and detections (M, 4), got "
             f"{tuple(particle_boxes.shape)} and {tuple(detections.shape)}"
         )
+    _check_last4(particle_boxes, "particle_boxes")  # bool boxes were read as 0 / 1 pixels
+    _check_last4(detections, "detections")
     t, n = particle_boxes.shape[:2]
+    if not isinstance(log_weights, torch.Tensor) or tuple(log_weights.shape) != (t, n):
+        # a (T, 1) one broadcast: every particle took the one weight (overlaps summed N times)
+        got = tuple(log_weights.shape) if isinstance(log_weights, torch.Tensor) else log_weights
+        raise ShapeError(f"log_weights must be (T, N) = {(t, n)} like particle_boxes, got {got}")
     m = detections.shape[0]
     if t == 0 or m == 0:
         return torch.zeros((t, m), dtype=torch.float64)
@@ -74,7 +86,16 @@ def association_cost(
 
     Returns:
         ``(T, M)`` float64 costs in [0, 1] or ``inf``.
+
+    Raises:
+        ConfigError: a weight that is not a finite number >= 0 (bool included) or a ``gate``
+            that is not a finite number.
     """
+    for name, v in (("w_overlap", w_overlap), ("w_appearance", w_appearance), ("gate", gate)):
+        # a negative weight or NaN gave costs outside [0, 1] or NaN
+        if not _is_real(v) or (name != "gate" and float(v) < 0):
+            least = "finite number" if name == "gate" else "finite number >= 0"
+            raise ConfigError(f"association_cost: {name} must be a {least}, got {v!r}")
     overlap = overlap.double()
     if appearance is None or w_appearance == 0:
         cost = 1.0 - overlap
@@ -124,11 +145,17 @@ def linear_assignment(cost: torch.Tensor, max_cost: float = 1.0) -> Assignment:
 
     Returns:
         :class:`Assignment`.
+
+    Raises:
+        ShapeError: ``cost`` not 2-D.
+        ConfigError: ``max_cost`` not a number (NaN made every pair forbidden).
     """
     from scipy.optimize import linear_sum_assignment
 
     if cost.ndim != 2:
         raise ShapeError(f"cost must be (T, M), got {tuple(cost.shape)}")
+    if not _is_real(max_cost) and max_cost != math.inf:  # NaN made every pair forbidden
+        raise ConfigError(f"linear_assignment: max_cost must be a number, got {max_cost!r}")
     t, m = cost.shape
     if t == 0 or m == 0:
         return Assignment(np.zeros((0, 2), dtype=np.int64), t, m)
@@ -138,3 +165,8 @@ def linear_assignment(cost: torch.Tensor, max_cost: float = 1.0) -> Assignment:
     rows, cols = linear_sum_assignment(np.where(allowed, c, big))
     keep = allowed[rows, cols]
     return Assignment(np.stack([rows[keep], cols[keep]], 1), t, m)
+
+
+def _is_real(v) -> bool:
+    """A finite real number, not a bool."""
+    return not isinstance(v, bool) and isinstance(v, numbers.Real) and math.isfinite(v)

@@ -653,10 +653,20 @@ class MultiTargetTracker:
                 "detections must be a pair (boxes (M, 4), probabilities (M,))"
             ) from None
         try:
-            boxes = torch.as_tensor(boxes).to("cpu", torch.float64)
-            p = torch.as_tensor(p).to("cpu", torch.float64)
+            boxes, p = torch.as_tensor(boxes), torch.as_tensor(p)
+            # bool boxes were 1 x 1 pixel detections (a target was born on one), a bool
+            # probability 1; complex ones lost their imaginary part with only a warning
+            real = all(v.dtype != torch.bool and not v.is_complex() for v in (boxes, p))
+            if real:
+                boxes = boxes.to("cpu", torch.float64)
+                p = p.to("cpu", torch.float64)
         except (TypeError, ValueError, RuntimeError, NotImplementedError) as exc:
             raise ShapeError(f"detections must be numeric tensors or arrays ({exc})") from None
+        if not real:
+            raise ShapeError(
+                f"detections must be real numbers, got boxes {boxes.dtype} and probabilities "
+                f"{p.dtype}"
+            )
         if boxes.numel() == 0:
             boxes = boxes.reshape(0, 4)
         if boxes.ndim != 2 or boxes.shape[1] != 4 or p.ndim != 1:
