@@ -144,3 +144,20 @@ def test_errors():
         OnlineRealBoost(0).partial_fit(torch.zeros(1, 1, dtype=torch.long), torch.ones(1))
     with pytest.raises(ConfigError, match="eps"):
         OnlineRealBoost(eps=0).partial_fit(torch.zeros(1, 1, dtype=torch.long), torch.ones(1))
+
+
+def test_bad_sample_weights_and_eps_are_refused_before_any_update():
+    """A NaN importance went into the histograms for good (every later confidence NaN), a
+    negative one trained against its label; eps=True was an eps of 1 and inf made every weak
+    hypothesis 0; all without a word."""
+    from torchtrack.errors import DataError
+
+    codes, y = torch.tensor([[0], [1], [1]]), torch.tensor([-1, 1, 1])
+    for bad in (math.nan, -1.0, math.inf):
+        clf = OnlineRealBoost(1, 1, 2)
+        with pytest.raises(DataError, match="sample_weight must be finite and >= 0"):
+            clf.partial_fit(codes, y, sample_weight=torch.tensor([1.0, bad, 1.0]))
+        assert not hasattr(clf, "hist_")  # refused before the classifier started
+    for eps in (True, math.inf):
+        with pytest.raises(ConfigError, match="eps must be a finite number > 0"):
+            OnlineRealBoost(1, 1, 2, eps=eps).partial_fit(codes, y)

@@ -43,7 +43,7 @@ from typing import Any
 
 import torch
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, DataError, ShapeError
 from torchtrack.filter._random import randint
 from torchtrack.learn._base import check_fitted
 
@@ -90,8 +90,9 @@ class OnlineRealBoost:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ConfigError(f"OnlineRealBoost: {name} must be an integer >= 1, got {v!r}")
-        if not (isinstance(self.eps, (int, float)) and self.eps > 0):
-            raise ConfigError(f"OnlineRealBoost: eps must be > 0, got {self.eps!r}")
+        eps = self.eps  # True was an eps of 1, inf made every weak hypothesis 0
+        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 < eps < math.inf:
+            raise ConfigError(f"OnlineRealBoost: eps must be a finite number > 0, got {eps!r}")
 
     def _check_codes(self, codes: Any) -> torch.Tensor:
         if not isinstance(codes, torch.Tensor) or codes.ndim != 2:
@@ -150,6 +151,7 @@ class OnlineRealBoost:
 
         Raises:
             ShapeError: bad shapes, codes out of range or labels not binary.
+            DataError: a sample weight that is not finite or is negative.
             ConfigError: bad hyper-parameters.
         """
         codes = self._check_codes(codes)
@@ -159,12 +161,6 @@ class OnlineRealBoost:
             raise ShapeError(f"y must be ({p},) matching codes, got {tuple(y.shape)}")
         if p and not bool(((y == 1) | (y == -1) | (y == 0)).all()):
             raise ShapeError("y must hold labels -1/+1 (or 0/1)")
-        if not hasattr(self, "hist_"):
-            self._start(codes.shape[1], codes.device, generator)
-        if p == 0:
-            return self
-        ys = torch.where(y > 0, 1.0, -1.0).to(self.dtype)
-        lab = (y > 0).long()
         lam = (
             torch.ones(p, dtype=self.dtype, device=codes.device)
             if sample_weight is None
@@ -172,6 +168,16 @@ class OnlineRealBoost:
         )
         if lam.shape != (p,):
             raise ShapeError(f"sample_weight must be ({p},), got {tuple(lam.shape)}")
+        if sample_weight is not None and not bool(((lam >= 0) & (lam < math.inf)).all()):
+            # a NaN importance went into the histograms for good (every later score NaN), a
+            # negative one trained against the label
+            raise DataError("OnlineRealBoost: sample_weight must be finite and >= 0")
+        if not hasattr(self, "hist_"):
+            self._start(codes.shape[1], codes.device, generator)
+        if p == 0:
+            return self
+        ys = torch.where(y > 0, 1.0, -1.0).to(self.dtype)
+        lab = (y > 0).long()
         n_sel, m, k = self.n_selectors, self.n_candidates, self.n_bins
         dev = codes.device
         # Replacement features are drawn up front (one per selector), so the random stream does
