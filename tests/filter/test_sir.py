@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -378,3 +379,38 @@ def test_seir_ancestors_follow_copies_and_mutations():
     exact = vals == vals.round()  # copies and mutations (crossovers are almost never integers)
     assert exact.sum() > 0
     torch.testing.assert_close(vals[exact], x0[..., 0].gather(1, r.ancestors)[exact])
+
+
+def test_seir_refuses_bool_and_odd_numbers_for_its_settings():
+    """ess_target=True was a target of 1, max_iter=True / 2.5 ran 1 / 2 rounds, a NaN
+    mutation_std was reported as 'likelihood returned NaN', '1' was torch's TypeError and a
+    negative one was taken as its absolute value."""
+    x = torch.zeros(1, 5, 2)
+    lw = uniform_log_weights(x)
+
+    def step(**kw):
+        return seir_step(x, lw, lambda s, g: s, lambda s: torch.zeros(s.shape[:2]), **kw)
+
+    with pytest.raises(ConfigError, match=r"ess_target must be in \(0, 1\] \(a number\)"):
+        step(ess_target=True)
+    for bad in (True, 2.5):
+        with pytest.raises(ConfigError, match=r"max_iter must be >= 0 \(an integer\)"):
+            step(max_iter=bad)
+    for bad in (math.nan, -1.0, "1", True, torch.tensor([1.0, math.nan])):
+        with pytest.raises(ConfigError, match="mutation_std must be a finite number >= 0"):
+            step(mutation_std=bad)
+    step(mutation_std=torch.tensor([1.0, 0.0]), max_iter=np.int64(2))  # numpy integers taken
+
+
+@pytest.mark.parametrize("dtype", [torch.bool, torch.complex64])
+def test_likelihood_of_bools_or_complex_numbers_is_refused(dtype):
+    """A bool likelihood was read as log-likelihoods 0 / 1, a complex one lost its imaginary
+    part with only torch's warning; both were filtered without a word."""
+    x = torch.zeros(1, 5, 2)
+    with pytest.raises(ShapeError, match="sir_step: likelihood must return real numbers, got"):
+        sir_step(
+            x,
+            uniform_log_weights(x),
+            lambda s, g: s,
+            lambda s: torch.ones(s.shape[:2], dtype=dtype),
+        )

@@ -23,6 +23,9 @@ models) can still be carried along.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 
 from torchtrack.errors import ConfigError
@@ -86,18 +89,22 @@ def seir_step(
         StepResult; ``iterations`` counts the rounds each row ran, ``ess`` is the final ESS.
 
     Raises:
-        ConfigError: bad ``ess_target``, ``max_iter``, scheme or estimator.
+        ConfigError: bad ``ess_target``, ``max_iter``, scheme or estimator; a
+            ``mutation_std`` that is not a finite number >= 0 (the entries of a tensor on the
+            CPU are checked; elsewhere only its dtype, no read back from the device).
         FilterError: NaN likelihood, or states after the motion step that are not finite
             (message names ``seir_step``).
     """
     check_particles(states, log_weights)
-    if not (0.0 < float(ess_target) <= 1.0):
-        raise ConfigError(f"ess_target must be in (0, 1], got {ess_target!r}")
-    if int(max_iter) < 0:
-        raise ConfigError(f"max_iter must be >= 0, got {max_iter!r}")
+    # True was a target of 1 and a max_iter of 1 round, 2.5 ran 2 rounds: Python scalars only
+    if not _is_real(ess_target) or not (0.0 < ess_target <= 1.0):
+        raise ConfigError(f"ess_target must be in (0, 1] (a number), got {ess_target!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 0:
+        raise ConfigError(f"max_iter must be >= 0 (an integer), got {max_iter!r}")
     select = get_resampler(scheme)
     est_fn = get_estimator(estimator)
     b, n, d = states.shape
+    _check_mutation_std(mutation_std)
     lam = torch.as_tensor(mutation_std, dtype=states.dtype, device=states.device)
     if lam.ndim > 1 or (lam.ndim == 1 and lam.shape[0] != d):
         raise ConfigError(
@@ -167,3 +174,22 @@ def seir_step(
         log_evidence=log_evidence,
         iterations=iterations,
     )
+
+
+def _is_real(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, numbers.Real)
+
+
+def _check_mutation_std(mutation_std) -> None:
+    """ConfigError unless ``mutation_std`` is a finite number >= 0 or a real tensor of them (a
+    NaN one was reported as 'likelihood returned NaN', a string was torch's TypeError, True a
+    std of 1; a negative one was taken as its absolute value)."""
+    bad = "seir_step: mutation_std must be a finite number >= 0 or a tensor of them, got "
+    if isinstance(mutation_std, torch.Tensor):
+        if mutation_std.dtype == torch.bool or mutation_std.is_complex():
+            raise ConfigError(bad + str(mutation_std.dtype))
+        ok = (mutation_std >= 0) & torch.isfinite(mutation_std)
+        if mutation_std.device.type == "cpu" and not bool(ok.all()):
+            raise ConfigError(bad + str(mutation_std.tolist()))
+    elif not _is_real(mutation_std) or not 0 <= mutation_std < math.inf:
+        raise ConfigError(bad + repr(mutation_std))

@@ -94,7 +94,7 @@ def evaluate_log_likelihood(
     """Call ``likelihood`` on ``states (B, M, D)`` and return validated log-likelihoods (B, M).
 
     Raises:
-        ShapeError: the callable returned the wrong shape.
+        ShapeError: the callable returned the wrong shape, or bools or complex numbers.
         FilterError: NaN, ``+inf`` or (for plain likelihoods) negative values; the message names
             ``step``.
     """
@@ -104,6 +104,10 @@ def evaluate_log_likelihood(
         raise ShapeError(
             f"{step}: likelihood must return (B, M) = {tuple(states.shape[:2])}, got {shape}"
         )
+    if out.dtype == torch.bool or out.is_complex():
+        # bools were log-likelihoods 0 / 1 (or likelihoods 0 / 1), complex values lost their
+        # imaginary part with only torch's cast warning
+        raise ShapeError(f"{step}: likelihood must return real numbers, got {out.dtype}")
     out = out.to(states.dtype)
     if not log_likelihood:
         # Negative values have no logarithm; checking after log would report them as NaN.
