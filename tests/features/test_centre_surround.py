@@ -200,3 +200,25 @@ def test_shape_errors():
         centre_surround_features(
             ints, torch.ones((1, 2, 4)), pool, torch.zeros((1, 3, 2), dtype=torch.int64)
         )
+
+
+def test_bad_boxes_and_pixel_values_are_refused():
+    """A NaN box read features of 0 and a negative width sums of the frame taken backwards
+    (-1.6e10), bool boxes were 0 / 1 pixel boxes, and NaN or 16-bit frames were integrated
+    as they were (NaN features, levels read on the 8-bit scale); all without a word."""
+    from torchtrack.errors import BoxError, DataError
+
+    frames = torch.randint(0, 256, (1, 3, 40, 50), dtype=torch.uint8)
+    ints, pool = channel_integrals(frames), klein_pool()
+    for bad in ([float("nan"), 5, 20, 20], [5, 5, -20, 20]):
+        with pytest.raises(BoxError, match=r"boxes\[0, 0\] = .* must be finite with a width"):
+            centre_surround_features(ints, torch.tensor([[bad]], dtype=torch.float32), pool)
+    with pytest.raises(ShapeError, match=r"boxes must hold real numbers, got torch\.bool"):
+        centre_surround_features(ints, torch.ones(1, 1, 4, dtype=torch.bool), pool)
+    out = torch.tensor([[[500.0, 500, 20, 20], [5, 5, 0, 0]]])  # outside / empty: allowed
+    assert centre_surround_features(ints, out, pool).shape == (1, 2, len(pool))
+    for bad in (torch.full((1, 3, 8, 8), float("nan")), torch.full((1, 3, 8, 8), 300.0)):
+        with pytest.raises(DataError, match="frames hold"):
+            channel_integrals(bad)
+    with pytest.raises(ShapeError, match=r"integer or floating tensor, got torch\.bool"):
+        channel_integrals(torch.ones(1, 3, 8, 8, dtype=torch.bool))

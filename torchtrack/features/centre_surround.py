@@ -42,7 +42,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import nn
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import BoxError, ConfigError, ShapeError
 
 __all__ = [
     "CHANNEL_SUBSETS",
@@ -277,12 +277,19 @@ def channel_integrals(frames: torch.Tensor, gradients: int = 0) -> ChannelIntegr
         against a float64 reference).
 
     Raises:
-        ShapeError: ``frames`` is not ``(B, C, H, W)`` with C in {1, 3}.
+        ShapeError: ``frames`` is not ``(B, C, H, W)`` real numbers with C in {1, 3}.
+        DataError: pixel values that are not finite or outside [0, 255].
         ConfigError: ``gradients`` outside [0, 19].
     """
     if not isinstance(frames, torch.Tensor) or frames.ndim != 4 or frames.shape[1] not in (1, 3):
         got = tuple(frames.shape) if isinstance(frames, torch.Tensor) else type(frames).__name__
         raise ShapeError(f"frames must be (B, C, H, W) with C = 1 or 3, got {got}")
+    from torchtrack.features.integral import _check_images, check_pixel_values
+
+    # bool frames were read as levels 0 / 1, NaN ones gave NaN tables (so NaN features) and
+    # 16-bit levels were read on the 8-bit scale; uint8 frames need no pass over the pixels
+    _check_images(frames, "frames")
+    check_pixel_values(frames, "frames")
     cs = _gradient_set(gradients)
     bsz, c, h, w = frames.shape
     n_rgb = len(CHANNEL_SUBSETS)
@@ -325,6 +332,18 @@ def _check_boxes(boxes: torch.Tensor, batch: int) -> None:
     if boxes.shape[0] != batch:
         raise ShapeError(
             f"boxes are for {boxes.shape[0]} frame(s) but integrals of {batch} frame(s) were given"
+        )
+    if boxes.dtype == torch.bool or boxes.is_complex():  # bools were 0 / 1 pixel boxes
+        raise ShapeError(f"boxes must hold real numbers, got {boxes.dtype}")
+    # a NaN box read features of 0 (grid_sample's NaN coordinates), a negative size sums of
+    # the frame taken backwards (features of -1e10): one reduction, one read
+    bad = ~(torch.isfinite(boxes).all(-1) & (boxes[..., 2:] >= 0).all(-1))
+    if boxes.numel() and bool(bad.any()):
+        i = int(bad.reshape(-1).nonzero()[0, 0])
+        raise BoxError(
+            f"boxes[{i // boxes.shape[1]}, {i % boxes.shape[1]}] = "
+            f"{boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) must be finite with a width and "
+            "height >= 0"
         )
 
 
@@ -395,7 +414,8 @@ def centre_surround_features(
         ``(B, N, K)`` float32 (mean intensity differences, 0..255 scale).
 
     Raises:
-        ShapeError: wrong shapes or an index outside the pool.
+        ShapeError: wrong shapes, boxes that are not real numbers, or an index outside the pool.
+        BoxError: a box that is not finite or has a negative width or height.
     """
     b = ints.batch
     _check_boxes(boxes, b)
