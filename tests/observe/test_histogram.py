@@ -125,3 +125,46 @@ def test_errors(frame):
         box_histograms(m, torch.zeros(1, 3, 4), 110, grid=0)
     with pytest.raises(ShapeError, match="bins"):
         bhattacharyya(torch.ones(3), torch.ones(4))
+
+
+def test_box_histograms_refuse_bad_boxes_bins_and_grids():
+    """A bin past n_bins was counted in the next box's histogram (the last box's was an
+    IndexError); a NaN box gave the empty histogram of a box outside the frame and a negative
+    size one of pixels sampled backwards; float bins were truncated; grid=2.5 was reshape's
+    TypeError; all without a word (or a traceback)."""
+    from torchtrack.errors import BoxError
+
+    bm = torch.tensor([[[3, 1], [2, 0]]])  # box 0 samples bin 3, box 1 bin 0
+    bx = torch.tensor([[[0.0, 0, 1, 1], [1.0, 1, 1, 1]]])
+    assert box_histograms(bm, bx, 4, grid=1)[0, :, :].argmax(-1).tolist() == [3, 0]
+    with pytest.raises(ShapeError, match=r"bin_map holds bins 0..3, outside \[0, 2\)"):
+        box_histograms(bm, bx, 2, grid=1)  # box 0's bin 3 landed in box 1's bin 1
+    with pytest.raises(ShapeError, match="bin_map must hold integer bin indices"):
+        box_histograms(bm.float(), bx, 4, grid=1)
+    for bad in ([float("nan"), 0, 1, 1], [1.0, 1, -1, -1]):
+        with pytest.raises(BoxError, match=r"boxes\[0, 0\] = .* must be finite"):
+            box_histograms(bm, torch.tensor([[bad]]), 4, grid=1)
+    for kw in ({"grid": 2.5}, {"grid": True}, {"n_bins": 0}):
+        with pytest.raises(ConfigError, match=r"box_histograms: \w+ must be an integer >= 1"):
+            box_histograms(bm, bx, **({"n_bins": 4, "grid": 1} | kw))
+    frame = torch.randint(0, 256, (1, 3, 4, 4), dtype=torch.uint8)
+    with pytest.raises(ConfigError, match="n_bins = 10 but the frames are binned into 110"):
+        box_histograms(FrameBins(frame, HSVBins()), torch.tensor([[[0.0, 0, 4, 4]]]), 10)
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"n_h": "10"}, r"n_h must be an integer in \[1, 256\], got '10'"),
+        ({"n_s": True}, r"n_s must be an integer in \[1, 256\], got True"),
+        ({"n_v": 2.5}, r"n_v must be an integer in \[1, 256\]"),
+        ({"n_h": 10**6}, r"n_h must be an integer in \[1, 256\]"),
+        ({"n_h": None}, r"n_h must be an integer"),
+        ({"s_min": "0.1"}, r"s_min must be a number in \[0, 1\)"),
+    ],
+)
+def test_hsv_bins_refuse_what_is_not_a_bin_count(kw, match):
+    """'10' and 2.5 went through int(), True was one bin, 10**6 x 10**6 bins sized every
+    histogram by 10**12 and None was int()'s TypeError."""
+    with pytest.raises(ConfigError, match=match):
+        HSVBins(**kw)

@@ -19,11 +19,13 @@ slow, exact reference the tests use).
 
 from __future__ import annotations
 
+import numbers
+
 import cv2
 import numpy as np
 import torch
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import BoxError, ConfigError, ShapeError
 
 __all__ = [
     "FrameBins",
@@ -48,11 +50,13 @@ class HSVBins:
         self, n_h: int = 10, n_s: int = 10, n_v: int = 10, s_min: float = 0.1, v_min: float = 0.2
     ) -> None:
         for name, v in (("n_h", n_h), ("n_s", n_s), ("n_v", n_v)):
-            if int(v) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {v}")
+            # '10' and 2.5 went through int(), True was 1 bin, 10**6 sized the histograms
+            # by 10**12 bins; the bound is the histogram tracker config's (8-bit levels)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not 1 <= v <= 256:
+                raise ConfigError(f"{name} must be an integer in [1, 256], got {v!r}")
         for name, v in (("s_min", s_min), ("v_min", v_min)):
-            if not 0.0 <= float(v) < 1.0:
-                raise ConfigError(f"{name} must be in [0, 1), got {v}")
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not 0.0 <= v < 1.0:
+                raise ConfigError(f"{name} must be a number in [0, 1), got {v!r}")
         self.n_h, self.n_s, self.n_v = int(n_h), int(n_s), int(n_v)
         self.s_min, self.v_min = float(s_min), float(v_min)
 
@@ -158,6 +162,13 @@ def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid
     Returns:
         ``(B, N, n_bins)`` float32 histograms summing to 1 (all zeros for a box with no sample
         inside the frame).
+
+    Raises:
+        ShapeError: shapes as above not met, boxes that are not real numbers, or a bin of
+            ``bin_map`` outside ``[0, n_bins)``.
+        BoxError: a box that is not finite or has a negative width or height.
+        ConfigError: ``grid`` or ``n_bins`` not an integer >= 1, or fewer ``n_bins`` than the
+            bins of a :class:`FrameBins`.
     """
     if bin_map.ndim != 3 or boxes.ndim != 3 or boxes.shape[-1] != 4:
         raise ShapeError(
@@ -166,8 +177,31 @@ def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid
         )
     if boxes.shape[0] != bin_map.shape[0]:
         raise ShapeError(f"boxes are for {boxes.shape[0]} frames, bin_map has {bin_map.shape[0]}")
-    if int(grid) < 1:
-        raise ConfigError(f"grid must be >= 1, got {grid}")
+    for name, v in (("grid", grid), ("n_bins", n_bins)):  # 2.5 was reshape's TypeError
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise ConfigError(f"box_histograms: {name} must be an integer >= 1, got {v!r}")
+    if isinstance(bin_map, FrameBins) and n_bins < bin_map.bins.n_bins:
+        # a bin past n_bins was counted in the next box's histogram (or an IndexError)
+        raise ConfigError(
+            f"box_histograms: n_bins = {n_bins} but the frames are binned into "
+            f"{bin_map.bins.n_bins} bins"
+        )
+    if boxes.dtype == torch.bool or boxes.is_complex():
+        raise ShapeError(f"boxes must hold real numbers, got {boxes.dtype}")
+    if not isinstance(bin_map, FrameBins) and (
+        bin_map.is_floating_point() or bin_map.is_complex() or bin_map.dtype == torch.bool
+    ):  # float bins were truncated to their integer part
+        raise ShapeError(f"bin_map must hold integer bin indices, got {bin_map.dtype}")
+    # a NaN box gave the empty histogram of a box outside the frame, a negative size one of
+    # pixels sampled backwards: one reduction, one read
+    bad = ~(torch.isfinite(boxes).all(-1) & (boxes[..., 2:] >= 0).all(-1))
+    if boxes.numel() and bool(bad.any()):
+        i = int(bad.reshape(-1).nonzero()[0, 0])
+        raise BoxError(
+            f"boxes[{i // boxes.shape[1]}, {i % boxes.shape[1]}] = "
+            f"{boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) must be finite with a width and "
+            "height >= 0"
+        )
     b, n = boxes.shape[:2]
     fh, fw = bin_map.shape[-2:]
     dev = bin_map.device
@@ -187,6 +221,12 @@ def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid
         vals = bin_map.take(flat_idx.reshape(b, -1)).to(dev)
     else:
         vals = bin_map.reshape(b, -1).gather(1, flat_idx.reshape(b, -1)).long()  # (B, N*G*G)
+        if vals.numel():
+            lo, hi = (int(v) for v in torch.aminmax(vals))
+            if lo < 0 or hi >= n_bins:  # counted in the next box's histogram, or IndexError
+                raise ShapeError(
+                    f"box_histograms: bin_map holds bins {lo}..{hi}, outside [0, {n_bins}) (n_bins)"
+                )
     rows = torch.arange(n, device=dev).repeat_interleave(grid * grid).unsqueeze(0)
     target = (rows * n_bins + vals).reshape(-1) + (
         torch.arange(b, device=dev) * (n * n_bins)
