@@ -123,3 +123,13 @@ def test_scorable_boxes_refuses_a_frame_size_that_is_not_two_sizes():
     for bad in ((True, 64), (float("nan"), 64), (48,)):
         with pytest.raises(ShapeError, match=r"frame_size must be \(H, W\)"):
             scorable_boxes(b, bad)
+
+
+@pytest.mark.parametrize("floor", [True, -0.5, float("nan"), "1e-6", 1.0])
+def test_likelihood_floor_must_be_a_share(floor):
+    """floor=True clamped every probability to 1 (a flat likelihood: the detector ignored), a
+    negative or NaN floor was no floor at all, without a word."""
+    from torchtrack.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"floor must be a number in \[0, 1\)"):
+        DetectorObservation(tiny_detector(), floor=floor)

@@ -21,11 +21,12 @@ particles of a target leaving the view) get probability 0 instead of an error.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
 from torchtrack.boxes import _check_frame_size
-from torchtrack.errors import ShapeError
+from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = ["DetectorObservation", "scorable_boxes"]
 
@@ -75,6 +76,13 @@ class DetectorObservation:
             raise NotFittedError(
                 f"detector {detector.name!r} has no calibration; the tracker needs calibrated "
                 "probabilities (fit one with `torchtrack calibrate`)"
+            )
+        # floor=True clamped every probability to 1 (a flat likelihood: the detector ignored),
+        # a negative or NaN one was no floor at all
+        if isinstance(floor, bool) or not isinstance(floor, numbers.Real) or not 0 <= floor < 1:
+            raise ConfigError(
+                f"DetectorObservation: floor must be a number in [0, 1) (the smallest "
+                f"likelihood), got {floor!r}"
             )
         tracking_model = getattr(detector, "tracking_model", None)
         self.detector = tracking_model() if head and tracking_model is not None else detector
