@@ -281,3 +281,12 @@ def test_a_noise_scale_of_the_wrong_shape_is_a_shape_error(model, bad):
     with pytest.raises(ShapeError, match=r"noise_scale must be None or a tensor \(B,\) = \(2,\)"):
         model.predict(s, noise_scale=bad)
     assert model.predict(s, noise_scale=torch.ones(2)).shape == s.shape
+
+
+@pytest.mark.parametrize("model", [KleinAR(), ChateauAR(window=(15.0, 30.0)), BachooMotion()])
+def test_integer_states_are_a_shape_error(model):
+    """Integer states reached torch's NotImplementedError "'normal_kernel_cpu' not implemented
+    for 'Long'"."""
+    s = model.init(BOXES, 4, torch.Generator().manual_seed(0))
+    with pytest.raises(ShapeError, match=r"states must be floating point, got torch\.int64"):
+        model.predict(s.long(), torch.Generator().manual_seed(0))

@@ -51,6 +51,8 @@ def _check_states(states: torch.Tensor, d: int, model: str) -> None:
     if not isinstance(states, torch.Tensor) or states.ndim != 3 or states.shape[2] != d:
         shape = tuple(states.shape) if isinstance(states, torch.Tensor) else type(states).__name__
         raise ShapeError(f"{model}: states must be (B, N, {d}), got {shape}")
+    if not states.is_floating_point():  # int states were torch's 'normal_kernel_cpu' error
+        raise ShapeError(f"{model}: states must be floating point, got {states.dtype}")
 
 
 def _check_noise_scale(ns, b: int, model: str, per_dim: bool = False) -> None:
