@@ -156,3 +156,39 @@ def test_errors():
         region_features(torch.zeros(2, 10, 10, dtype=torch.uint8), (0, 0, 5, 5))
     with pytest.raises(ConfigError, match="texture blocks"):
         texture_blocks(torch.zeros(3, dtype=torch.long), "lbp")
+
+
+def test_bad_pixels_thresholds_bins_regions_and_codes_are_refused():
+    """NaN pixels gave NaN colour features (and texture codes of 0); threshold=True was 1 and
+    '5' a TypeError; colour bins 2.5 / True went through int(); a NaN region was int()'s
+    ValueError, True a bound of 1, 5.5 cut to 5; float texture codes or codes past 255 were
+    IndexErrors; NaN colour was quantised to bin 0."""
+    from torchtrack.errors import DataError
+
+    frame = torch.randint(0, 256, (3, 20, 20), dtype=torch.uint8)
+    with pytest.raises(DataError, match="images hold NaN"):
+        pixel_features(torch.full((1, 3, 4, 4), float("nan")))
+    for bad in (True, "5", float("inf")):
+        with pytest.raises(ConfigError, match=r"LTP threshold must be >= 0 \(a finite number\)"):
+            pixel_features(frame[None], threshold=bad)
+    for bad in (2.5, True):
+        with pytest.raises(ConfigError, match=r"colour bins must be in 1\.\.256 \(an integer\)"):
+            region_features(frame, (2, 2, 10, 10), colour_bins=bad)
+        with pytest.raises(ConfigError, match=r"colour bins must be in 1\.\.256"):
+            quantize_colour(torch.zeros(1, 4, 2, 2), bad)
+    for bad in ((float("nan"), 2, 10, 10), (True, 2, 10, 10), (2.5, 2, 10, 10)):
+        with pytest.raises(ConfigError, match="region must be 4 integer pixel bounds"):
+            region_features(frame, bad)
+    a = region_features(frame, (2, 2, 10, 10))
+    b = region_features(frame, torch.tensor([2, 2, 10, 10]))  # tensors of integers: as before
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    with pytest.raises(ShapeError, match="codes must be an integer tensor"):
+        texture_blocks(torch.zeros(1, 4, 4))
+    with pytest.raises(ShapeError, match=r"codes must be in 0\.\.255, got 0\.\.300"):
+        texture_blocks(torch.tensor([0, 300]))
+    torch.testing.assert_close(  # uint8 codes were read as a mask (IndexError)
+        texture_blocks(torch.tensor([0, 255], dtype=torch.uint8)),
+        texture_blocks(torch.tensor([0, 255])),
+    )
+    with pytest.raises(DataError, match="colour holds NaN"):
+        quantize_colour(torch.full((1, 4, 2, 2), float("nan")))

@@ -26,13 +26,14 @@ to avoid that, as :func:`region_features` does).
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torchtrack.errors import ConfigError, ShapeError
-from torchtrack.features.integral import rgb_to_gray
+from torchtrack.errors import ConfigError, DataError, ShapeError
+from torchtrack.features.integral import check_pixel_values, rgb_to_gray
 
 __all__ = [
     "CHANNEL_PAIRS",
@@ -88,6 +89,25 @@ def _check(images: torch.Tensor) -> None:
         raise ShapeError(f"images must have 1 (gray) or 3 (RGB) channels, got C={images.shape[1]}")
     if images.dtype == torch.bool or images.is_complex():
         raise ShapeError(f"images must be integer or floating, got {images.dtype}")
+    # NaN pixels gave NaN colour features (texture codes of 0), 16-bit levels were read on the
+    # 8-bit scale; uint8 images need no pass over the pixels
+    check_pixel_values(images, "images")
+
+
+def _check_threshold(threshold) -> None:
+    # True was a threshold of 1, '5' a TypeError; NaN and negatives were refused already
+    if not _is_real(threshold) or not 0 <= threshold < math.inf:
+        raise ConfigError(f"LTP threshold must be >= 0 (a finite number), got {threshold!r}")
+
+
+def _check_bins(bins) -> None:
+    # int() read 2.5 as 2 bins and True as 1
+    if isinstance(bins, bool) or not isinstance(bins, numbers.Integral) or not 1 <= bins <= 256:
+        raise ConfigError(f"colour bins must be in 1..256 (an integer), got {bins!r}")
+
+
+def _is_real(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, numbers.Real)
 
 
 def _shift(p: torch.Tensor, dy: int, dx: int, h: int, w: int) -> torch.Tensor:
@@ -137,8 +157,7 @@ def ltp_codes(
             f"centre and neighbour must be equal (B, K, H, W) tensors, got "
             f"{tuple(centre.shape)} and {tuple(neighbour.shape)}"
         )
-    if not threshold >= 0:
-        raise ConfigError(f"LTP threshold must be >= 0, got {threshold}")
+    _check_threshold(threshold)
     if not circular and not centre.is_floating_point() and not neighbour.is_floating_point():
         upper, lower = _ltp_integer(centre, neighbour, threshold)
         return upper.long(), lower.long()
@@ -227,6 +246,8 @@ def pixel_features(
 
     Raises:
         ShapeError: not ``(B, C, H, W)`` with C in {1, 3}.
+        DataError: pixel values not finite or outside [0, 255].
+        ConfigError: ``threshold`` not a finite number >= 0.
     """
     _check(images)
     colour = colour_features(images)
@@ -254,17 +275,35 @@ def texture_blocks(codes: torch.Tensor, blocks: str = "riu2") -> torch.Tensor:
     """Partition the 256 pattern codes into the value blocks of the weak classifiers:
     ``"full"`` keeps the 256 codes, ``"riu2"`` maps them to 10 rotation-invariant uniform
     classes (denser statistics from a few thousand pixels per frame)."""
+    if blocks not in ("full", "riu2"):
+        raise ConfigError(f"unknown texture blocks {blocks!r}; valid: full, riu2")
+    if (
+        not isinstance(codes, torch.Tensor)
+        or codes.is_floating_point()
+        or codes.is_complex()
+        or codes.dtype == torch.bool
+    ):
+        got = codes.dtype if isinstance(codes, torch.Tensor) else type(codes).__name__
+        raise ShapeError(f"texture_blocks: codes must be an integer tensor, got {got}")
+    if codes.numel() and codes.dtype != torch.uint8:  # indices past 255: IndexError
+        lo, hi = (int(v) for v in torch.aminmax(codes.long()))
+        if lo < 0 or hi > 255:
+            raise ShapeError(f"texture_blocks: codes must be in 0..255, got {lo}..{hi}")
     if blocks == "full":
         return codes
     if blocks == "riu2":
-        return RIU2_TABLE.to(codes.device)[codes]
+        return RIU2_TABLE.to(codes.device)[codes.long()]
     raise ConfigError(f"unknown texture blocks {blocks!r}; valid: full, riu2")
 
 
 def quantize_colour(colour: torch.Tensor, bins: int = 32) -> torch.Tensor:
     """Colour values in 0..255 -> int64 bin codes in ``0..bins-1`` (equal-width bins)."""
-    if not 1 <= int(bins) <= 256:
-        raise ConfigError(f"colour bins must be in 1..256, got {bins}")
+    _check_bins(bins)
+    if not isinstance(colour, torch.Tensor) or colour.dtype == torch.bool or colour.is_complex():
+        got = colour.dtype if isinstance(colour, torch.Tensor) else type(colour).__name__
+        raise ShapeError(f"colour must be a tensor of real numbers, got {got}")
+    if colour.is_floating_point() and bool(torch.isnan(colour).any()):  # NaN was bin 0
+        raise DataError("quantize_colour: colour holds NaN values")
     return (colour.clamp(0, 255) * (bins / 256.0)).long().clamp_(0, bins - 1)
 
 
@@ -293,20 +332,26 @@ def region_features(
         order of the region (Fc = 4, Ft = 18 for RGB; 1 and 2 for gray).
 
     Raises:
-        ShapeError: bad frame. ConfigError: empty region or one outside the frame, bad
-        ``colour_bins`` or ``blocks``.
+        ShapeError: bad frame. DataError: pixel values not finite or outside [0, 255].
+        ConfigError: empty region or one outside the frame, bounds that are not integers, bad
+        ``threshold``, ``colour_bins`` or ``blocks``.
     """
     if not isinstance(frame, torch.Tensor) or frame.ndim != 3:
         raise ShapeError("frame must be a (C, H, W) tensor")
     _check(frame.unsqueeze(0))
-    if not 1 <= int(colour_bins) <= 256:
-        raise ConfigError(f"colour bins must be in 1..256, got {colour_bins}")
+    _check_bins(colour_bins)
     if blocks not in ("full", "riu2"):
         raise ConfigError(f"unknown texture blocks {blocks!r}; valid: full, riu2")
-    if not threshold >= 0:
-        raise ConfigError(f"LTP threshold must be >= 0, got {threshold}")
+    _check_threshold(threshold)
     _, hh, ww = frame.shape
-    x0, y0, x1, y1 = (int(v) for v in region)
+    try:  # NaN was int()'s ValueError, True a bound of 1, 5.7 cut to 5
+        bounds = [float(v) for v in region]
+        whole = len(bounds) == 4 and all(math.isfinite(v) and v == int(v) for v in bounds)
+    except (TypeError, ValueError, RuntimeError):
+        whole = False
+    if not whole or any(isinstance(v, bool) for v in region):
+        raise ConfigError(f"region must be 4 integer pixel bounds (x0, y0, x1, y1), got {region!r}")
+    x0, y0, x1, y1 = (int(v) for v in bounds)
     if not (0 <= x0 < x1 <= ww and 0 <= y0 < y1 <= hh):
         raise ConfigError(f"region {region} is empty or outside the {ww}x{hh} frame")
     mx0, my0 = max(x0 - 1, 0), max(y0 - 1, 0)
