@@ -271,3 +271,22 @@ def test_select_features_bad_input():
         select_features(X, np.ones(len(y)), 2)
     with pytest.raises(errors.ShapeError, match="2-D"):
         select_features(X[0], y, 2)
+
+
+def test_weights_on_one_class_only_are_refused():
+    """Sample weights of 0 on every negative boosted a constant classifier (the same margin for
+    every sample) without a word, in BoostedStumps, BoostedTrees and select_features alike, as
+    SVMClassifier and the calibrators refuse them."""
+    from torchtrack.learn.trees import BoostedTrees
+
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(60, 3, generator=g)
+    y = (X[:, 0] > 0).long()
+    w = y.double()  # positives only
+    for fit in (
+        lambda: BoostedStumps(n_estimators=3).fit(X, y, sample_weight=w),
+        lambda: BoostedTrees(n_estimators=3).fit(X, y, sample_weight=w),
+        lambda: select_features(X, y, 2, sample_weight=w),
+    ):
+        with pytest.raises(errors.DataError, match="positive weights for class 'positive' only"):
+            fit()

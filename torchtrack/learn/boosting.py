@@ -31,6 +31,7 @@ from torchtrack.learn._base import (
     as_float_tensor,
     check_fitted,
     check_kind,
+    check_weighted_classes,
     is_integer,
     state_meta,
     state_tensor,
@@ -347,6 +348,8 @@ def _initial_weights(y01: torch.Tensor, sample_weight: Any, n: int) -> torch.Ten
         raise errors.ShapeError(f"sample_weight must have shape ({n},), got {tuple(w.shape)}")
     if bool((w < 0).any()) or float(w.sum()) <= 0:
         raise errors.DataError("sample_weight must be non-negative with a positive sum")
+    # weights on one class only boosted a constant classifier without a word
+    check_weighted_classes(w, y01, ("negative", "positive"))
     return (w / w.sum()).to(y01.device)
 
 
