@@ -172,3 +172,28 @@ def test_bool_and_complex_boxes_are_refused():
         for fn in (box_area, lambda x: box_iou(x, x), lambda x: clip_boxes(x, (10, 10))):
             with pytest.raises(ShapeError, match=r"(boxes|a) must hold real numbers, got torch\."):
                 fn(bad)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "x", "w"),
+    [(torch.uint8, 200, 100), (torch.int8, 100, 100), (torch.int16, 30000, 9000)],
+)
+def test_corner_conversions_of_narrow_integer_boxes_do_not_wrap(dtype, x, w):
+    """xywh_to_xyxy of a uint8 box at x 200 of width 100 ended at 44 (int8 at 100 + 100: -56),
+    and xyxy_to_xywh of reversed uint8 corners gave a size of 255 rather than -1; box_area and
+    box_iou already widened such boxes."""
+    b = torch.tensor([[x, 20, w, 10]], dtype=dtype)
+    out = xywh_to_xyxy(b)
+    assert out.tolist() == [[x, 20, x + w, 30]] and out.dtype == torch.int64
+    r = torch.tensor([[5, 5, 4, 4]], dtype=dtype)
+    assert xyxy_to_xywh(r).tolist() == [[5, 5, -1, -1]]
+    assert xywh_to_xyxy(b.float()).dtype == torch.float32  # other dtypes keep theirs
+
+
+@pytest.mark.parametrize("bad", [True, "1", float("nan"), None])
+def test_check_boxes_min_size_must_be_a_number(bad):
+    """min_size=True was a 1-pixel minimum, '1' a TypeError, NaN a 'size below nan' BoxError."""
+    from torchtrack.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="check_boxes: min_size must be a finite number"):
+        check_boxes(torch.tensor([[1.0, 2, 3, 4]]), min_size=bad)

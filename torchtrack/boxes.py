@@ -10,10 +10,11 @@ subtracts 1.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
-from torchtrack.errors import BoxError, ShapeError
+from torchtrack.errors import BoxError, ConfigError, ShapeError
 
 __all__ = [
     "box_area",
@@ -77,16 +78,18 @@ def _is_bool(v) -> bool:
 
 
 def xywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:
-    """``(..., 4)`` x, y, w, h -> x1, y1, x2, y2."""
+    """``(..., 4)`` x, y, w, h -> x1, y1, x2, y2 (uint8 / int8 / int16 / int32 boxes give
+    int64 corners: a uint8 box at x 200 of width 100 ended at 44)."""
     _check_last4(boxes)
-    x, y, w, h = boxes.unbind(-1)
+    x, y, w, h = _wide(boxes).unbind(-1)
     return torch.stack((x, y, x + w, y + h), dim=-1)
 
 
 def xyxy_to_xywh(boxes: torch.Tensor) -> torch.Tensor:
-    """``(..., 4)`` x1, y1, x2, y2 -> x, y, w, h."""
+    """``(..., 4)`` x1, y1, x2, y2 -> x, y, w, h (narrow integer corners give int64 sizes, as
+    :func:`xywh_to_xyxy`: a reversed uint8 box had a size of 255 rather than -1)."""
     _check_last4(boxes)
-    x1, y1, x2, y2 = boxes.unbind(-1)
+    x1, y1, x2, y2 = _wide(boxes).unbind(-1)
     return torch.stack((x1, y1, x2 - x1, y2 - y1), dim=-1)
 
 
@@ -181,10 +184,14 @@ def check_boxes(
         BoxError: a box as above.
         ShapeError: ``boxes`` not ``(..., 4)``, or ``frame_size`` not two finite sizes >= 0
             (a bool among them included).
+        ConfigError: ``min_size`` not a finite number (a bool included).
     """
     _check_last4(boxes, name)
     if frame_size is not None:
         _check_frame_size(frame_size)
+    # True was a minimum of 1 pixel, '1' a TypeError, NaN a 'size below nan pixel(s)' BoxError
+    if _is_bool(min_size) or not isinstance(min_size, numbers.Real) or not math.isfinite(min_size):
+        raise ConfigError(f"check_boxes: min_size must be a finite number, got {min_size!r}")
     if boxes.numel() == 0:
         return
     finite = torch.isfinite(boxes).all(-1)
