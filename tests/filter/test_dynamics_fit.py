@@ -91,6 +91,26 @@ def test_fit_errors():
         fit_chateau_dynamics([torch.zeros(20, 4)])
 
 
+def test_bad_windows_bool_tracks_and_infinite_values_are_refused():
+    """A NaN window gave a fit of NaN scales (A's scale row nonsense), a negative one an rms
+    of 0 on the scale, (True, True) a 1 x 1 window; bool tracks were 0 / 1 pixel boxes and an
+    infinite value was taken as an absent target; all without a word."""
+    tracks, _, _ = _simulate(n_tracks=3, t=20)
+    for bad in ((math.nan, 1.0), (-20.0, 40.0), (True, True), 5):
+        with pytest.raises(ConfigError, match=r"fit_chateau_dynamics: window must be \(w, h\)"):
+            fit_chateau_dynamics(tracks, window=bad)
+        with pytest.raises(ConfigError, match=r"chateau_states: window must be"):
+            chateau_states(tracks[0], window=bad)
+    with pytest.raises(DataError, match=r"real numbers x, y, w, h, got torch\.bool"):
+        fit_chateau_dynamics([t.bool() for t in tracks])
+    bad = tracks[0].clone()
+    bad[5, 0] = math.inf
+    with pytest.raises(DataError, match="a track has an infinite value"):
+        fit_chateau_dynamics([bad, *tracks[1:]])
+    with pytest.raises(ConfigError, match=r"ChateauAR: window must be \(w, h\)"):
+        ChateauAR(window=(0.0, 1.0))  # the one check, shared
+
+
 def test_toml_round_trip(tmp_path):
     tracks, _, _ = _simulate(n_tracks=5, t=40)
     fit = fit_chateau_dynamics(tracks, window=WINDOW)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 
 from torchtrack.errors import ConfigError, DataError
-from torchtrack.filter.motion import ChateauAR, default_chateau_B
+from torchtrack.filter.motion import ChateauAR, check_window, default_chateau_B
 
 __all__ = [
     "ChateauFit",
@@ -83,9 +83,16 @@ def chateau_states(
         ``(states (T, 6), valid (T,) bool)``: ``valid[t]`` when frames t-1 and t are annotated
         (``states[0]`` is never valid: it has no previous frame).
     """
-    boxes = torch.as_tensor(boxes, dtype=torch.float64)
+    if window is not None:  # NaN, negative or bool windows gave NaN or wrong scales silently
+        window = check_window(window, "chateau_states")
+    boxes = torch.as_tensor(boxes)
+    if boxes.dtype == torch.bool or boxes.is_complex():  # bools were 0 / 1 pixel boxes
+        raise DataError(f"a track must be (T, 4) real numbers x, y, w, h, got {boxes.dtype}")
+    boxes = boxes.to(torch.float64)
     if boxes.ndim != 2 or boxes.shape[1] != 4:
         raise DataError(f"a track must be (T, 4) x, y, w, h, got {tuple(boxes.shape)}")
+    if bool(torch.isinf(boxes).any()):  # NaN is an absent target; inf was taken as one too
+        raise DataError("a track has an infinite value (a NaN row is an absent target)")
     present = torch.isfinite(boxes).all(1)
     if bool(present.any()) and bool((boxes[present, 2:] <= 0).any()):
         raise DataError("a track has a box with w <= 0 or h <= 0")
@@ -133,8 +140,12 @@ def fit_chateau_dynamics(
         ChateauFit.
 
     Raises:
-        DataError: fewer than 12 usable transitions (6 regressors need a margin), or bad boxes.
+        DataError: fewer than 12 usable transitions (6 regressors need a margin), or bad boxes
+            (bools, or an infinite value).
+        ConfigError: ``window`` not None or two finite numbers > 0.
     """
+    if window is not None:
+        window = check_window(window, "fit_chateau_dynamics")
     xs, ys = [], []
     used = 0
     for tr in tracks:

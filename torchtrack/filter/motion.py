@@ -55,6 +55,25 @@ def _check_states(states: torch.Tensor, d: int, model: str) -> None:
         raise ShapeError(f"{model}: states must be floating point, got {states.dtype}")
 
 
+def check_window(window, where: str) -> tuple[float, float]:
+    """A reference window ``(w, h)`` as two floats, once checked to be two finite numbers > 0
+    (ConfigError naming ``where``: window=5 was TypeError "object of type 'int' has no len()",
+    ("a", 1) float's ValueError, bools were 1 pixel)."""
+    if (
+        isinstance(window, (str, bytes))
+        or not hasattr(window, "__len__")
+        or len(window) != 2
+        or not all(
+            not isinstance(v, bool) and isinstance(v, numbers.Real) and 0 < float(v) < math.inf
+            for v in window
+        )
+    ):
+        raise ConfigError(
+            f"{where}: window must be (w, h) > 0 and finite, two numbers, got {window!r}"
+        )
+    return float(window[0]), float(window[1])
+
+
 def _check_noise_scale(ns, b: int, model: str, per_dim: bool = False) -> None:
     """ShapeError unless ``ns`` is a ``(B,)`` tensor (or ``(B, 6)`` where ``per_dim``): a
     float was 'object has no attribute to', a wrong length torch's broadcast error. Shapes
@@ -315,20 +334,7 @@ class ChateauAR:
         for name, m in (("A", self.A), ("B", self.B)):
             if not bool(torch.isfinite(m).all()):  # NaN / inf particles, silently
                 raise ConfigError(f"ChateauAR: {name} must be finite, got {m.tolist()}")
-        # window=5 was TypeError "object of type 'int' has no len()", ("a", 1) float's ValueError
-        if (
-            isinstance(window, (str, bytes))
-            or not hasattr(window, "__len__")
-            or len(window) != 2
-            or not all(
-                not isinstance(v, bool) and isinstance(v, numbers.Real) and 0 < float(v) < math.inf
-                for v in window
-            )
-        ):
-            raise ConfigError(
-                f"ChateauAR: window must be (w, h) > 0 and finite, two numbers, got {window!r}"
-            )
-        self.window = (float(window[0]), float(window[1]))
+        self.window = check_window(window, "ChateauAR")
         self.min_scale = _positive("min_scale", min_scale)
 
     @classmethod
