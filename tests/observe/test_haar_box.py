@@ -160,3 +160,19 @@ def test_bad_input_raises_typed_errors():
         lik(torch.zeros(5, 6))
     with pytest.raises(ShapeError, match="integral image"):
         lik.set_frame(torch.zeros(3))
+
+
+def test_nan_weights_bias_and_bool_alpha_are_refused():
+    """A NaN weight or bias made every log-likelihood NaN, reported by the filter step as
+    'likelihood returned NaN' naming neither; bool weights were 0 / 1."""
+    _, ii = _frame()
+    feats = HaarBoxFeatures.random(4)
+    with pytest.raises(ConfigError, match="alpha must be finite"):
+        HaarBoxLikelihood(ii, KleinAR().to_boxes, feats, torch.tensor([1.0, float("nan"), 1, 1]))
+    for bad in (float("nan"), float("inf"), True, "0.5"):
+        with pytest.raises(ConfigError, match="bias must be a finite number"):
+            HaarBoxLikelihood(ii, KleinAR().to_boxes, feats, torch.ones(4), bad)
+    with pytest.raises(ShapeError, match="alpha must hold real numbers"):
+        HaarBoxLikelihood(ii, KleinAR().to_boxes, feats, torch.ones(4, dtype=torch.bool))
+    with pytest.raises(ConfigError, match="chunk"):
+        HaarBoxLikelihood(ii, KleinAR().to_boxes, feats, torch.ones(4), chunk=True)

@@ -25,6 +25,8 @@ corner in float32 from the same operands; they agree to float rounding.
 
 from __future__ import annotations
 
+import math
+import numbers
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -199,10 +201,19 @@ class HaarBoxLikelihood:
     ) -> None:
         if not isinstance(features, HaarBoxFeatures):
             raise ConfigError(f"features must be HaarBoxFeatures, got {type(features).__name__}")
-        alpha = torch.as_tensor(alpha, dtype=torch.float32)
+        alpha = torch.as_tensor(alpha)
+        if alpha.dtype == torch.bool or alpha.is_complex():  # bools were weights of 0 / 1
+            raise ShapeError(f"alpha must hold real numbers, got {alpha.dtype}")
+        alpha = alpha.to(torch.float32)
         if alpha.shape != (len(features),):
             raise ShapeError(f"alpha must have shape ({len(features)},), got {tuple(alpha.shape)}")
-        if not isinstance(chunk, int) or chunk < 1:
+        # a NaN weight or bias made every log-likelihood NaN, reported by the filter step as
+        # 'likelihood returned NaN' on the first frame, naming neither
+        if not bool(torch.isfinite(alpha).all()):
+            raise ConfigError(f"alpha must be finite, got {alpha.tolist()}")
+        if isinstance(bias, bool) or not isinstance(bias, numbers.Real) or not math.isfinite(bias):
+            raise ConfigError(f"bias must be a finite number, got {bias!r}")
+        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
             raise ConfigError(f"chunk must be a positive integer, got {chunk!r}")
         self.to_boxes = to_boxes
         self.features = features
