@@ -196,3 +196,18 @@ def test_batched_sampling_equals_one_by_one():
         pk, ik = sample_patches(img, pose_matrices(poses[k : k + 1]))
         assert torch.equal(ik[0], inside[k])
         np.testing.assert_allclose(pk[0].numpy(), p[k].numpy(), atol=1e-6)
+
+
+def test_luma_and_blur_refuse_what_is_no_image_or_sigma():
+    """A NaN frame gave a NaN luma (a NaN template), 16-bit levels a luma far above 1, bools
+    levels 0 / 1; a NaN sigma left its axis unblurred; all without a word."""
+    from torchtrack.errors import DataError
+
+    for bad in (torch.full((1, 4, 4), float("nan")), torch.full((3, 4, 4), 1000.0)):
+        with pytest.raises(DataError, match="frame hold"):
+            to_luma(bad)
+    with pytest.raises(ShapeError, match=r"integer or floating levels, got torch\.bool"):
+        to_luma(torch.ones(1, 4, 4, dtype=torch.bool))
+    for bad in (float("nan"), "1", True):
+        with pytest.raises(ConfigError, match="gaussian_blur: sigma_x must be a finite number"):
+            gaussian_blur(torch.zeros(8, 8), bad, 0.0)

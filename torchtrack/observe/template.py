@@ -33,11 +33,13 @@ the paper's footage is 8-bit grey.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 import torch.nn.functional as F
 
 from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.features.integral import check_pixel_values
 
 __all__ = [
     "TemplateModel",
@@ -61,6 +63,10 @@ def to_luma(frame: torch.Tensor) -> torch.Tensor:
     if not isinstance(frame, torch.Tensor) or frame.ndim != 3 or frame.shape[0] not in (1, 3):
         shape = tuple(frame.shape) if isinstance(frame, torch.Tensor) else type(frame).__name__
         raise ShapeError(f"frame must be (C, H, W) with C = 1 or 3, got {shape}")
+    if frame.dtype == torch.bool or frame.is_complex():  # bools were levels 0 / 1
+        raise ShapeError(f"frame must hold integer or floating levels, got {frame.dtype}")
+    # NaN levels gave a NaN luma (a NaN template), 16-bit ones a luma far above 1
+    check_pixel_values(frame, "frame")
     f = frame.to(torch.float32)
     if frame.shape[0] == 1:
         g = f[0]
@@ -85,9 +91,17 @@ def _kernel(sigma: float, device) -> torch.Tensor:
 
 def gaussian_blur(image: torch.Tensor, sigma_x: float, sigma_y: float) -> torch.Tensor:
     """Separable Gaussian blur of ``(H, W)`` (reflected borders) -> ``(H, W)`` float32; an
-    axis with ``sigma < 0.1`` is left alone."""
+    axis with ``sigma < 0.1`` is left alone.
+
+    Raises:
+        ShapeError: ``image`` not 2-D.
+        ConfigError: a sigma that is not a finite number (NaN left the axis unblurred).
+    """
     if image.ndim != 2:
         raise ShapeError(f"image must be (H, W), got {tuple(image.shape)}")
+    for name, v in (("sigma_x", sigma_x), ("sigma_y", sigma_y)):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+            raise ConfigError(f"gaussian_blur: {name} must be a finite number, got {v!r}")
     out = image.to(torch.float32)[None, None]
     if sigma_x >= 0.1:
         k = _kernel(sigma_x, image.device)
