@@ -437,3 +437,26 @@ def test_a_generator_that_is_not_a_torch_generator_is_refused_when_the_tracker_i
             make(generator=bad)
     make(generator=torch.Generator().manual_seed(0))
     make(generator=None)
+
+
+@pytest.mark.parametrize("bad", [True, 2.5, "3", None])
+def test_a_config_instance_is_type_checked_like_its_toml(bad):
+    """config=HistogramTrackerConfig(n_particles=True) ran one particle and 2.5 went on, where
+    the same value in a TOML file or a keyword is refused; '3' and None were TypeErrors in
+    validate()."""
+    from torchtrack.track.config import HistogramTrackerConfig
+
+    with pytest.raises(ConfigError, match=r"histogram tracker: 'n_particles' must be an integer"):
+        create_tracker("histogram", config=HistogramTrackerConfig(n_particles=bad))
+    t = create_tracker("histogram", config=HistogramTrackerConfig(n_particles=50))
+    assert t.config == HistogramTrackerConfig(n_particles=50)
+
+
+def test_a_float_setting_given_an_integer_beyond_the_float_range_is_a_config_error():
+    """sigma_xy=10**400 (a keyword, a TOML integer or a config object's field) was float()'s
+    OverflowError traceback."""
+    from torchtrack.track.config import HistogramTrackerConfig
+
+    for kw in ({"sigma_xy": 10**400}, {"config": HistogramTrackerConfig(sigma_xy=10**400)}):
+        with pytest.raises(ConfigError, match=r"sigma_xy must be a finite number within .*401 dig"):
+            create_tracker("histogram", **kw)

@@ -761,7 +761,13 @@ def _coerce(value: Any, tp: Any, key: str, where: str, int_limit: int = _INT_LIM
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: {key!r} must be a number, got {value!r}")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an integer beyond the float range (10**400): a traceback
+            raise ConfigError(
+                f"{where}: {key} must be a finite number within +-{FLOAT_LIMIT:g}, got an "
+                f"integer of {len(str(abs(value)))} digits"
+            ) from None
     if tp is str:
         if not isinstance(value, (str, os.PathLike)):
             raise ConfigError(f"{where}: {key!r} must be a string, got {value!r}")
@@ -837,13 +843,18 @@ def resolve_tracker_config(
     overrides: dict[str, Any] | None = None,
     where: str = "parameters",
 ) -> C:
-    """The config a tracker runs with: ``cls()`` defaults, a given ``cls`` instance, or a TOML
-    file loaded with :func:`load_tracker_config`; then keyword ``overrides`` applied and checked.
+    """The config a tracker runs with: ``cls()`` defaults, a given ``cls`` instance (its fields
+    type-checked like a TOML file's keys), or a TOML file loaded with
+    :func:`load_tracker_config`; then keyword ``overrides`` applied and checked.
     """
     if config is None:
         cfg = cls()
     elif isinstance(config, cls):
-        cfg = config
+        # a config built in Python skipped the typed check its TOML keys and keyword overrides
+        # get: n_particles=True ran 1 particle, 2.5 particles went on, '3' or None was a
+        # TypeError in validate(); its fields now pass that check (a copy, the same values)
+        fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(cls)}
+        cfg = apply_overrides(cls(), fields, where=where)
     else:
         cfg = load_tracker_config(config, cls)
     if overrides:
