@@ -253,3 +253,19 @@ def test_visible_must_be_flags_and_boxes_numbers():
     assert m.track_ratio == 50.0
     with pytest.raises(ShapeError, match="pred must hold real numbers"):
         centre_errors(torch.ones(3, 4, dtype=torch.bool), z)
+
+
+def test_ground_truth_rows_partly_nan_or_infinite_are_refused():
+    """gt rows [NaN, 5, 10, 10] or [inf, 5, 10, 10] were scored as absent-target frames without
+    a word; only a row of NaN means the target is absent."""
+    from torchtrack.errors import DataError
+
+    pred = torch.tensor([[0.0, 0, 10, 10]] * 3)
+    for bad in ([NAN, 5, 10, 10], [math.inf, 5, 10, 10]):
+        gt = torch.tensor([[0.0, 0, 10, 10], bad, [0, 0, 10, 10]])
+        with pytest.raises(DataError, match=r"gt\[1\] = .* must be finite, or all NaN"):
+            evaluate_sequence(pred, gt)
+        with pytest.raises(DataError, match=r"gt\[1\]"):
+            frame_ious(pred, gt)
+    gt = torch.tensor([[0.0, 0, 10, 10], [NAN] * 4, [0, 0, 10, 10]])
+    assert evaluate_sequence(pred, gt).n_absent == 1

@@ -91,6 +91,17 @@ def _check(pred: torch.Tensor, gt: torch.Tensor) -> None:
         raise ShapeError(
             f"pred and gt must both be (T, 4), got {tuple(pred.shape)} and {tuple(gt.shape)}"
         )
+    if gt.is_floating_point():
+        # an absent target is a row of NaN; a row with one NaN or an inf (a broken file or
+        # conversion) was scored as absent without a word
+        nan = torch.isnan(gt)
+        bad = torch.isinf(gt).any(1) | (nan.any(1) & ~nan.all(1))
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0, 0])
+            raise DataError(
+                f"gt[{i}] = {gt[i].tolist()}: a ground-truth box must be finite, or all NaN "
+                "(target absent)"
+            )
 
 
 def frame_ious(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
