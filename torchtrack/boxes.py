@@ -283,5 +283,22 @@ def _half_dtype(*boxes: torch.Tensor) -> torch.dtype | None:
     return dtype if dtype in (torch.float16, torch.bfloat16) else None
 
 
+def _check_box_values(boxes: torch.Tensor) -> None:
+    """``boxes (B, N, 4)`` of real numbers, finite, with widths and heights >= 0 (boxes
+    outside the frame and empty ones allowed): ShapeError / BoxError naming ``boxes[b, n]``.
+    One reduction and, for a bad box, one read: cheap enough for a tracker's hot path (a NaN
+    box had read features of 0, a negative size sums of the frame taken backwards)."""
+    if boxes.dtype == torch.bool or boxes.is_complex():  # bools were 0 / 1 pixel boxes
+        raise ShapeError(f"boxes must hold real numbers, got {boxes.dtype}")
+    bad = ~(torch.isfinite(boxes).all(-1) & (boxes[..., 2:] >= 0).all(-1))
+    if boxes.numel() and bool(bad.any()):
+        i = int(bad.reshape(-1).nonzero()[0, 0])
+        raise BoxError(
+            f"boxes[{i // boxes.shape[1]}, {i % boxes.shape[1]}] = "
+            f"{boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) must be finite with a width and "
+            "height >= 0"
+        )
+
+
 def _first_false(mask: torch.Tensor) -> int:
     return int((~mask.reshape(-1)).nonzero()[0, 0])

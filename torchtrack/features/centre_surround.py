@@ -42,7 +42,8 @@ from typing import Any, NamedTuple
 import torch
 from torch import nn
 
-from torchtrack.errors import BoxError, ConfigError, ShapeError
+from torchtrack.boxes import _check_box_values
+from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
     "CHANNEL_SUBSETS",
@@ -333,18 +334,9 @@ def _check_boxes(boxes: torch.Tensor, batch: int) -> None:
         raise ShapeError(
             f"boxes are for {boxes.shape[0]} frame(s) but integrals of {batch} frame(s) were given"
         )
-    if boxes.dtype == torch.bool or boxes.is_complex():  # bools were 0 / 1 pixel boxes
-        raise ShapeError(f"boxes must hold real numbers, got {boxes.dtype}")
     # a NaN box read features of 0 (grid_sample's NaN coordinates), a negative size sums of
-    # the frame taken backwards (features of -1e10): one reduction, one read
-    bad = ~(torch.isfinite(boxes).all(-1) & (boxes[..., 2:] >= 0).all(-1))
-    if boxes.numel() and bool(bad.any()):
-        i = int(bad.reshape(-1).nonzero()[0, 0])
-        raise BoxError(
-            f"boxes[{i // boxes.shape[1]}, {i % boxes.shape[1]}] = "
-            f"{boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) must be finite with a width and "
-            "height >= 0"
-        )
+    # the frame taken backwards (features of -1e10)
+    _check_box_values(boxes)
 
 
 def _check_index(index: torch.Tensor, n_pool: int, b: int, n: int) -> torch.Tensor:

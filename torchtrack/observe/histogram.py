@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 import torch
 
-from torchtrack.errors import BoxError, ConfigError, ShapeError
+from torchtrack.boxes import _check_box_values
+from torchtrack.errors import ConfigError, ShapeError
 
 __all__ = [
     "FrameBins",
@@ -186,22 +187,13 @@ def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid
             f"box_histograms: n_bins = {n_bins} but the frames are binned into "
             f"{bin_map.bins.n_bins} bins"
         )
-    if boxes.dtype == torch.bool or boxes.is_complex():
-        raise ShapeError(f"boxes must hold real numbers, got {boxes.dtype}")
+    # a NaN box gave the empty histogram of a box outside the frame, a negative size one of
+    # pixels sampled backwards
+    _check_box_values(boxes)
     if not isinstance(bin_map, FrameBins) and (
         bin_map.is_floating_point() or bin_map.is_complex() or bin_map.dtype == torch.bool
     ):  # float bins were truncated to their integer part
         raise ShapeError(f"bin_map must hold integer bin indices, got {bin_map.dtype}")
-    # a NaN box gave the empty histogram of a box outside the frame, a negative size one of
-    # pixels sampled backwards: one reduction, one read
-    bad = ~(torch.isfinite(boxes).all(-1) & (boxes[..., 2:] >= 0).all(-1))
-    if boxes.numel() and bool(bad.any()):
-        i = int(bad.reshape(-1).nonzero()[0, 0])
-        raise BoxError(
-            f"boxes[{i // boxes.shape[1]}, {i % boxes.shape[1]}] = "
-            f"{boxes.reshape(-1, 4)[i].tolist()} (x, y, w, h) must be finite with a width and "
-            "height >= 0"
-        )
     b, n = boxes.shape[:2]
     fh, fw = bin_map.shape[-2:]
     dev = bin_map.device
