@@ -148,6 +148,22 @@ def test_bad_boxes(frames, tmp_path, capsys, box, message):
     assert message in capsys.readouterr().err
 
 
+def test_a_box_starting_left_of_the_frame_is_read_as_a_box(frames, tmp_path, capsys):
+    """``--box -10,150,20,50`` (a target partly off the left edge): argparse took the value for
+    an unknown option ('expected one argument', exit 2); it is the box, clipped with a warning,
+    as ``--box=-10,...`` was."""
+    out = tmp_path / "n.csv"
+    argv = ["track", str(frames), "--box", "-10,150,20,50", "--out", str(out)]
+    assert main([*argv, "--max-frames", "2", "--no-progress"]) == 0
+    assert "clipped" in capsys.readouterr().err
+    _, rows = read_csv(out)
+    assert [float(v) for v in rows[0][1:5]] == [0.0, 150.0, 10.0, 50.0]
+    # a value that is an option stays an option: --box with no value is still refused
+    with pytest.raises(SystemExit) as e:
+        main(["track", str(frames), "--box", "--no-progress"])
+    assert e.value.code == 2 and "expected one argument" in capsys.readouterr().err
+
+
 def test_box_sticking_out_is_clipped_with_a_warning(frames, tmp_path, capsys):
     out = tmp_path / "w.csv"
     assert (

@@ -12,6 +12,7 @@ import contextlib
 import ctypes
 import importlib
 import os
+import re
 import signal
 import sys
 
@@ -132,13 +133,35 @@ def _out_of_memory(exc: BaseException) -> str | None:
     return None
 
 
+#: a value of ``--box`` whose first number is negative (a target partly left of or above the
+#: frame): argparse reads ``-10,20,30,40`` as an unknown option, not as the box
+_NEGATIVE_LIST = re.compile(r"^-(\d|\.\d)[\d.eE+\-_ ,;]*$")
+
+
+def _joined_negative_boxes(argv: list[str]) -> list[str]:
+    """``["--box", "-10,20,30,40"]`` -> ``["--box=-10,20,30,40"]``, so that a box that starts
+    off the frame's left or top edge is read as the box (argparse took the value for an option
+    and said "expected one argument"); every other argument as it is."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--box" and i + 1 < len(argv) and _NEGATIVE_LIST.match(argv[i + 1]):
+            out.append(f"--box={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     # OpenCV reads its log level once, at import: warnings it would print before our own
     # clean error message are noise (errors still show). Set first, before anything a
     # command does could import OpenCV.
     os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_joined_negative_boxes(sys.argv[1:] if argv is None else argv))
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return 2
