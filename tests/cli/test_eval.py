@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 
 import pytest
@@ -332,3 +333,27 @@ def test_mot_trackers_with_a_path_in_the_spec_write_one_folder_each(
     assert main(["eval", "--mot", tud, "--trackers", spec, "--max-frames", "3", "-o", "ev"]) == 0
     assert (work / "ev" / "multi_model-.._.._.._x_v.safetensors" / "TUD-Stadtmitte.txt").is_file()
     assert sorted(p.name for p in work.iterdir()) == ["ev"]  # nothing beside ev
+
+
+@pytest.mark.parametrize("existed", [False, True])
+def test_eval_stopped_before_any_result_leaves_no_new_folder(
+    data_dir, tmp_path, capsys, monkeypatch, existed
+):
+    """Ctrl-C during `eval --sequences` (before any result was written) left the empty --out
+    folder the run had made; it is removed now. A folder that existed before stays."""
+    import torchtrack.eval.runner as runner
+
+    out = tmp_path / "run"
+    if existed:
+        out.mkdir()
+
+    def stopped(seqs, trackers, folder, **kw):
+        os.makedirs(folder, exist_ok=True)  # where the runner makes it; then the user stops it
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "evaluate", stopped)
+    seq = str(data_dir / "tracking" / "otb" / "Crossing")
+    argv = ["eval", "--sequences", seq, "--trackers", "camshift", "--out", str(out)]
+    assert main([*argv, "--no-progress"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+    assert out.is_dir() == existed

@@ -285,6 +285,28 @@ def check_output_dir(path: str | None, option: str):
     return p
 
 
+def removed_if_left_empty(path: str | None):
+    """A context for a run that makes the output folder ``path``: when the run fails (an
+    error, Ctrl-C) and the folder, absent before, is still empty, it is removed, so that a
+    failed run leaves nothing behind (a folder that existed, or that holds results, stays)."""
+    import contextlib
+    from pathlib import Path
+
+    @contextlib.contextmanager
+    def scope():
+        p = None if path is None else Path(path)
+        new = p is not None and not p.exists()
+        try:
+            yield
+        except BaseException:
+            if new and p.is_dir() and not any(p.iterdir()):
+                with contextlib.suppress(OSError):
+                    p.rmdir()
+            raise
+
+    return scope()
+
+
 def _cannot_create_in(folder) -> str | None:
     """Why no file can be created in ``folder`` (``None`` when one can): a uniquely named file
     is made there and removed. Permission bits alone do not tell (root passes ``os.access``

@@ -212,6 +212,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_dir,
         check_spares_inputs,
         device_of,
+        removed_if_left_empty,
     )
     from torchtrack.eval.backends import check_backend
 
@@ -241,23 +242,24 @@ def run(args: argparse.Namespace) -> int:
     if args.max_frames:
         seqs = [s.head(args.max_frames) for s in seqs]
     command = _command_line(args)
-    summary = evaluate(
-        seqs,
-        list(args.trackers),
-        args.out,
-        plots=args.plots,
-        jobs=args.jobs,
-        backend=args.backend,
-        address=args.address,
-        max_retries=args.max_retries,
-        reinit=args.reinit,
-        invisible=args.invisible,
-        seed=args.seed,
-        progress=show_progress(args),
-        command=command,
-        modules=args.modules,
-        device=str(device),
-    )
+    with removed_if_left_empty(args.out):  # a run stopped before any result leaves no folder
+        summary = evaluate(
+            seqs,
+            list(args.trackers),
+            args.out,
+            plots=args.plots,
+            jobs=args.jobs,
+            backend=args.backend,
+            address=args.address,
+            max_retries=args.max_retries,
+            reinit=args.reinit,
+            invisible=args.invisible,
+            seed=args.seed,
+            progress=show_progress(args),
+            command=command,
+            modules=args.modules,
+            device=str(device),
+        )
     print(overall_table(summary))
     print(f"results: {args.out}/results.json, {args.out}/results.md")
     n_ok = sum(
@@ -408,10 +410,12 @@ def run_mot(args: argparse.Namespace) -> int:
                 "is one tracker, scored once"
             )
         seen[k] = r
+    from torchtrack.cli._common import removed_if_left_empty
     from torchtrack.eval.mot import evaluate_mot, mot_table
 
     seqs = load_mot_sequences(args.mot, args.gt, args.gt_scale)
-    summary = evaluate_mot(seqs, args.results, args.out, command=_mot_command_line(args))
+    with removed_if_left_empty(args.out):
+        summary = evaluate_mot(seqs, args.results, args.out, command=_mot_command_line(args))
     print(mot_table(summary))
     if args.out:
         print(f"results: {args.out}/results.json, {args.out}/results.md")
