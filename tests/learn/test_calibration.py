@@ -464,3 +464,23 @@ def test_weighted_metrics_equal_repeated_samples(tmp_path):
         calibration_metrics(p, y, sample_weight=np.ones(3))
     out = reliability_diagram(p, y, tmp_path / "w.png", sample_weight=pw)
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_platt_fit_checks_its_inputs():
+    """The public low-level ``platt_fit`` took NaN scores, labels other than 0 / 1 and negative
+    weights and returned numbers without a word; now the calibrators' own errors."""
+    from torchtrack.errors import DataError, ShapeError
+    from torchtrack.learn.calibration import platt_fit
+
+    s = torch.linspace(-2, 2, 20, dtype=torch.float64)
+    y = (s > 0).long()
+    a, b, _ = platt_fit(s, y)
+    assert a < 0 and (a, b) == platt_fit(s, y.bool())[:2]  # bool labels: the same fit
+    with pytest.raises(DataError, match="non-finite"):
+        platt_fit(torch.where(s > 1, float("nan"), s), y)
+    with pytest.raises(DataError, match="labels 0 and 1 only"):
+        platt_fit(s, y * 2)
+    with pytest.raises(DataError, match="non-negative"):
+        platt_fit(s, y, -torch.ones(20))
+    with pytest.raises(ShapeError, match="y01 must have shape"):
+        platt_fit(s, y[:5])

@@ -137,14 +137,21 @@ def platt_fit(
 
     Returns:
         ``(A, B, n_iter)``.
+
+    Raises:
+        DataError: a score not finite, a label other than 0 / 1, a weight negative or not
+            finite (all of which gave a fit of some numbers, without a word).
+        ShapeError: lengths that differ.
     """
-    f = scores.to(torch.float64)
-    w = (
-        torch.ones_like(f)
-        if sample_weight is None
-        else sample_weight.to(device=f.device, dtype=torch.float64)
-    )
-    pos = y01.to(f.device).bool()
+    f = _scores(scores)
+    y = as_float_tensor(y01, "y01", ndim=1, dtype=torch.float64).to(f.device)
+    if y.shape != f.shape:
+        raise errors.ShapeError(f"y01 must have shape {tuple(f.shape)}, got {tuple(y.shape)}")
+    if bool(((y != 0) & (y != 1)).any()):
+        raise errors.DataError("y01 must hold labels 0 and 1 only")
+    sw = _sample_weight(sample_weight, f)
+    w = torch.ones_like(f) if sw is None else sw
+    pos = y.bool()
     prior1 = float(w[pos].sum())
     prior0 = float(w[~pos].sum())
     hi, lo = (prior1 + 1.0) / (prior1 + 2.0), 1.0 / (prior0 + 2.0)
