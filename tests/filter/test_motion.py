@@ -224,6 +224,7 @@ def test_confine_refuses_a_frame_size_that_is_not_two_sizes(model, size):
         (lambda: KleinAR(sigma_wh=True), r"sigma_wh must be a finite number >= 0, got True"),
         (lambda: KleinAR(min_size="1"), r"min_size must be a finite number >= 0, got '1'"),
         (lambda: KleinAR(damping=True), r"damping must be in \[0, 1\], got True"),
+        (lambda: KleinAR(relative="no"), r"relative must be True or False, got 'no'"),
         (lambda: BachooMotion(gain=float("inf")), r"gain must be a finite number >= 0"),
         (lambda: BachooMotion(history=2.5), r"history must be an integer in \[1, 100000\]"),
         (lambda: BachooMotion(history=True), r"history must be an integer in \[1, 100000\]"),

@@ -30,6 +30,7 @@ import math
 import numbers
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from torchtrack.boxes import _check_frame_size, check_boxes
@@ -172,6 +173,8 @@ class KleinAR:
         self.sigma_xy = _positive("sigma_xy", sigma_xy)
         self.sigma_wh = _positive("sigma_wh", sigma_wh)
         self.min_size = _positive("min_size", min_size)
+        if not isinstance(relative, (bool, np.bool_)):  # bool("no") was True
+            raise ConfigError(f"relative must be True or False, got {relative!r}")
         self.relative = bool(relative)
         self.aspect = _positive("aspect", aspect)
         if isinstance(damping, bool) or not 0.0 <= float(damping) <= 1.0:
