@@ -204,8 +204,10 @@ def output_names(sources: Sequence_[str], taken: dict[str, str] | None = None) -
     """A file name (without suffix) for every source, unique ignoring case.
 
     A source's name is its file stem (a frame folder's name); sources whose stems clash take
-    as many parent folder names as it needs to tell them apart (``cam1_0001``, ``cam2_0001``),
-    then the extension (``clip_avi``), then a number. ``taken`` maps sources to the names an
+    as many parent folder names as it needs to tell them apart (``cam1_0001``, ``cam2_0001``);
+    when no folder does, every parent folder and the extension (``/data/x/clip.mp4``,
+    ``/data/x/clip.avi`` -> ``data_x_clip_mp4``, ``data_x_clip_avi``), then a number
+    (``clip-2``). ``taken`` maps sources to the names an
     earlier run gave them (the manifest): those are kept, and no other source gets them.
     """
     from torchtrack.eval.runner import safe_name
