@@ -605,6 +605,8 @@ CASES: list[Case] = [
     E("track-max-frames-text", f"{T} {HB} --max-frames ten", "must be an integer, got 'ten'", 2),
     # int() / float() read '1_0' as 10: 10 frames tracked, detections below 5 dropped
     E("track-max-frames-underscore", f"{T} {HB} --max-frames 1_0", "got '1_0'", 2),
+    # int() reads Arabic-Indic digits as a number: 3 frames tracked from '\u0663'
+    E("track-max-frames-non-ascii", f"{T} {HB} --max-frames \u0663", "must be an integer", 2),
     E(
         "track-det-min-score-underscore",
         "track {c}/frames --detections {c}/det.txt --det-min-score 0_5 --mot {o}/m.txt",

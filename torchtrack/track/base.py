@@ -409,11 +409,11 @@ def _parse_value(v: str) -> Any:
         return low == "true"
     if low == "null":  # not "none": it is a real value of some options (e.g. adapt=none)
         return None
-    if "_" in v or not v.isascii():
-        # Python reads 1_0 as 10 and Arabic-Indic digits as numbers; a setting does not:
-        # the text stays a string (refused where a number is expected)
-        return v
-    for cast in (int, float):
+    from torchtrack.io.text import text_float, text_int
+
+    # Python reads 1_0 as 10 and Arabic-Indic digits as numbers; a setting does not: the
+    # text stays a string (refused where a number is expected)
+    for cast in (text_int, text_float):
         try:
             return cast(v)
         except ValueError:
