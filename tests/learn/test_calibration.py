@@ -478,7 +478,7 @@ def test_platt_fit_checks_its_inputs():
     assert a < 0 and (a, b) == platt_fit(s, y.bool())[:2]  # bool labels: the same fit
     with pytest.raises(DataError, match="non-finite"):
         platt_fit(torch.where(s > 1, float("nan"), s), y)
-    with pytest.raises(DataError, match="labels 0 and 1 only"):
+    with pytest.raises(DataError, match="y01 must contain only 0 and 1"):
         platt_fit(s, y * 2)
     with pytest.raises(DataError, match="non-negative"):
         platt_fit(s, y, -torch.ones(20))

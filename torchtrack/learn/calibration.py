@@ -144,11 +144,7 @@ def platt_fit(
         ShapeError: lengths that differ.
     """
     f = _scores(scores)
-    y = as_float_tensor(y01, "y01", ndim=1, dtype=torch.float64).to(f.device)
-    if y.shape != f.shape:
-        raise errors.ShapeError(f"y01 must have shape {tuple(f.shape)}, got {tuple(y.shape)}")
-    if bool(((y != 0) & (y != 1)).any()):
-        raise errors.DataError("y01 must hold labels 0 and 1 only")
+    y = _labels01(y01, "y01", f)
     sw = _sample_weight(sample_weight, f)
     w = torch.ones_like(f) if sw is None else sw
     pos = y.bool()
@@ -456,9 +452,7 @@ def prior_weights(y: Any, prior: float) -> torch.Tensor:
         DataError: ``y`` holds one class only (no share to move), or labels other than 0 / 1.
     """
     check_prior(prior, "prior")
-    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64)
-    if bool(((yt != 0) & (yt != 1)).any()):
-        raise errors.DataError("y must contain only 0 and 1")
+    yt = _labels01(y, "y")
     pi = float(yt.mean()) if yt.numel() else 0.0
     if not 0.0 < pi < 1.0:
         raise errors.DataError("prior weights need labels of both classes")
@@ -521,18 +515,28 @@ def with_prior(
     )
 
 
+def _labels01(y: Any, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
+    """``(n,)`` float64 labels in ``{0, 1}`` on ``like``'s device and of its shape, checked
+    (ShapeError / DataError naming ``name``)."""
+    yt = as_float_tensor(y, name, ndim=1, dtype=torch.float64)
+    if like is not None:
+        yt = yt.to(like.device)
+        if yt.shape != like.shape:
+            raise errors.ShapeError(
+                f"{name} must have shape {tuple(like.shape)}, got {tuple(yt.shape)}"
+            )
+    if bool(((yt != 0) & (yt != 1)).any()):
+        raise errors.DataError(f"{name} must contain only 0 and 1")
+    return yt
+
+
 def _probabilities_and_labels(p: Any, y: Any) -> tuple[torch.Tensor, torch.Tensor]:
     """``(n,)`` float64 probabilities in ``[0, 1]`` and labels in ``{0, 1}``, checked."""
     pt = as_float_tensor(p, "p", ndim=1, dtype=torch.float64)
     if bool(((pt < 0) | (pt > 1)).any()):
         first = int(((pt < 0) | (pt > 1)).nonzero()[0, 0])
         raise errors.DataError(f"p must lie in [0, 1]; p[{first}] = {pt[first].item()}")
-    yt = as_float_tensor(y, "y", ndim=1, dtype=torch.float64).to(pt.device)
-    if yt.shape != pt.shape:
-        raise errors.ShapeError(f"y must have shape {tuple(pt.shape)}, got {tuple(yt.shape)}")
-    if bool(((yt != 0) & (yt != 1)).any()):
-        raise errors.DataError("y must contain only 0 and 1")
-    return pt, yt
+    return pt, _labels01(y, "y", pt)
 
 
 def _check_bins(n_bins: Any) -> None:
