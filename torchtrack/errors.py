@@ -3,6 +3,8 @@ what was expected, what came, and which file or argument it concerns."""
 
 from __future__ import annotations
 
+import numbers
+
 
 class TorchTrackError(Exception):
     """Base class of every error raised on purpose by torchtrack."""
@@ -64,3 +66,15 @@ class TrainingWarning(UserWarning):
 class BackendError(TorchTrackError, RuntimeError):
     """A distributed backend cannot be used: Ray is not installed, its cluster cannot be reached,
     or it refused the connection."""
+
+
+def is_integer(x: object) -> bool:
+    """An integer setting: Python's or numpy's, not a bool (int() took 2.5 as 2 and True as
+    1). The test every bad-input check of a whole-number setting starts from."""
+    return not isinstance(x, bool) and isinstance(x, numbers.Integral)
+
+
+def is_number(x: object) -> bool:
+    """A real-number setting: Python's or numpy's, not a bool nor a string (NaN and inf
+    included: check finiteness where it matters)."""
+    return not isinstance(x, bool) and isinstance(x, numbers.Real)

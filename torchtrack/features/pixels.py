@@ -26,13 +26,12 @@ to avoid that, as :func:`region_features` does).
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from torchtrack.errors import ConfigError, DataError, ShapeError
+from torchtrack.errors import ConfigError, DataError, ShapeError, is_integer, is_number
 from torchtrack.features.integral import check_pixel_values, rgb_to_gray
 
 __all__ = [
@@ -96,18 +95,14 @@ def _check(images: torch.Tensor) -> None:
 
 def _check_threshold(threshold) -> None:
     # True was a threshold of 1, '5' a TypeError; NaN and negatives were refused already
-    if not _is_real(threshold) or not 0 <= threshold < math.inf:
+    if not is_number(threshold) or not 0 <= threshold < math.inf:
         raise ConfigError(f"LTP threshold must be >= 0 (a finite number), got {threshold!r}")
 
 
 def _check_bins(bins) -> None:
     # int() read 2.5 as 2 bins and True as 1
-    if isinstance(bins, bool) or not isinstance(bins, numbers.Integral) or not 1 <= bins <= 256:
+    if not is_integer(bins) or not 1 <= bins <= 256:
         raise ConfigError(f"colour bins must be in 1..256 (an integer), got {bins!r}")
-
-
-def _is_real(v) -> bool:
-    return not isinstance(v, bool) and isinstance(v, numbers.Real)
 
 
 def _shift(p: torch.Tensor, dy: int, dx: int, h: int, w: int) -> torch.Tensor:

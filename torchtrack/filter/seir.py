@@ -24,11 +24,10 @@ models) can still be carried along.
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 
-from torchtrack.errors import ConfigError
+from torchtrack.errors import ConfigError, is_integer, is_number
 from torchtrack.filter._random import GeneratorLike, rand, randn, subset
 from torchtrack.filter.particles import check_particles, ess_normalized, normalize_log_weights
 from torchtrack.filter.resample import _cdf, _invert, get_resampler, resample
@@ -97,9 +96,9 @@ def seir_step(
     """
     check_particles(states, log_weights)
     # True was a target of 1 and a max_iter of 1 round, 2.5 ran 2 rounds: Python scalars only
-    if not _is_real(ess_target) or not (0.0 < ess_target <= 1.0):
+    if not is_number(ess_target) or not (0.0 < ess_target <= 1.0):
         raise ConfigError(f"ess_target must be in (0, 1] (a number), got {ess_target!r}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 0:
+    if not is_integer(max_iter) or max_iter < 0:
         raise ConfigError(f"max_iter must be >= 0 (an integer), got {max_iter!r}")
     select = get_resampler(scheme)
     est_fn = get_estimator(estimator)
@@ -176,10 +175,6 @@ def seir_step(
     )
 
 
-def _is_real(v) -> bool:
-    return not isinstance(v, bool) and isinstance(v, numbers.Real)
-
-
 def _check_mutation_std(mutation_std) -> None:
     """ConfigError unless ``mutation_std`` is a finite number >= 0 or a real tensor of them (a
     NaN one was reported as 'likelihood returned NaN', a string was torch's TypeError, True a
@@ -191,5 +186,5 @@ def _check_mutation_std(mutation_std) -> None:
         ok = (mutation_std >= 0) & torch.isfinite(mutation_std)
         if mutation_std.device.type == "cpu" and not bool(ok.all()):
             raise ConfigError(bad + str(mutation_std.tolist()))
-    elif not _is_real(mutation_std) or not 0 <= mutation_std < math.inf:
+    elif not is_number(mutation_std) or not 0 <= mutation_std < math.inf:
         raise ConfigError(bad + repr(mutation_std))

@@ -8,7 +8,6 @@ functions, so bad input fails the same way everywhere: a :class:`~torchtrack.err
 from __future__ import annotations
 
 import math
-import numbers
 import sys
 from collections.abc import Mapping
 from typing import Any
@@ -18,6 +17,7 @@ import torch
 from sklearn.exceptions import NotFittedError as _SklearnNotFittedError
 
 from torchtrack import errors
+from torchtrack.errors import is_integer, is_number
 
 __all__ = [
     "NotFittedError",
@@ -37,17 +37,6 @@ class NotFittedError(errors.NotFittedError, _SklearnNotFittedError):
     Subclass of both :class:`torchtrack.errors.NotFittedError` and scikit-learn's
     ``sklearn.exceptions.NotFittedError``, so ``except`` clauses written for either catch it.
     """
-
-
-def is_integer(x: object) -> bool:
-    """An integer parameter: Python's or numpy's, not a bool (int() took 2.5 as 2 and True
-    as 1)."""
-    return not isinstance(x, bool) and isinstance(x, numbers.Integral)
-
-
-def is_number(x: object) -> bool:
-    """A real-number parameter: Python's or numpy's, not a bool nor a string."""
-    return not isinstance(x, bool) and isinstance(x, numbers.Real)
 
 
 def check_fitted(estimator: Any, attribute: str) -> None:

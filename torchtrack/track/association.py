@@ -19,13 +19,12 @@ like norfair's distance functions.
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 import torch
 
 from torchtrack.boxes import _check_last4, box_iou_matrix
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_number
 
 __all__ = ["Assignment", "association_cost", "expected_iou", "linear_assignment"]
 
@@ -93,7 +92,7 @@ def association_cost(
     """
     for name, v in (("w_overlap", w_overlap), ("w_appearance", w_appearance), ("gate", gate)):
         # a negative weight or NaN gave costs outside [0, 1] or NaN
-        if not _is_real(v) or (name != "gate" and float(v) < 0):
+        if not (is_number(v) and math.isfinite(v)) or (name != "gate" and float(v) < 0):
             least = "finite number" if name == "gate" else "finite number >= 0"
             raise ConfigError(f"association_cost: {name} must be a {least}, got {v!r}")
     overlap = overlap.double()
@@ -154,7 +153,7 @@ def linear_assignment(cost: torch.Tensor, max_cost: float = 1.0) -> Assignment:
 
     if cost.ndim != 2:
         raise ShapeError(f"cost must be (T, M), got {tuple(cost.shape)}")
-    if not _is_real(max_cost) and max_cost != math.inf:  # NaN made every pair forbidden
+    if not (is_number(max_cost) and (math.isfinite(max_cost) or max_cost == math.inf)):
         raise ConfigError(f"linear_assignment: max_cost must be a number, got {max_cost!r}")
     t, m = cost.shape
     if t == 0 or m == 0:
@@ -165,8 +164,3 @@ def linear_assignment(cost: torch.Tensor, max_cost: float = 1.0) -> Assignment:
     rows, cols = linear_sum_assignment(np.where(allowed, c, big))
     keep = allowed[rows, cols]
     return Assignment(np.stack([rows[keep], cols[keep]], 1), t, m)
-
-
-def _is_real(v) -> bool:
-    """A finite real number, not a bool."""
-    return not isinstance(v, bool) and isinstance(v, numbers.Real) and math.isfinite(v)

@@ -47,18 +47,13 @@ tracks").
 
 from __future__ import annotations
 
-import numbers
 from collections import deque
 
 import torch
 
-from torchtrack.errors import BoxError, ConfigError, TrackerError
+from torchtrack.errors import BoxError, ConfigError, TrackerError, is_integer, is_number
 
 __all__ = ["TrackSmoother", "gaussian_weights"]
-
-
-def _is_real(v) -> bool:
-    return not isinstance(v, bool) and isinstance(v, numbers.Real)
 
 
 def _check_sigma(sigma) -> None:
@@ -66,7 +61,7 @@ def _check_sigma(sigma) -> None:
     was a sd of 1, a string or None a TypeError, 1e9 sized a 64 GB kernel)."""
     from torchtrack.track.config import MAX_SMOOTH_SIGMA
 
-    if not (_is_real(sigma) and 0 <= sigma <= MAX_SMOOTH_SIGMA):  # NaN fails too
+    if not (is_number(sigma) and 0 <= sigma <= MAX_SMOOTH_SIGMA):  # NaN fails too
         raise ConfigError(
             f"track smoothing sigma must be a finite number in [0, {MAX_SMOOTH_SIGMA}] frames, "
             f"got {sigma!r}"
@@ -128,11 +123,11 @@ class TrackSmoother:
         _check_sigma(sigma)
         for name, v in (("fill_gaps", fill_gaps), ("backfill", backfill)):
             # None was int()'s TypeError, inf its OverflowError, NaN its ValueError
-            if not (_is_real(v) and 0 <= v <= MAX_FILL_GAPS and int(v) == v):
+            if not (is_number(v) and 0 <= v <= MAX_FILL_GAPS and int(v) == v):
                 raise ConfigError(
                     f"{name} must be a whole number in [0, {MAX_FILL_GAPS}], got {v!r}"
                 )
-        if not (_is_real(backfill_iou) and 0.0 < backfill_iou <= 1.0):  # True was 1.0
+        if not (is_number(backfill_iou) and 0.0 < backfill_iou <= 1.0):  # True was 1.0
             raise ConfigError(f"backfill_iou must be a number in (0, 1], got {backfill_iou!r}")
         self.sigma, self.fill_gaps = float(sigma), int(fill_gaps)
         self.backfill, self.backfill_iou = int(backfill), float(backfill_iou)
@@ -177,7 +172,7 @@ class TrackSmoother:
         (M,))`` in the reported boxes' pixels and convention
         (:attr:`MultiTargetTracker.last_detections`), read by ``backfill``. Returns the frames
         now final."""
-        if isinstance(i, bool) or not isinstance(i, numbers.Integral):  # True was frame 1
+        if not is_integer(i):  # True was frame 1
             raise TrackerError(f"TrackSmoother.push: the frame index must be an integer, got {i!r}")
         if i <= self._last:
             raise TrackerError(f"frames must be pushed in increasing order: {i} after {self._last}")
