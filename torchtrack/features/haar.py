@@ -45,7 +45,6 @@ Intensities are expected on the 0..255 scale (uint8 or float); RGB is converted 
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -54,7 +53,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from torchtrack.boxes import check_boxes
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_integer
 from torchtrack.features.integral import check_pixel_values, integral_image, rgb_to_gray
 
 __all__ = [
@@ -338,7 +337,7 @@ def haar_features_dense(
             gave NaN features, silently).
     """
     gray = _check_window_images(crops, bank)
-    if isinstance(chunk, bool) or not isinstance(chunk, numbers.Integral) or chunk < 1:
+    if not is_integer(chunk) or chunk < 1:
         raise ConfigError(f"chunk must be an integer >= 1 (crops per step), got {chunk!r}")
     chunk = int(chunk)
     check_pixel_values(crops, "crops")

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from torchtrack.boxes import _check_frame_size, check_boxes
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_integer
 from torchtrack.filter._random import GeneratorLike, randn
 
 __all__ = ["BachooMotion", "ChateauAR", "KleinAR", "VelocityHistory"]
@@ -135,7 +135,7 @@ MAX_HISTORY = 100_000
 def _check_count(n) -> int:
     """The particles per box of ``init``: an integer >= 1 (-1 was torch's RuntimeError, True
     one particle, 2.5 a TypeError inside torch)."""
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+    if not is_integer(n) or n < 1:
         raise ConfigError(f"n must be an integer >= 1 (particles per box), got {n!r}")
     return int(n)
 

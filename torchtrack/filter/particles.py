@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchtrack.errors import ConfigError, FilterError, ShapeError
+from torchtrack.errors import ConfigError, FilterError, ShapeError, is_integer
 
 __all__ = [
     "ParticleSet",
@@ -333,7 +333,7 @@ def dominant_mode_mean(
     b, n, d = states.shape
     # n_starts=0 was argmax's IndexError on an empty dimension, a negative iters ran none
     for name, value, least in (("n_starts", n_starts, 1), ("iters", iters, 0)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+        if not is_integer(value) or value < least:
             raise ConfigError(
                 f"dominant_mode_mean: {name} must be an integer >= {least}, got {value!r}"
             )

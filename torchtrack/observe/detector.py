@@ -21,12 +21,11 @@ particles of a target leaving the view) get probability 0 instead of an error.
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 
 from torchtrack.boxes import _check_frame_size
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_number
 
 __all__ = ["DetectorObservation", "scorable_boxes"]
 
@@ -79,7 +78,7 @@ class DetectorObservation:
             )
         # floor=True clamped every probability to 1 (a flat likelihood: the detector ignored),
         # a negative or NaN one was no floor at all
-        if isinstance(floor, bool) or not isinstance(floor, numbers.Real) or not 0 <= floor < 1:
+        if not is_number(floor) or not 0 <= floor < 1:
             raise ConfigError(
                 f"DetectorObservation: floor must be a number in [0, 1) (the smallest "
                 f"likelihood), got {floor!r}"

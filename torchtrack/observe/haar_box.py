@@ -26,7 +26,6 @@ corner in float32 from the same operands; they agree to float rounding.
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_number
 
 __all__ = ["HaarBoxFeatures", "HaarBoxLikelihood"]
 
@@ -211,7 +210,7 @@ class HaarBoxLikelihood:
         # 'likelihood returned NaN' on the first frame, naming neither
         if not bool(torch.isfinite(alpha).all()):
             raise ConfigError(f"alpha must be finite, got {alpha.tolist()}")
-        if isinstance(bias, bool) or not isinstance(bias, numbers.Real) or not math.isfinite(bias):
+        if not is_number(bias) or not math.isfinite(bias):
             raise ConfigError(f"bias must be a finite number, got {bias!r}")
         if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
             raise ConfigError(f"chunk must be a positive integer, got {chunk!r}")

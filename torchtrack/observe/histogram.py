@@ -19,14 +19,12 @@ slow, exact reference the tests use).
 
 from __future__ import annotations
 
-import numbers
-
 import cv2
 import numpy as np
 import torch
 
 from torchtrack.boxes import _check_box_values
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_integer, is_number
 
 __all__ = [
     "FrameBins",
@@ -53,10 +51,10 @@ class HSVBins:
         for name, v in (("n_h", n_h), ("n_s", n_s), ("n_v", n_v)):
             # '10' and 2.5 went through int(), True was 1 bin, 10**6 sized the histograms
             # by 10**12 bins; the bound is the histogram tracker config's (8-bit levels)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not 1 <= v <= 256:
+            if not is_integer(v) or not 1 <= v <= 256:
                 raise ConfigError(f"{name} must be an integer in [1, 256], got {v!r}")
         for name, v in (("s_min", s_min), ("v_min", v_min)):
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not 0.0 <= v < 1.0:
+            if not is_number(v) or not 0.0 <= v < 1.0:
                 raise ConfigError(f"{name} must be a number in [0, 1), got {v!r}")
         self.n_h, self.n_s, self.n_v = int(n_h), int(n_s), int(n_v)
         self.s_min, self.v_min = float(s_min), float(v_min)
@@ -179,7 +177,7 @@ def box_histograms(bin_map: torch.Tensor, boxes: torch.Tensor, n_bins: int, grid
     if boxes.shape[0] != bin_map.shape[0]:
         raise ShapeError(f"boxes are for {boxes.shape[0]} frames, bin_map has {bin_map.shape[0]}")
     for name, v in (("grid", grid), ("n_bins", n_bins)):  # 2.5 was reshape's TypeError
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+        if not is_integer(v) or v < 1:
             raise ConfigError(f"box_histograms: {name} must be an integer >= 1, got {v!r}")
     if isinstance(bin_map, FrameBins) and n_bins < bin_map.bins.n_bins:
         # a bin past n_bins was counted in the next box's histogram (or an IndexError)

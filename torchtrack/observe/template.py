@@ -33,12 +33,11 @@ the paper's footage is 8-bit grey.
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 import torch.nn.functional as F
 
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_number
 from torchtrack.features.integral import check_pixel_values
 
 __all__ = [
@@ -100,7 +99,7 @@ def gaussian_blur(image: torch.Tensor, sigma_x: float, sigma_y: float) -> torch.
     if image.ndim != 2:
         raise ShapeError(f"image must be (H, W), got {tuple(image.shape)}")
     for name, v in (("sigma_x", sigma_x), ("sigma_y", sigma_y)):
-        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+        if not is_number(v) or not math.isfinite(v):
             raise ConfigError(f"gaussian_blur: {name} must be a finite number, got {v!r}")
     out = image.to(torch.float32)[None, None]
     if sigma_x >= 0.1:
