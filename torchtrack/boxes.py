@@ -288,8 +288,7 @@ def _check_box_values(boxes: torch.Tensor) -> None:
     outside the frame and empty ones allowed): ShapeError / BoxError naming ``boxes[b, n]``.
     One reduction and, for a bad box, one read: cheap enough for a tracker's hot path (a NaN
     box had read features of 0, a negative size sums of the frame taken backwards)."""
-    if boxes.dtype == torch.bool or boxes.is_complex():  # bools were 0 / 1 pixel boxes
-        raise ShapeError(f"boxes must hold real numbers, got {boxes.dtype}")
+    _check_last4(boxes)  # bools were 0 / 1 pixel boxes
     bad = ~(torch.isfinite(boxes).all(-1) & (boxes[..., 2:] >= 0).all(-1))
     if boxes.numel() and bool(bad.any()):
         i = int(bad.reshape(-1).nonzero()[0, 0])
