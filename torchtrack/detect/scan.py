@@ -26,7 +26,6 @@ uses both (0.1 and 0.5).
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -34,7 +33,7 @@ from typing import Any
 import torch
 
 from torchtrack.boxes import _check_frame_size, xywh_to_xyxy
-from torchtrack.errors import ConfigError, ShapeError
+from torchtrack.errors import ConfigError, ShapeError, is_number
 
 __all__ = [
     "box_vote",
@@ -300,11 +299,6 @@ def scan_scales(
         return []
     n = math.floor(math.log(top / min_scale) / math.log(scale_step) + 1e-9) + 1
     return [min_scale * scale_step**i for i in range(n)]
-
-
-def _is_number(x: object) -> bool:
-    """A real number other than a bool (a numpy scalar too)."""
-    return not isinstance(x, bool) and isinstance(x, numbers.Real)
 
 
 def _check_pad(pad: float) -> None:
@@ -757,14 +751,14 @@ def scan_batch(
     # NaN kept no window (threshold) or suppressed none (nms_iou), silently; a string or a
     # bool was a TypeError from a comparison (or read as 0 / 1)
     if threshold is not None and not (
-        _is_number(threshold) and (threshold == threshold if margin else 0.0 <= threshold <= 1.0)
+        is_number(threshold) and (threshold == threshold if margin else 0.0 <= threshold <= 1.0)
     ):
         raise ConfigError(
             "threshold must be None or "
             + ("a margin (a number, not NaN)" if margin else "a probability in [0, 1]")
             + f", got {threshold!r}"
         )
-    if nms_iou is not None and not (_is_number(nms_iou) and 0.0 <= nms_iou <= 1.0):
+    if nms_iou is not None and not (is_number(nms_iou) and 0.0 <= nms_iou <= 1.0):
         raise ConfigError(f"nms_iou must be None or in [0, 1], got {nms_iou!r}")
     _check_pad(pad)
     if cascade_threshold is not None and not math.isfinite(cascade_threshold):

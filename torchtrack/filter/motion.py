@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from torchtrack.boxes import _check_frame_size, check_boxes
-from torchtrack.errors import ConfigError, ShapeError, is_integer
+from torchtrack.errors import ConfigError, ShapeError, is_integer, is_number
 from torchtrack.filter._random import GeneratorLike, randn
 
 __all__ = ["BachooMotion", "ChateauAR", "KleinAR", "VelocityHistory"]
@@ -64,10 +64,7 @@ def check_window(window, where: str) -> tuple[float, float]:
         isinstance(window, (str, bytes))
         or not hasattr(window, "__len__")
         or len(window) != 2
-        or not all(
-            not isinstance(v, bool) and isinstance(v, numbers.Real) and 0 < float(v) < math.inf
-            for v in window
-        )
+        or not all(is_number(v) and 0 < float(v) < math.inf for v in window)
     ):
         raise ConfigError(
             f"{where}: window must be (w, h) > 0 and finite, two numbers, got {window!r}"
