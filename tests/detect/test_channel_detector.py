@@ -506,3 +506,45 @@ def test_tracker_crops_come_in_few_shapes_and_hold_their_boxes():
             assert (b - a) % CROP_QUANTUM == 0
         lengths.add(b - a)
     assert len(lengths) <= 40  # against ~480 for unrounded crops
+
+
+def test_blur_copies_blur_both_classes_and_stay_in_their_groups(folders):
+    """``data.blur_copies``: a seeded share of the positive crops and of the negative images
+    get a copy blurred as OpenCV's Gaussian blurs (sd in pixels), tagged ``#blur`` so that the
+    calibration split keeps each copy with its source; bad values are ConfigErrors."""
+    import cv2
+
+    from torchtrack.detect.train_channels import _group_key, load_channel_data
+
+    cfg = small_config(folders)
+    cfg.data.positive_jitter = 0
+    plain = load_channel_data(cfg)
+    cfg.data.blur_copies, cfg.data.blur_share = 1.0, 0.5
+    data = load_channel_data(cfg.validate())
+    n0, n1 = len(plain.positives[0]), len(data.positives[0])
+    assert n1 == n0 + n0 // 2  # half of the crops (gray copies among them), mirrors follow
+    assert len(data.images) == len(plain.images) + len(plain.images) // 2
+    blur_src = [s for s in data.positives[0].sources if "#blur" in s]
+    assert len(blur_src) == n0 // 2
+    assert {_group_key(s) for s in blur_src} <= {_group_key(s) for s in plain.positives[0].sources}
+    # the first blurred image is a blurred copy of the image it names, as cv2 blurs it
+    i = data.image_sources.index(next(s for s in data.image_sources if s.endswith("#blur")))
+    src = plain.image_sources.index(data.image_sources[i].removesuffix("#blur"))
+    ref = cv2.GaussianBlur(
+        plain.images[src].permute(1, 2, 0).numpy(), (7, 7), 1.0, borderType=cv2.BORDER_REFLECT_101
+    )
+    got = data.images[i].permute(1, 2, 0).numpy()
+    assert np.abs(got.astype(int) - ref.astype(int)).max() <= 1
+    assert not np.array_equal(got, plain.images[src].permute(1, 2, 0).numpy())
+    # the same seed picks the same ones
+    again = load_channel_data(cfg)
+    assert again.image_sources == data.image_sources
+    for key, bad in (("blur_copies", -1.0), ("blur_copies", float("nan")), ("blur_share", 0.0)):
+        c = small_config(folders)
+        setattr(c.data, key, bad)
+        with pytest.raises(ConfigError, match=key):
+            c.validate()
+    c = small_config(folders)
+    c.features.kind, c.data.blur_copies = "haar", 1.0
+    with pytest.raises(ConfigError, match="blur_copies applies to channel models"):
+        c.validate()

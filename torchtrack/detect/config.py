@@ -64,6 +64,13 @@ class DataConfig:
         gray_copies: colour channel models: also train on gray copies (R = G = B) of the
             positives and the negative images, so that the model also works on grayscale
             footage (where U = V = 0).
+        blur_copies: channel models: also train on copies of the positives and the negative
+            images blurred by a Gaussian of this sd in pixels (0: none): a soft lens, focus,
+            compression, or a video upscaled from a smaller one, where a model that has seen
+            only sharp backgrounds finds people in their blurred texture. Both sides get the
+            copies, so that blur alone says nothing about the class.
+        blur_share: the share of the positive crops and of the negative images (a seeded
+            random pick) that get a blurred copy, in (0, 1].
         mirror_positives, mirror_negatives: add left-right mirror images (channel features:
             ``mirror_negatives`` also mirrors the negative images, for random windows and
             mining).
@@ -83,6 +90,8 @@ class DataConfig:
     positive_scales: list[float] = field(default_factory=lambda: [1.0])
     positive_jitter: int = 0
     gray_copies: bool = False
+    blur_copies: float = 0.0
+    blur_share: float = 1.0
     mirror_positives: bool = True
     mirror_negatives: bool = False
     random_negatives: int = 0
@@ -346,9 +355,21 @@ class TrainConfig:
             raise ConfigError(
                 f"data.positive_jitter must be an integer in [0, 64] pixels, got {d.positive_jitter!r}"
             )
+        if not (_isnum(d.blur_copies) and 0 <= d.blur_copies <= 10):
+            raise ConfigError(
+                f"data.blur_copies must be a number in [0, 10] pixels (0: none), got "
+                f"{d.blur_copies!r}"
+            )
+        if not (_isnum(d.blur_share) and 0 < d.blur_share <= 1):
+            raise ConfigError(f"data.blur_share must be a number in (0, 1], got {d.blur_share!r}")
         f = self.features
         if f.kind not in ("haar", "channels"):
             raise ConfigError(f"features.kind must be 'haar' or 'channels', got {f.kind!r}")
+        if f.kind == "haar" and d.blur_copies:
+            raise ConfigError(
+                "data.blur_copies applies to channel models (features.kind = 'channels'); the "
+                "Haar recipe trains on the crops as they are"
+            )
         if f.sizes is not None and not f.sizes:  # was taken as "not given": n_scales sizes
             raise ConfigError(
                 "features.sizes = [] names no filter size; give sizes or leave the key out (the "

@@ -164,6 +164,29 @@ def _gray(images: torch.Tensor) -> torch.Tensor:
     return g.expand(-1, 3, -1, -1).contiguous()
 
 
+def _blurred(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``(N, C, H, W)`` uint8 blurred by a Gaussian of sd ``sigma`` pixels (kornia, reflected
+    borders), rounded back to uint8."""
+    import kornia
+
+    k = 2 * max(1, math.ceil(3.0 * sigma)) + 1
+    out = torch.empty_like(images)
+    for i in range(0, images.shape[0], 256):  # bounded float copies
+        x = images[i : i + 256].float()
+        y = kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="reflect")
+        out[i : i + 256] = y.round().clamp(0, 255).to(torch.uint8)
+    return out
+
+
+def _blur_pick(n: int, share: float, seed: int) -> list[int]:
+    """Which of ``n`` items get a blurred copy: ``round(share * n)`` of them, a seeded pick in
+    their order."""
+    if share >= 1.0:
+        return list(range(n))
+    g = torch.Generator().manual_seed(seed)
+    return sorted(torch.randperm(n, generator=g)[: round(share * n)].tolist())
+
+
 def _folder_pattern(entry: str) -> tuple[str, str | None]:
     p = Path(entry)
     if any(c in p.name for c in "*?["):
@@ -239,6 +262,12 @@ def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelDat
         base = _concat(
             [base, _Crops(_gray(base.images), base.region, [s + "#gray" for s in base.sources])]
         )
+    if d.blur_copies > 0:  # blurred copies: a model that holds on soft or upscaled video
+        pick = _blur_pick(len(base), float(d.blur_share), int(cfg.seed) + 11)
+        blurred = _blurred(base.images[pick], float(d.blur_copies))
+        base = _concat(
+            [base, _Crops(blurred, base.region, [base.sources[i] + "#blur" for i in pick])]
+        )
     if d.mirror_positives:
         base = _concat([base, _mirrored(base)])
     positives = [_scaled(base, float(q)) for q in d.positive_scales]
@@ -268,6 +297,10 @@ def load_channel_data(cfg: TrainConfig, *, progress: bool = False) -> ChannelDat
         if d.gray_copies and colour:  # gray copies: a colour model that also works on gray
             images += [_gray(im[None])[0] for im in images]
             sources = sources + [s + "#gray" for s in sources]
+        if d.blur_copies > 0:  # the backgrounds blurred too: blur alone is no person
+            pick = _blur_pick(len(images), float(d.blur_share), int(cfg.seed) + 13)
+            images += [_blurred(images[i][None], float(d.blur_copies))[0] for i in pick]
+            sources = sources + [sources[i] + "#blur" for i in pick]
         if d.mirror_negatives:  # mirrored images: twice the backgrounds to sample and mine
             images += [im.flip(-1) for im in images]
             sources = sources + [s + "#flip" for s in sources]
