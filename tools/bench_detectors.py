@@ -21,6 +21,16 @@ Rows (per class):
   hard-negative mining on those images (windows scanned on scaled images at 8-pixel steps,
   decision >= -1, at most 5,000 per round).
 
+* **ours, model file** (``--models A.safetensors ...``): any other model of the class (a
+  candidate recipe trained elsewhere), scored on the same windows.
+
+``--blur S`` blurs every test image (the positives' photographs and the negative images) by a
+Gaussian of sd S pixels before any method scores it: the same windows on soft video (a lens out
+of focus, compression, footage upscaled from a smaller size). The peer is trained as usual; only
+the test images change.
+
+    python tools/bench_detectors.py --classes pedestrian --models runs/ped_blur.safetensors --blur 1 --out runs/blur1.md
+
 Each row: detection rate at 1% FPR with its 90% bootstrap interval (1,000 resamples of
 positive source photographs and negative images), AUC, and for calibrated models the expected
 calibration error (15 bins) of the calibrated probabilities on the test windows. Writes
@@ -91,6 +101,21 @@ def detector_scores(det, ts):
     m = test_sets.score_test_set(lambda img, bx: det.decision_function(img, bx), ts)
     p = test_sets.score_test_set(lambda img, bx: det.score(img, bx), ts) if det.calibrator else None
     return m, p
+
+
+def blurred(ts, sigma: float):
+    """The test set with every image blurred by a Gaussian of sd ``sigma`` pixels (OpenCV)."""
+    import dataclasses
+
+    if not 0 < sigma <= 20:
+        raise SystemExit(f"--blur must be in (0, 20] pixels, got {sigma}")
+    images = []
+    for im in ts.images:
+        a = cv2.GaussianBlur(np.ascontiguousarray(im.permute(1, 2, 0).numpy()), (0, 0), sigma)
+        t = torch.from_numpy(a.reshape(im.shape[1], im.shape[2], -1))
+        images.append(t.permute(2, 0, 1).contiguous())
+    what = f"{ts.what}; every image blurred by a Gaussian of sd {sigma:g} px (`--blur`)"
+    return dataclasses.replace(ts, images=images, what=what)
 
 
 # --------------------------------------------------------------------------------- the peer
@@ -305,6 +330,10 @@ def main() -> None:
     ap.add_argument("--hog-rounds", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--reps", type=int, default=1000, help="bootstrap resamples")
+    ap.add_argument("--models", nargs="+", type=Path, default=[], help="more model files to score")
+    ap.add_argument(
+        "--blur", type=float, default=0.0, metavar="S", help="blur the test images by sd S px"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -328,6 +357,8 @@ def main() -> None:
     ]
     for name in args.classes:
         ts = test_sets.test_set(name, args.data)
+        if args.blur > 0:
+            ts = blurred(ts, args.blur)
         n_pos, n_neg = ts.counts()
         log(f"[{name}] test set: {n_pos} positive, {n_neg} negative windows")
         lines += [
@@ -369,6 +400,9 @@ def main() -> None:
                     f"{info['train_s']:.0f} s wall, peak {info['peak_gib']:.2f} GiB",
                 )
             )
+        for path in args.models:
+            m, p = detector_scores(load_detector(path), ts)
+            lines.append(row(f"ours, model file `{path}`", m, p, args.reps))
         if args.chateau:
             out = args.cache / f"{name}_chateau.safetensors"
             ov = [
