@@ -416,7 +416,12 @@ def own_detections(seq: MotSequence, cache: Path, params: dict | None = None) ->
     # not its signature): a retrained or edited model of the same name never reads the scans
     # of the one before
     digest = read_model_metadata(resolve_model(cfg.model))["sha256"][:12]
-    key = "_".join([seq.name, *(str(getattr(cfg, k)) for k in SCAN_KEYS), digest])
+    # a model file by its name alone (its digest tells files of one name apart): a path's
+    # folders would make folders in the cache
+    named = {
+        k: Path(str(getattr(cfg, k))).stem if k == "model" else getattr(cfg, k) for k in SCAN_KEYS
+    }
+    key = "_".join([seq.name, *(str(named[k]) for k in SCAN_KEYS), digest])
     path = cache / f"own_{key}.txt"
     if path.is_file():
         return read_mot(path, 1.0, seq.n_frames, kind="det")

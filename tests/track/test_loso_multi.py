@@ -178,3 +178,26 @@ def test_live_runs_score_what_the_command_writes(data_dir, tmp_path, one_thread,
         100 * m.mota
     )
     assert live["hota"] > 20  # people were found and followed
+
+
+def test_scans_of_a_model_file_are_cached_by_its_name_beside_the_others(
+    data_dir, tmp_path, one_thread
+):
+    """A model given as a path (``--grid model=PATH``) caches its scans as one file directly
+    under ``--cache``, named by the file's stem and its content's digest (a path's folders
+    made folders in the cache), and a second call reads them back."""
+    import dataclasses
+    import shutil
+
+    from torchtrack.detect.bundled import resolve_model
+
+    model = tmp_path / "deep" / "folder" / "candidate.safetensors"
+    model.parent.mkdir(parents=True)
+    shutil.copy(resolve_model("pedestrian"), model)
+    seq = dataclasses.replace(loso.load(data_dir, "TUD-Stadtmitte"), n_frames=2)
+    cache = tmp_path / "cache"
+    rows = loso.own_detections(seq, cache, {"model": str(model)})
+    files = list(cache.iterdir())
+    assert len(files) == 1 and files[0].is_file() and "_candidate_" in files[0].name
+    again = loso.own_detections(seq, cache, {"model": str(model)})
+    assert (again.frames == rows.frames).all() and len(rows.frames) > 0
