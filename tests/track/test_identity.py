@@ -130,3 +130,27 @@ def test_the_smoother_repairs_its_smoothed_tracks_and_waits_for_it():
 def test_a_bad_window_is_a_config_error(bad):
     with pytest.raises(ConfigError, match="identity repair window must be a whole number"):
         SwapRepair(bad)
+
+
+def test_a_swap_drops_the_third_persons_encounters_due_on_the_same_frame():
+    """Two people swapped back while a third stood between them over the same frames: the
+    swap drops the third's encounters with them (their meaning changed) while the same frame's
+    judging still listed them; that was a KeyError in the middle of a run (found on
+    TUD-Stadtmitte with a retrained model)."""
+    stream = []
+    for t, s in _walkers():
+        if 24 <= t <= 36:  # a third person at the meeting point, close to both
+            s = MultiState(
+                torch.cat((s.ids, torch.tensor([3]))),
+                torch.cat(
+                    (s.boxes, torch.tensor([[190.0 - 9.0, 100.0, 18.0, H]], dtype=torch.float64))
+                ),
+                torch.cat((s.confidence, torch.tensor([0.9], dtype=torch.float64))),
+                torch.cat((s.detected, torch.tensor([True]))),
+            )
+        stream.append((t, s))
+    rep, out = _run(stream)
+    assert [f for f, _, _ in rep.swaps] == [37]
+    assert [i for i, *_ in out] == list(range(60))
+    x1 = _x_of(out, 1)
+    assert all(x1[t + 1] > x1[t] for t in range(37, 59))  # 1 walks on right: P

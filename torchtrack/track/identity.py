@@ -147,7 +147,11 @@ class SwapRepair:
     def _judge(self, i: int, final: bool) -> None:
         """Decide the encounters whose ``window`` frames after have come (all of them at the
         end of the stream)."""
-        for key, (t0, t1) in list(self._open.items()):
+        for key in list(self._open):
+            span = self._open.get(key)
+            if span is None:  # dropped by a swap decided in this loop: its meaning changed
+                continue
+            t0, t1 = span
             if final or i >= t1 + self.window:
                 del self._open[key]
                 self._decide(key, t0, t1)
