@@ -8,8 +8,8 @@ Examples::
     torchtrack eval --sequences ../shared/data/tracking --trackers mil camshift \\
         --out runs/eval --backend ray --address 10.0.0.5:6379      # on a Ray cluster
     torchtrack eval --mot ../shared/data/mot/TUD-Stadtmitte --results tud.txt
-    torchtrack eval --mot vtest.avi --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt \\
-        --results pets.txt -o runs/mot
+    torchtrack eval --mot ../shared/data/videos/pets2009_s2l1_vtest/vtest.avi \\
+        --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt --results pets.txt -o runs/mot
 """
 
 from __future__ import annotations
@@ -158,7 +158,8 @@ examples:
   torchtrack eval --mot ../shared/data/mot/TUD-Stadtmitte --results tud.txt
   torchtrack eval --mot MOT15/train --results runs/mine runs/other -o runs/mot
       two trackers' result folders (<sequence name>.txt each) on every MOT15 training sequence
-  torchtrack eval --mot vtest.avi --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt --results pets.txt
+  torchtrack eval --mot ../shared/data/videos/pets2009_s2l1_vtest/vtest.avi \\
+      --gt ../shared/data/mot/PETS09-S2L1/gt/gt.txt --results pets.txt
       a video and its MOT ground truth; the GT scale (x0.625) comes from its seqinfo.ini
 
 MOT results files: frame,id,x,y,w,h,conf[,...] per line, frames and pixels numbered from 1, in
