@@ -106,6 +106,18 @@ def test_eval_mot_folder_and_video(data_dir, tmp_path, capsys, trackeval):
     assert m["fp"] == 0 and m["fn"] == int((~keep).sum()) and m["id_switches"] == 0
     assert summary["command"].startswith("torchtrack eval --mot")
     assert (out / "results.md").is_file()
+    # the same frames as a folder of frames (what `torchtrack track` read) plus the GT file:
+    # the same scores (it said "--gt gives 1 file(s) for 0 video(s)")
+    assert (
+        main(
+            ["eval", "--mot", str(tud / "img1"), "--gt", str(tud / "gt" / "gt.txt"),
+             "--results", str(tmp_path / "res"), "-o", str(tmp_path / "out2")]
+        )
+        == 0
+    )  # fmt: skip
+    capsys.readouterr()
+    again = json.loads((tmp_path / "out2" / "results.json").read_text())
+    assert again["per_sequence"]["TUD-Stadtmitte"]["res"] == m
 
     # the PETS video plus its GT: scale 0.625 from seqinfo.ini; results in video pixels
     video = data_dir / "videos" / "pets2009_s2l1_vtest" / "vtest.avi"

@@ -422,3 +422,37 @@ def test_seqinfo_imext_names_the_frames(tmp_path):
     ini.write_text(ini.read_text().split("imExt=")[0])
     assert read_seqinfo(ini).im_ext is None
     assert len(load_mot_sequence(d).frames) == 3
+
+
+def test_frame_folder_plus_gt_loads_as_a_video_does(tmp_path):
+    """A folder of frames (what `torchtrack track` reads) with a ground-truth file: its frames,
+    its size, and the scale from the seqinfo.ini beside the GT, as for a video; a
+    MOTChallenge folder is not taken for one."""
+    import cv2
+
+    from torchtrack.io.mot import is_frame_folder
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(4):
+        cv2.imwrite(str(frames / f"{k + 1:06d}.png"), np.full((24, 32, 3), 10 * k, np.uint8))
+    gt = _write(tmp_path / "clip_gt.txt", "1,1,1,1,5,5,1\n4,1,2,2,5,5,1\n")
+    seq = load_mot_sequence(frames, gt=gt)
+    assert (seq.name, seq.n_frames, seq.scale, seq.width, seq.height) == ("frames", 4, 1.0, 32, 24)
+    assert seq.video is None and [p.name for p in seq.frames] == [
+        f"{k:06d}.png" for k in (1, 2, 3, 4)
+    ]
+    with seq.open() as src:
+        assert sum(1 for _ in src.items()) == 4
+    d = _mot_folder(tmp_path / "seq", n_frames=4, img=False)  # seqinfo 16x12: frames 2x
+    seq = load_mot_sequence(frames, gt=d / "gt" / "gt.txt")
+    assert seq.name == "Tiny" and seq.scale == 2.0
+    d3 = _mot_folder(tmp_path / "seq3", n_frames=3, img=False)
+    with pytest.raises(SequenceError, match=r"frames has 4 frames but .* seqLength=3"):
+        load_mot_sequence(frames, gt=d3 / "gt" / "gt.txt")
+    beyond = _write(tmp_path / "long.txt", "5,1,2,2,5,5,1\n")
+    with pytest.raises(MotFormatError, match="frame 5 is beyond"):
+        load_mot_sequence(frames, gt=beyond)
+    assert is_frame_folder(frames) and not is_frame_folder(d) and not is_frame_folder(tmp_path)
+    with pytest.raises(SequenceError, match="not a MOTChallenge folder"):
+        load_mot_sequence(frames)  # without its ground truth: no frame folder reading

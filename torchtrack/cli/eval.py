@@ -70,7 +70,8 @@ def register(subparsers) -> None:
         action="extend",
         metavar="SEQ",
         help="MOTChallenge sequence folders (seqinfo.ini, gt/gt.txt, img1/), folders holding "
-        "them (e.g. MOT15/train), or videos whose ground truth --gt gives",
+        "them (e.g. MOT15/train), or videos and folders of frames whose ground truth --gt "
+        "gives",
     )
     mot.add_argument(
         "--results",
@@ -92,7 +93,7 @@ def register(subparsers) -> None:
         action="extend",
         metavar="FILE",
         default=[],
-        help="ground-truth file of each video in --mot, in order",
+        help="ground-truth file of each video or folder of frames in --mot, in order",
     )
     mot.add_argument(
         "--gt-scale",
@@ -284,7 +285,12 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
     from pathlib import Path
 
     from torchtrack.errors import ConfigError
-    from torchtrack.io.mot import SCALE_RANGE, find_mot_sequences, load_mot_sequence
+    from torchtrack.io.mot import (
+        SCALE_RANGE,
+        find_mot_sequences,
+        is_frame_folder,
+        load_mot_sequence,
+    )
     from torchtrack.io.text import text_float
     from torchtrack.io.video import VIDEO_EXTENSIONS
 
@@ -299,11 +305,18 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
             raise ConfigError(
                 f"--gt-scale must be 'auto' or a number in [{lo:g}, {hi:g}], got {gt_scale!r}"
             )
-    videos = [p for p in paths if Path(p).suffix.lower() in VIDEO_EXTENSIONS]
+    # the sources --gt pairs with: videos, and folders of frames (what `torchtrack track`
+    # reads; a MOTChallenge folder carries its own gt/gt.txt)
+    videos = [
+        p
+        for p in paths
+        if Path(p).suffix.lower() in VIDEO_EXTENSIONS or (gts and is_frame_folder(p))
+    ]
     if len(gts) != len(videos):
         raise ConfigError(
-            f"--gt gives {len(gts)} file(s) for {len(videos)} video(s) in --mot: one ground-truth "
-            "file per video, in order (MOTChallenge folders carry their own gt/gt.txt)"
+            f"--gt gives {len(gts)} file(s) for {len(videos)} video(s) or frame folder(s) in "
+            "--mot: one ground-truth file per video or folder of frames, in order "
+            "(MOTChallenge folders carry their own gt/gt.txt)"
         )
     gt_of = dict(zip(videos, gts, strict=True))
     seqs = []

@@ -71,6 +71,7 @@ __all__ = [
     "SeqInfo",
     "find_mot_sequences",
     "format_mot_row",
+    "is_frame_folder",
     "is_mot_folder",
     "load_mot_sequence",
     "read_mot",
@@ -623,11 +624,14 @@ def load_mot_sequence(
     """Load a MOTChallenge folder, or a video plus its ground-truth file (module doc).
 
     Args:
-        path: a MOTChallenge folder or a video file.
-        gt: the ground-truth file (required for a video; default ``gt/gt.txt`` of a folder).
-        scale: factor for the ground truth; ``None``: 1 for a folder, and for a video the
-            ratio of the video's width to the ``imWidth`` of the ``seqinfo.ini`` next to the GT
-            (``<seq>/seqinfo.ini`` for ``<seq>/gt/gt.txt``), 1 when there is none.
+        path: a MOTChallenge folder, a video file, or a folder of frames (images directly in
+            it, no ``seqinfo.ini`` nor ``img1/``: :func:`is_frame_folder`) with ``gt``.
+        gt: the ground-truth file (required for a video and a frame folder; default
+            ``gt/gt.txt`` of a MOTChallenge folder).
+        scale: factor for the ground truth; ``None``: 1 for a MOTChallenge folder, and for a
+            video or a frame folder the ratio of its width to the ``imWidth`` of the
+            ``seqinfo.ini`` next to the GT (``<seq>/seqinfo.ini`` for ``<seq>/gt/gt.txt``), 1
+            when there is none.
 
     Raises:
         SequenceError: neither a MOTChallenge folder nor a video, a video without ``gt``, a
@@ -639,6 +643,8 @@ def load_mot_sequence(
         VideoError: the video cannot be opened.
     """
     p = Path(path)
+    if p.is_dir() and gt is not None and is_frame_folder(p):
+        return _load_frames(p, Path(gt), scale)
     if p.is_dir():
         return _load_folder(p, gt, _resolve_scale(scale), check_size=scale is None)
     if p.is_file() and p.suffix.lower() in VIDEO_EXTENSIONS:
@@ -739,6 +745,33 @@ def _check_frame_size(first: Path, info: SeqInfo, ini: Path) -> None:
         )
 
 
+def is_frame_folder(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder of frames rather than a MOTChallenge folder: it holds image
+    files itself and has neither ``seqinfo.ini`` nor ``img1/`` (what ``torchtrack track``
+    reads as a video)."""
+    p = Path(path)
+    if not p.is_dir() or (p / "seqinfo.ini").is_file() or (p / "img1").is_dir():
+        return False
+    try:
+        return bool(list_image_files(p))
+    except VideoError:  # no image file in it
+        return False
+
+
+def _load_frames(folder: Path, gt_path: Path, scale: float | None) -> MotSequence:
+    """A folder of frames and its ground-truth file, as :func:`_load_video` loads a video."""
+    from torchtrack.errors import DataError
+    from torchtrack.io.video import decode_image
+
+    frames = list_image_files(folder)
+    try:
+        img = decode_image(frames[0])
+        h, w = int(img.shape[0]), int(img.shape[1])
+    except DataError:  # the reader reports it; no size to scale by
+        h = w = 0
+    return _with_gt(folder, folder.name, gt_path, scale, len(frames), w, h, None, frames=frames)
+
+
 def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
     import cv2
 
@@ -754,6 +787,24 @@ def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
         cap.release()
     if n <= 0:
         raise VideoError(f"video file {video} announces no frames")
+    return _with_gt(video, video.stem, gt_path, scale, n, w, h, fps, video=video)
+
+
+def _with_gt(
+    src: Path,
+    stem: str,
+    gt_path: Path,
+    scale: float | None,
+    n: int,
+    w: int,
+    h: int,
+    fps: float | None,
+    *,
+    video: Path | None = None,
+    frames: list[Path] | None = None,
+) -> MotSequence:
+    """A video's or a frame folder's :class:`MotSequence` with the ground truth ``gt_path``
+    (scaled by ``scale``, or by the ``seqinfo.ini`` beside it: :func:`load_mot_sequence`)."""
     if not gt_path.is_file():  # a folder was reported as not existing
         why = "is a folder, not a file" if gt_path.is_dir() else "does not exist"
         raise SequenceError(f"ground-truth file {gt_path} {why}")
@@ -762,7 +813,7 @@ def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
     info = read_seqinfo(ini) if ini is not None and ini.is_file() else None
     if info is not None and info.seq_length != n:
         raise SequenceError(
-            f"{video} has {n} frames but {ini} says seqLength={info.seq_length}: the ground "
+            f"{src} has {n} frames but {ini} says seqLength={info.seq_length}: the ground "
             "truth belongs to another video"
         )
     what = "the ground-truth scale"
@@ -772,18 +823,19 @@ def _load_video(video: Path, gt_path: Path, scale: float | None) -> MotSequence:
             sx, sy = w / info.im_width, h / info.im_height
             if abs(sx - sy) > 0.01 * max(sx, sy):
                 raise SequenceError(
-                    f"{video} is {w}x{h} but {ini} describes {info.im_width}x{info.im_height} "
+                    f"{src} is {w}x{h} but {ini} describes {info.im_width}x{info.im_height} "
                     "frames, another aspect ratio: give the ground-truth scale explicitly"
                 )
             scale = sx
             what = f"the ground-truth scale {w} / imWidth={info.im_width} of {ini}"
     scale = _resolve_scale(scale, what)
     return MotSequence(
-        name=info.name if info is not None else video.stem,
+        name=info.name if info is not None else stem,
         gt=read_mot(gt_path, scale, n, kind="gt"),
         n_frames=n,
         gt_path=gt_path,
         scale=scale,
+        frames=frames,
         video=video,
         det_path=None,
         width=w or None,
