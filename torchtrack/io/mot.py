@@ -547,7 +547,8 @@ class MotSequence:
         n_frames: number of frames.
         gt_path: the ground-truth file.
         scale: the factor applied to the ground truth (and to :meth:`detections`).
-        frames: image files in order (MOTChallenge ``img1/``), else ``None``.
+        frames: image files in order (MOTChallenge ``img1/``, or a folder of frames given
+            with its ground truth), else ``None``.
         video: the video file, else ``None``.
         det_path: the public detections (``det/det.txt``) when present.
         width, height: frame size in pixels when known.
@@ -621,7 +622,8 @@ def load_mot_sequence(
     gt: str | os.PathLike | None = None,
     scale: float | None = None,
 ) -> MotSequence:
-    """Load a MOTChallenge folder, or a video plus its ground-truth file (module doc).
+    """Load a MOTChallenge folder, or a video or a folder of frames plus its ground-truth file
+    (module doc).
 
     Args:
         path: a MOTChallenge folder, a video file, or a folder of frames (images directly in
