@@ -28,6 +28,9 @@ Sequences (:func:`load_mot_sequence`):
 * a **video plus a ground-truth file**: the length and frame size come from the video. When the
   GT file sits in a MOTChallenge folder whose ``seqinfo.ini`` gives a different frame size, the
   scale is that ratio (``scale=None``); the name is then the folder's sequence name.
+* a **folder of frames plus a ground-truth file** (image files directly in the folder, no
+  ``seqinfo.ini`` nor ``img1/``: what ``torchtrack track`` reads): as a video, its length and
+  frame size from the frames.
 
 Every malformed row raises :class:`~torchtrack.errors.MotFormatError` naming the file and the
 line: a wrong number of columns, a non-number, a non-finite value, a frame below 1 or beyond the
