@@ -222,6 +222,18 @@ def test_eval_mot_bad_inputs(tmp_path, capsys, trackeval):
     fails(
         ["--mot", str(tmp_path / "resdir"), "--results", str(res)], "holds no MOTChallenge sequence"
     )
+    # a folder of frames without its ground truth: what to give instead (the sequence above it)
+    import cv2
+    import numpy as np
+
+    seq = _mot_seq(tmp_path / "other")
+    (seq / "img1").mkdir()
+    for k in (1, 2, 3):
+        cv2.imwrite(str(seq / "img1" / f"{k:06d}.png"), np.zeros((8, 8, 3), np.uint8))
+    fails(
+        ["--mot", str(seq / "img1"), "--results", str(res)],
+        f"it is a folder of frames: give its ground truth with --gt, or the MOTChallenge folder {seq}",
+    )
     fails(["--sequences", str(d), "--gt", str(res)], "--gt and --gt-scale go with --mot")
     # GT rows beyond the video's frames
     import cv2

@@ -289,6 +289,7 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
         SCALE_RANGE,
         find_mot_sequences,
         is_frame_folder,
+        is_mot_folder,
         load_mot_sequence,
     )
     from torchtrack.io.text import text_float
@@ -326,9 +327,18 @@ def load_mot_sequences(paths: list[str], gts: list[str], gt_scale: str = "auto")
             continue
         found = find_mot_sequences(p) if Path(p).is_dir() else []
         if Path(p).is_dir() and not found:
+            hint = ""
+            if is_frame_folder(p):  # the frames `track` read: the sequence is the folder above
+                parent = Path(p).parent
+                hint = (
+                    f"; it is a folder of frames: give its ground truth with --gt, or the "
+                    f"MOTChallenge folder {parent}"
+                    if is_mot_folder(parent)
+                    else "; it is a folder of frames: give its ground truth with --gt"
+                )
             raise ConfigError(
                 f"{p} holds no MOTChallenge sequence (a folder with gt/gt.txt and seqinfo.ini or "
-                "img1/, or a folder of such folders)"
+                f"img1/, or a folder of such folders){hint}"
             )
         for d in found or [p]:
             seqs.append(load_mot_sequence(d, scale=scale))
