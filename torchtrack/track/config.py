@@ -239,6 +239,11 @@ class MultiTrackerConfig:
         birth_threshold: detections at least this confident start targets and take part in the
             first association (the model's own scans: its calibrated probability on crops
             under-states how rare a person-like window is in a whole frame, hence 0.9999).
+            Chosen on the bundled pedestrian model: a model trained elsewhere, even the same
+            recipe with another seed, can be surer of twice as many windows (2026-12-02:
+            HOTA -2 to -5 at this value, ``docs/multi_target.md``); choose it again for such a
+            model (``python tools/loso_multi.py --set model=FILE --grid
+            birth_threshold=...``).
         birth_floor: on video where the detector is less sure of everyone (low contrast,
             noise, a camera or scene unlike its training crops), ``birth_threshold`` adapts down
             to the video's own level: ``birth_margin`` logits below the median of the last
