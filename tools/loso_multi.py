@@ -8,7 +8,10 @@ candidates are then judged the way the defaults are chosen (docs/multi_target.md
   settings and cached under ``--cache`` (the same boxes and probabilities the tracker's scan
   gives), on PETS09-S2L1 and TUD-Stadtmitte. Leave one sequence out: the value that is best on
   one sequence, scored on the other, is the honest estimate of what the choice is worth on a
-  sequence nobody tuned on.
+  sequence nobody tuned on. The cache is a MOT file, its probabilities written to 6 significant
+  digits: a probability above 0.9999995 reads back as 1, so a grid over `birth_threshold`
+  values above 0.999999 (or a model surer than that of its best windows, whose video level
+  `birth_floor` reads) is resolved only by `--live` runs.
 * **outside detections**, a check that the choice is not specific to our detector: the MOT15
   public detections of TUD-Stadtmitte (scores divided by their largest, as the CLI does) and
   the ground-truth boxes with 10% dropped and 2 px jitter (the tracker's ceiling; the same
