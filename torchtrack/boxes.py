@@ -10,11 +10,10 @@ subtracts 1.
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 
-from torchtrack.errors import BoxError, ConfigError, ShapeError
+from torchtrack.errors import BoxError, ConfigError, ShapeError, is_number
 
 __all__ = [
     "box_area",
@@ -190,7 +189,7 @@ def check_boxes(
     if frame_size is not None:
         _check_frame_size(frame_size)
     # True was a minimum of 1 pixel, '1' a TypeError, NaN a 'size below nan pixel(s)' BoxError
-    if _is_bool(min_size) or not isinstance(min_size, numbers.Real) or not math.isfinite(min_size):
+    if not is_number(min_size) or not math.isfinite(min_size):
         raise ConfigError(f"check_boxes: min_size must be a finite number, got {min_size!r}")
     if boxes.numel() == 0:
         return

@@ -55,7 +55,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from torchtrack.boxes import _check_last4, box_iou
-from torchtrack.errors import ConfigError, DataError, ShapeError
+from torchtrack.errors import ConfigError, DataError, ShapeError, is_integer
 
 __all__ = [
     "BREAK_PX",
@@ -213,7 +213,7 @@ def losses_and_reacquisitions(hit: torch.Tensor, min_run: int = LOSS_FRAMES) -> 
             miss as a re-acquisition).
     """
     _check_flags(hit, "hit", "losses_and_reacquisitions")
-    if isinstance(min_run, bool) or not hasattr(min_run, "__index__") or int(min_run) < 1:
+    if not is_integer(min_run) or min_run < 1:
         raise ConfigError(
             f"losses_and_reacquisitions: min_run must be an integer >= 1, got {min_run!r}"
         )

@@ -286,9 +286,7 @@ def texture_blocks(codes: torch.Tensor, blocks: str = "riu2") -> torch.Tensor:
             raise ShapeError(f"texture_blocks: codes must be in 0..255, got {lo}..{hi}")
     if blocks == "full":
         return codes
-    if blocks == "riu2":
-        return RIU2_TABLE.to(codes.device)[codes.long()]
-    raise ConfigError(f"unknown texture blocks {blocks!r}; valid: full, riu2")
+    return RIU2_TABLE.to(codes.device)[codes.long()]
 
 
 def quantize_colour(colour: torch.Tensor, bins: int = 32) -> torch.Tensor:

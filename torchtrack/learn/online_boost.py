@@ -43,7 +43,7 @@ from typing import Any
 
 import torch
 
-from torchtrack.errors import ConfigError, DataError, ShapeError
+from torchtrack.errors import ConfigError, DataError, ShapeError, is_integer, is_number
 from torchtrack.filter._random import randint
 from torchtrack.learn._base import check_fitted
 
@@ -88,10 +88,10 @@ class OnlineRealBoost:
     def _check_params(self) -> None:
         for name in ("n_selectors", "n_candidates", "n_bins"):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            if not is_integer(v) or v < 1:
                 raise ConfigError(f"OnlineRealBoost: {name} must be an integer >= 1, got {v!r}")
         eps = self.eps  # True was an eps of 1, inf made every weak hypothesis 0
-        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0 < eps < math.inf:
+        if not is_number(eps) or not 0 < eps < math.inf:
             raise ConfigError(f"OnlineRealBoost: eps must be a finite number > 0, got {eps!r}")
 
     def _check_codes(self, codes: Any) -> torch.Tensor:

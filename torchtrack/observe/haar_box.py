@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F
 
-from torchtrack.errors import ConfigError, ShapeError, is_number
+from torchtrack.errors import ConfigError, ShapeError, is_integer, is_number
 
 __all__ = ["HaarBoxFeatures", "HaarBoxLikelihood"]
 
@@ -212,7 +212,7 @@ class HaarBoxLikelihood:
             raise ConfigError(f"alpha must be finite, got {alpha.tolist()}")
         if not is_number(bias) or not math.isfinite(bias):
             raise ConfigError(f"bias must be a finite number, got {bias!r}")
-        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        if not is_integer(chunk) or chunk < 1:
             raise ConfigError(f"chunk must be a positive integer, got {chunk!r}")
         self.to_boxes = to_boxes
         self.features = features
